@@ -1,0 +1,145 @@
+"""Content-hash keyed cache for derived data (parsed meshes, operators, eigenbases, ...).
+
+A key covers every input that changes the value (arrays are hashed by dtype, shape and bytes).
+Entries are written atomically (temporary file + rename) with a SHA-256 of their bytes beside
+them; a read that does not verify, or cannot be parsed, is treated as a miss and rebuilt.
+Location: ``Cache(root)``, else ``$FWK_CACHE``, else ``~/.cache/fwk``.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import pickle
+import tempfile
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+
+def _feed(h, obj) -> None:
+    if isinstance(obj, np.ndarray):
+        a = np.ascontiguousarray(obj)
+        h.update(f"nd{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    elif isinstance(obj, (list, tuple)):
+        h.update(f"seq{type(obj).__name__}{len(obj)}(".encode())
+        for x in obj:
+            _feed(h, x)
+        h.update(b")")
+    elif isinstance(obj, dict):
+        h.update(f"map{len(obj)}(".encode())
+        for k in sorted(obj, key=repr):
+            _feed(h, k)
+            _feed(h, obj[k])
+        h.update(b")")
+    elif hasattr(obj, "content_hash"):
+        h.update(f"obj{type(obj).__name__}{obj.content_hash()}".encode())
+    else:
+        h.update(f"{type(obj).__name__}:{obj!r}".encode())
+
+
+def content_key(*parts: Any) -> str:
+    """A stable hex key of arrays, numbers, strings and (nested) containers."""
+    h = hashlib.sha256()
+    for p in parts:
+        _feed(h, p)
+    return h.hexdigest()[:32]
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+class Cache:
+    def __init__(self, root: str | os.PathLike | None = None, enabled: bool = True):
+        root = root or os.environ.get("FWK_CACHE") or Path.home() / ".cache" / "fwk"
+        self.root = Path(root).expanduser()
+        self.enabled = enabled
+
+    def _paths(self, namespace: str, key: str) -> tuple[Path, Path]:
+        d = self.root / namespace
+        return d / f"{key}.bin", d / f"{key}.sha256"
+
+    def load(self, namespace: str, key: str) -> Any | None:
+        data_p, sum_p = self._paths(namespace, key)
+        if not self.enabled or not data_p.exists() or not sum_p.exists():
+            return None
+        try:
+            data = data_p.read_bytes()
+            if hashlib.sha256(data).hexdigest() != sum_p.read_text().strip():
+                return None
+            return pickle.loads(data)
+        except Exception:  # corrupt or unreadable: a miss
+            return None
+
+    def store(self, namespace: str, key: str, value: Any) -> None:
+        if not self.enabled:
+            return
+        data = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
+        data_p, sum_p = self._paths(namespace, key)
+        try:
+            atomic_write_bytes(data_p, data)
+            atomic_write_bytes(sum_p, hashlib.sha256(data).hexdigest().encode())
+        except OSError:  # a read-only or full cache must not fail the computation
+            pass
+
+    def get_or_build(self, namespace: str, key_parts: tuple, build: Callable[[], Any]) -> Any:
+        """Return the cached value for ``key_parts`` or build, store and return it."""
+        key = content_key(namespace, *key_parts)
+        value = self.load(namespace, key)
+        if value is None:
+            value = build()
+            self.store(namespace, key, value)
+        return value
+
+    def array_path(self, namespace: str, key_parts: tuple) -> Path:
+        """A path for a large .npy array (memory-mapped by the caller) keyed by content."""
+        return self.root / namespace / f"{content_key(namespace, *key_parts)}.npy"
+
+    def memmap_array(self, namespace: str, key_parts: tuple, build: Callable[[], np.ndarray]) -> np.ndarray:
+        """A read-only memory-mapped cached array; rebuilt if missing or unreadable."""
+        p = self.array_path(namespace, key_parts)
+        sum_p = p.with_suffix(".sha256")
+        if self.enabled and p.exists() and sum_p.exists():
+            try:
+                arr = np.load(p, mmap_mode="r")
+                meta = f"{arr.dtype.str}{arr.shape}{p.stat().st_size}"
+                if sum_p.read_text().strip() == meta:
+                    return arr
+            except Exception:
+                pass
+        arr = np.ascontiguousarray(build())
+        if not self.enabled:
+            return arr
+        buf = io.BytesIO()
+        np.save(buf, arr)
+        try:
+            atomic_write_bytes(p, buf.getvalue())
+            atomic_write_bytes(sum_p, f"{arr.dtype.str}{arr.shape}{p.stat().st_size}".encode())
+            return np.load(p, mmap_mode="r")
+        except OSError:
+            return arr
+
+
+_DEFAULT: Cache | None = None
+
+
+def default_cache() -> Cache:
+    global _DEFAULT
+    if _DEFAULT is None or str(_DEFAULT.root) != str(Path(os.environ.get("FWK_CACHE") or Path.home() / ".cache" / "fwk").expanduser()):
+        _DEFAULT = Cache()
+    return _DEFAULT

@@ -1,0 +1,154 @@
+"""Template (one shared topology) and MeshCollection (shapes by subject x shape name)."""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+
+@dataclass(eq=False)
+class Template:
+    """The shared topology of a dataset, and a reference shape on it.
+
+    vertices      (n, 3) float64, a reference shape (the dataset's generic neutral or mean)
+    triangles     (m, 3) int64, every polygon fan-triangulated from its first corner
+    poly_vertices flat int64 vertex indices of the original polygons, in file order
+    poly_offsets  (P + 1,) int64: polygon p is poly_vertices[poly_offsets[p]:poly_offsets[p+1]]
+    uvs           (t, 2) float64 texture coordinates (OBJ ``vt``), or None
+    poly_uvs      flat int64 ``vt`` indices aligned with poly_vertices (-1: none), or None
+    obj_extra     OBJ lines that are not v/vt/f (mtllib, usemtl, g, o, s ...) as
+                  (number of polygons written before the line, line) so a mesh is written back
+                  exactly as the user's file had it
+    regions       name -> vertex indices (e.g. ``face``, ``eyes``)
+    landmarks     name -> vertex index
+    units         the input units (``cm``, ``mm``, ``unit``)
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    poly_vertices: np.ndarray | None = None
+    poly_offsets: np.ndarray | None = None
+    uvs: np.ndarray | None = None
+    poly_uvs: np.ndarray | None = None
+    obj_extra: list[tuple[int, str]] = field(default_factory=list)
+    regions: dict[str, np.ndarray] = field(default_factory=dict)
+    landmarks: dict[str, int] = field(default_factory=dict)
+    units: str = "unit"
+    name: str = "template"
+
+    def __post_init__(self):
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64)
+        self.triangles = np.ascontiguousarray(self.triangles, dtype=np.int64)
+        if self.poly_vertices is None:  # a triangle mesh: the polygons are the triangles
+            self.poly_vertices = self.triangles.reshape(-1).copy()
+            self.poly_offsets = np.arange(0, 3 * len(self.triangles) + 1, 3, dtype=np.int64)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_polygons(self) -> int:
+        return int(len(self.poly_offsets) - 1)
+
+    @cached_property
+    def edges(self) -> np.ndarray:
+        """(e, 2) unique undirected edges of the triangulation, i < j, sorted."""
+        t = self.triangles
+        e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+        e.sort(axis=1)
+        return np.unique(e, axis=0)
+
+    @cached_property
+    def components(self) -> np.ndarray:
+        """(n,) int64 connected-component label of every vertex (isolated vertices get their own)."""
+        import scipy.sparse as sp
+        from scipy.sparse.csgraph import connected_components
+
+        n = self.n_vertices
+        e = self.edges
+        A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+        _, labels = connected_components(A, directed=False)
+        return labels.astype(np.int64)
+
+    @property
+    def n_components(self) -> int:
+        return int(self.components.max()) + 1 if self.n_vertices else 0
+
+    def topology_hash(self) -> str:
+        """Hash of what defines the topology (vertex count and polygons), not the positions."""
+        h = hashlib.sha256()
+        h.update(np.int64(self.n_vertices).tobytes())
+        h.update(np.ascontiguousarray(self.triangles).tobytes())
+        return h.hexdigest()[:16]
+
+    def content_hash(self) -> str:
+        """Hash of topology and reference positions (for cached geometry of this shape)."""
+        h = hashlib.sha256(self.topology_hash().encode())
+        h.update(np.ascontiguousarray(self.vertices).tobytes())
+        return h.hexdigest()[:16]
+
+    def with_vertices(self, vertices: np.ndarray) -> "Template":
+        """The same topology and metadata on other positions."""
+        import dataclasses
+
+        return dataclasses.replace(self, vertices=np.asarray(vertices, dtype=np.float64))
+
+
+@dataclass(eq=False)
+class MeshCollection:
+    """Shapes of many subjects on one template.
+
+    positions  (S, E, n, 3) float64 (may be a read-only memmap), in the dataset's units
+    present    (S, E) bool: which subject has which shape (a missing shape is all-NaN)
+    subjects   S subject ids; shape_names E shape names, ``neutral`` first where present
+    """
+
+    template: Template
+    subjects: list[str]
+    shape_names: list[str]
+    positions: np.ndarray
+    present: np.ndarray | None = None
+    name: str = "collection"
+
+    def __post_init__(self):
+        S, E = len(self.subjects), len(self.shape_names)
+        if self.positions.shape[:2] != (S, E) or self.positions.shape[2:] != (self.template.n_vertices, 3):
+            raise ValueError(
+                f"positions has shape {self.positions.shape}, expected ({S}, {E}, {self.template.n_vertices}, 3)"
+            )
+        if self.present is None:
+            self.present = np.ones((S, E), dtype=bool)
+
+    @property
+    def units(self) -> str:
+        return self.template.units
+
+    def shape_index(self, shape: str) -> int:
+        from ..errors import DataError
+        from ..registry import did_you_mean
+
+        try:
+            return self.shape_names.index(shape)
+        except ValueError:
+            raise DataError(
+                f"dataset {self.name} has no shape {shape!r}{did_you_mean(shape, self.shape_names)} "
+                f"(shapes: {', '.join(self.shape_names)})"
+            ) from None
+
+    def shape(self, shape: str) -> np.ndarray:
+        """(S, n, 3) one shape of every subject."""
+        return self.positions[:, self.shape_index(shape)]
+
+    def select(self, subject_idx) -> "MeshCollection":
+        idx = np.asarray(subject_idx, dtype=np.int64)
+        return MeshCollection(
+            self.template,
+            [self.subjects[i] for i in idx],
+            list(self.shape_names),
+            np.asarray(self.positions[idx]),
+            self.present[idx],
+            self.name,
+        )

@@ -1,0 +1,26 @@
+"""Errors a user sees. Anything that is an FwkError is the user's to fix (a recipe key, a file,
+a topology) and is printed as one sentence without a traceback; everything else is a bug."""
+
+
+class FwkError(Exception):
+    """A user-facing error: one sentence that names the thing to fix."""
+
+
+class RecipeError(FwkError):
+    """A recipe key, value or component name is wrong. The message starts with the key path."""
+
+
+class PluginError(FwkError):
+    """A plugin could not be loaded, or two plugins register the same name."""
+
+
+class UnknownComponentError(RecipeError):
+    """A recipe names a component that no plugin registers."""
+
+
+class DataError(FwkError):
+    """A mesh file or dataset is missing, unreadable or inconsistent. The message names the file."""
+
+
+class TopologyError(DataError):
+    """A mesh does not share the template's topology. The message names the file and what differs."""
