@@ -1,0 +1,158 @@
+"""The ``fwk`` command: list | show | run | eval | report | sample | apply.
+
+A user's mistake (an FwkError) prints one line and exits 2; ``--debug`` shows the traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import inspect
+import os
+import sys
+import textwrap
+
+from .errors import FwkError
+from .hookspecs import KINDS
+
+# Subcommands whose logic lives in their own modules: (module, add_parser, run).
+EXTRA_COMMANDS = {
+    "eval": ("fwk.evaluation.cli_eval", "add_eval_parser", "run_eval"),
+    "report": ("fwk.evaluation.cli_report", "add_report_parser", "run_report"),
+    "sample": ("fwk.generate", "add_sample_parser", "run_sample"),
+    "apply": ("fwk.apply", "add_apply_parser", "run_apply"),
+}
+
+
+def _registry():
+    from .plugins import get_registry
+
+    return get_registry()
+
+
+def cmd_list(args) -> int:
+    reg = _registry()
+    kinds = [args.kind] if args.kind else list(KINDS)
+    if args.kind and args.kind not in KINDS:
+        from .registry import did_you_mean
+
+        raise FwkError(f"--kind {args.kind}: unknown kind{did_you_mean(args.kind, KINDS)} (kinds: {', '.join(KINDS)})")
+    rows = [(e.name, e.kind, e.plugin, e.version, e.summary) for e in reg if e.kind in kinds]
+    head = ("name", "kind", "plugin", "version", "summary")
+    widths = [max(len(str(r[i])) for r in [head, *rows]) for i in range(4)]
+    print("  ".join(h.ljust(w) for h, w in zip(head[:4], widths)) + "  " + head[4])
+    for r in rows:
+        print("  ".join(str(c).ljust(w) for c, w in zip(r[:4], widths)) + "  " + r[4])
+    for b in reg.broken:
+        print(f"broken plugin {b.plugin}: {b.error}", file=sys.stderr)
+    return 0
+
+
+def describe(kind: str, name: str) -> str:
+    reg = _registry()
+    entry = reg.entry(kind, name)
+    cls = entry.component
+    lines = [f"{kind} {name}  (plugin {entry.plugin} {entry.version})".rstrip(), ""]
+    doc = inspect.getdoc(cls) or ""
+    lines += [doc, ""] if doc else []
+    sig = inspect.signature(cls.__init__)
+    lines.append("parameters:")
+    any_p = False
+    for pname, p in sig.parameters.items():
+        if pname == "self" or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
+            continue
+        any_p = True
+        ann = "" if p.annotation is p.empty else (p.annotation if isinstance(p.annotation, str) else inspect.formatannotation(p.annotation))
+        default = "(required)" if p.default is p.empty else f"= {p.default!r}"
+        lines.append(f"  {pname}: {ann} {default}".replace(":  ", ": "))
+    if not any_p:
+        lines.append("  (none)")
+    module = sys.modules.get(cls.__module__)
+    mdoc = inspect.getdoc(module) if module else None
+    if mdoc:
+        lines += ["", "method:", textwrap.indent(mdoc, "  ")]
+    return "\n".join(lines)
+
+
+def cmd_show(args) -> int:
+    if args.kind not in KINDS:
+        from .registry import did_you_mean
+
+        raise FwkError(f"unknown kind {args.kind!r}{did_you_mean(args.kind, KINDS)} (kinds: {', '.join(KINDS)})")
+    print(describe(args.kind, args.name))
+    return 0
+
+
+def cmd_run(args) -> int:
+    from .runs import execute
+
+    if not args.recipe and not args.resume:
+        raise FwkError("fwk run: give a recipe file, or --resume RUN_DIR")
+    recipe = args.recipe
+    overrides = list(args.overrides or [])
+    if recipe and "=" in recipe and not os.path.exists(recipe):
+        raise FwkError(f"fwk run: the first argument must be a recipe file, got {recipe!r}")
+    run_dir = execute(recipe, overrides, runs_dir=args.runs_dir, resume=args.resume, quiet=args.quiet,
+                      device=args.device)
+    print(run_dir)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="fwk", description="Deep 3D morphable models of registered face meshes.")
+    p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or messages")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    sp = sub.add_parser("list", help="list registered components")
+    sp.add_argument("--kind", help=f"one of: {', '.join(KINDS)}")
+    sp.set_defaults(func=cmd_list)
+    sp = sub.add_parser("show", help="describe a component: parameters, defaults, docs")
+    sp.add_argument("kind")
+    sp.add_argument("name")
+    sp.set_defaults(func=cmd_show)
+    sp = sub.add_parser("run", help="run a recipe: fwk run RECIPE [key=value ...] [--resume RUN_DIR]")
+    sp.add_argument("recipe", nargs="?")
+    sp.add_argument("overrides", nargs="*", metavar="key=value")
+    sp.add_argument("--resume", metavar="RUN_DIR", help="continue a killed run to the same final result")
+    sp.add_argument("--runs-dir", help="where run directories go (default ./runs or $FWK_RUNS_DIR)")
+    sp.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda when available")
+    sp.set_defaults(func=cmd_run)
+    for name, (mod, add, run) in EXTRA_COMMANDS.items():
+        try:
+            m = importlib.import_module(mod)
+        except ImportError as exc:
+            if getattr(exc, "name", "") and not str(getattr(exc, "name")).startswith("fwk"):
+                raise
+            continue
+        sp = getattr(m, add)(sub)
+        sp.set_defaults(func=getattr(m, run))
+    return p
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    if "--quiet" in argv and argv.index("--quiet") > 0:  # accept --quiet anywhere
+        argv.remove("--quiet")
+        argv.insert(0, "--quiet")
+    if debug:
+        argv.remove("--debug")
+        argv.insert(0, "--debug")
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "quiet", False):
+        os.environ["FWK_QUIET"] = "1"
+    try:
+        return int(args.func(args) or 0)
+    except FwkError as exc:
+        if debug:
+            raise
+        print(f"fwk: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("fwk: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,285 @@
+"""Run directories and the run context every task and model receives.
+
+``fwk run recipes/x.yaml`` writes ``runs/<name>-<UTC yyyymmdd-HHMMSS>/`` (or under
+``--runs-dir`` / ``FWK_RUNS_DIR``), never overwriting; every file is written atomically.
+A user's mistake found while validating writes no run directory; one found while running
+(a bad mesh file, say) removes the directory this invocation created.
+"""
+from __future__ import annotations
+
+import copy
+import datetime as _dt
+import io
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+import yaml
+
+from .cache import Cache, atomic_write_bytes
+from .errors import FwkError, RecipeError
+from .registry import Registry
+
+SCOPED = ("checkpoints", "tb")
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    from .recipes import to_plain
+
+    return to_plain(o)
+
+
+def write_json(path: Path, obj) -> None:
+    atomic_write_bytes(Path(path), (json.dumps(obj, indent=2, default=_json_default, allow_nan=True) + "\n").encode())
+
+
+class RunContext:
+    """Where a run writes, and the shared services it uses (see COMMON contract in docs)."""
+
+    def __init__(self, run_dir: Path, registry: Registry, cache: Cache | None = None, seed: int = 0,
+                 recipe: dict | None = None, train=None, device: str | None = None, quiet: bool = False,
+                 resume: bool = False, scope: str | None = None, log_file: Path | None = None):
+        from .engine import TrainConfig
+
+        self.run_dir = Path(run_dir)
+        self.registry = registry
+        self.cache = cache or Cache()
+        self.seed = int(seed)
+        self.recipe = recipe or {}
+        self.train = train if train is not None else TrainConfig()
+        if device is None:
+            try:
+                import torch
+
+                device = "cuda" if torch.cuda.is_available() else "cpu"
+            except Exception:  # pragma: no cover
+                device = "cpu"
+        self.device = device
+        self.quiet = quiet
+        self.resume = resume
+        self.scope = scope
+        self.log_file = log_file if log_file is not None else self.run_dir / "log.txt"
+
+    # files -------------------------------------------------------------------------
+    def path(self, *parts) -> Path:
+        parts = [str(p) for p in parts]
+        if self.scope and parts and parts[0] in SCOPED:
+            parts = [parts[0], self.scope, *parts[1:]]
+        p = self.run_dir.joinpath(*parts)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+    def write_json(self, rel, obj) -> Path:
+        p = self.path(rel)
+        write_json(p, obj)
+        return p
+
+    def write_text(self, rel, text: str) -> Path:
+        p = self.path(rel)
+        atomic_write_bytes(p, text.encode())
+        return p
+
+    def save_npz(self, rel, **arrays) -> Path:
+        p = self.path(rel)
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        atomic_write_bytes(p, buf.getvalue())
+        return p
+
+    def save_torch(self, rel, obj) -> Path:
+        import torch
+
+        p = self.path(rel)
+        buf = io.BytesIO()
+        torch.save(obj, buf)
+        atomic_write_bytes(p, buf.getvalue())
+        return p
+
+    # output ------------------------------------------------------------------------
+    def log(self, msg: str) -> None:
+        if not self.quiet:
+            print(msg, flush=True)
+        try:
+            self.log_file.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.log_file, "a") as f:
+                f.write(msg.rstrip("\n") + "\n")
+        except OSError:
+            pass
+
+    def progress(self, iterable: Iterable, desc: str = "", total: int | None = None, **kw):
+        from tqdm.auto import tqdm
+
+        disable = self.quiet or not sys.stderr.isatty()
+        return tqdm(iterable, desc=desc, total=total, disable=disable, leave=False, dynamic_ncols=True, **kw)
+
+    # components --------------------------------------------------------------------
+    def build(self, kind: str, spec, *args, **extra):
+        from .recipes import Spec, make_spec
+
+        if not isinstance(spec, Spec):
+            spec = make_spec(kind, spec, kind, self.registry)
+        return spec.build(*args, **extra)
+
+    def child(self, name: str) -> "RunContext":
+        c = copy.copy(self)
+        c.run_dir = self.run_dir / name
+        c.log_file = self.log_file  # one log for the whole run
+        c.scope = None
+        c.run_dir.mkdir(parents=True, exist_ok=True)
+        return c
+
+    def scoped(self, label: str) -> "RunContext":
+        """The same run; checkpoints and TensorBoard events go under ``<kind>/<label>/``."""
+        c = copy.copy(self)
+        c.scope = f"{self.scope}/{label}" if self.scope else label
+        return c
+
+
+def make_test_context(tmp_path, seed: int = 0, registry: Registry | None = None, **train_overrides) -> RunContext:
+    """A real RunContext for tests: quiet, CPU, its own cache under tmp_path."""
+    from .engine import TrainConfig
+    from .plugins import get_registry
+
+    train = TrainConfig(**train_overrides) if train_overrides else TrainConfig(epochs=2, batch_size=8)
+    if not train_overrides:
+        pass
+    tmp_path = Path(tmp_path)
+    return RunContext(tmp_path / "run", registry or get_registry(), Cache(tmp_path / "cache"), seed=seed,
+                      train=train, device="cpu", quiet=True)
+
+
+# ----------------------------------------------------------------------------- run dirs
+
+def runs_root(runs_dir: str | None = None) -> Path:
+    return Path(runs_dir or os.environ.get("FWK_RUNS_DIR") or "runs")
+
+
+def new_run_dir(root: Path, name: str) -> Path:
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%S")
+    root.mkdir(parents=True, exist_ok=True)
+    base = root / f"{name}-{stamp}"
+    p, i = base, 1
+    while True:
+        try:
+            p.mkdir(parents=False, exist_ok=False)
+            return p
+        except FileExistsError:
+            i += 1
+            p = Path(f"{base}-{i}")
+
+
+def versions(registry: Registry) -> dict:
+    import fwk
+
+    out = {"python": sys.version.split()[0], "platform": platform.platform(), "fwk": fwk.__version__}
+    for mod in ("numpy", "scipy", "torch", "lightning", "torch_geometric", "trimesh", "pyvista", "open3d"):
+        try:
+            m = __import__(mod)
+            out[mod] = getattr(m, "__version__", "")
+        except Exception:
+            pass
+    out["plugins"] = {}
+    for e in registry:
+        out["plugins"].setdefault(e.plugin, e.version)
+    try:
+        here = Path(__file__).resolve().parent
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
+        if commit.returncode == 0:
+            out["git_commit"] = commit.stdout.strip()
+    except Exception:
+        pass
+    return out
+
+
+def run_task(resolved, ctx: RunContext) -> None:
+    """Build the recipe's task and run it in ``ctx``."""
+    task = resolved.task.build()
+    task.run(ctx)
+
+
+def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str | None = None,
+            resume: str | None = None, quiet: bool = False, registry: Registry | None = None,
+            cache: Cache | None = None, device: str | None = None) -> Path:
+    """``fwk run``: validate everything first, then create the run directory and run."""
+    from .plugins import get_registry
+    from .recipes import load_recipe, resolve, to_plain
+
+    registry = registry or get_registry()
+    if resume:
+        run_dir = Path(resume)
+        if not (run_dir / "recipe.yaml").exists():
+            raise FwkError(f"--resume {resume}: not a run directory (no recipe.yaml)")
+        data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
+        if recipe_path:
+            fresh = load_recipe(recipe_path, overrides)
+            fresh.pop("_source", None)
+            if to_plain(fresh) != {k: v for k, v in data.items() if k != "_source"}:
+                raise FwkError(f"--resume {resume}: the recipe differs from the one the run was started with")
+        resolved = resolve(data, registry)
+        created = False
+    else:
+        data = load_recipe(recipe_path, overrides)
+        resolved = resolve(data, registry)
+        run_dir = new_run_dir(runs_root(runs_dir), resolved.name)
+        created = True
+    try:
+        ctx = RunContext(run_dir, registry, cache, resolved.seed, recipe=resolved.data, train=resolved.train,
+                         device=device, quiet=quiet, resume=bool(resume))
+        if created:
+            plain = {k: v for k, v in resolved.data.items() if k != "_source"}
+            ctx.write_text("recipe.yaml", yaml.safe_dump(plain, sort_keys=False))
+            ctx.write_json("versions.json", versions(registry))
+        ctx.log(f"fwk run {resolved.name}: task {resolved.task.name}, run directory {run_dir}")
+        run_task(resolved, ctx)
+        ctx.log(f"done: {run_dir}")
+    except FwkError:
+        if created:
+            shutil.rmtree(run_dir, ignore_errors=True)
+        raise
+    return run_dir
+
+
+@dataclass
+class LoadedRun:
+    """A finished run reopened: its recipe, context (writing into the same run directory) and files."""
+
+    run_dir: Path
+    recipe: dict
+    resolved: Any
+    ctx: RunContext
+    metrics: dict = field(default_factory=dict)
+
+
+def load_run(run_dir, registry: Registry | None = None, quiet: bool = True) -> LoadedRun:
+    from .plugins import get_registry
+    from .recipes import resolve
+
+    run_dir = Path(run_dir)
+    if not (run_dir / "recipe.yaml").exists():
+        raise FwkError(f"{run_dir}: not a run directory (no recipe.yaml)")
+    registry = registry or get_registry()
+    data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
+    try:
+        resolved = resolve(data, registry)
+    except RecipeError as exc:
+        raise FwkError(f"{run_dir}/recipe.yaml no longer validates: {exc}") from None
+    ctx = RunContext(run_dir, registry, None, resolved.seed, recipe=data, train=resolved.train, quiet=quiet)
+    metrics = {}
+    if (run_dir / "metrics.json").exists():
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+    return LoadedRun(run_dir, data, resolved, ctx, metrics)

@@ -1,0 +1,47 @@
+"""Reusable contract suites (one per kind) and test helpers for built-in and third-party plugins.
+
+Subclass a suite in your own tests::
+
+    from fwk.testing.metric import MetricContract
+    class TestMyMetric(MetricContract):
+        component = MyMetric
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+ICT_ENV = "FWK_ICT_PATH"
+
+
+def ict_path() -> Path | None:
+    """The unpacked ICT-FaceKit FaceXModel folder, or None when it is not available.
+
+    Looks at ``$FWK_ICT_PATH``, then ``shared/data/ict-facekit`` beside or above the repo
+    (unpacking the archive with its ``unpack`` script when only the archive is there).
+    """
+    env = os.environ.get(ICT_ENV)
+    if env:
+        p = Path(env)
+        return p if (p / "generic_neutral_mesh.obj").exists() else None
+    here = Path(__file__).resolve()
+    for base in [Path.cwd(), *here.parents]:
+        d = base / ".." / "shared" / "data" / "ict-facekit"
+        if (d / "FaceXModel" / ".complete").exists():
+            return (d / "FaceXModel").resolve()
+        if (d / "unpack").exists() and (d / "FaceXModel.tar.xz").exists():
+            try:
+                out = subprocess.run(["sh", str(d / "unpack")], capture_output=True, text=True, timeout=300)
+                p = Path(out.stdout.strip().splitlines()[-1]) if out.returncode == 0 and out.stdout.strip() else None
+                if p and (p / "generic_neutral_mesh.obj").exists():
+                    return p.resolve()
+            except Exception:
+                return None
+    return None
+
+
+ICT_SKIP_REASON = (
+    "ICT-FaceKit FaceXModel not found: run ../shared/data/ict-facekit/unpack or set FWK_ICT_PATH "
+    "to the FaceXModel folder"
+)

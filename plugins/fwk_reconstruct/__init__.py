@@ -1,0 +1,159 @@
+"""Task ``reconstruct``: fit or train models on the train split and evaluate reconstructions.
+
+The data flow of DESIGN.md: dataset -> split by subject (saved as ``split.json``) ->
+preprocessing fitted on the training neutrals (centring, rigid registration to the mean
+neutral, one uniform scale into [-1, 1]; thesis 3.3.8; saved under ``stats/``) -> each model
+learns from the training shapes (``model.fit``) -> ``model.reconstruct`` on every split ->
+metrics against the ground truth in the evaluation space (the thesis's space) and in the
+dataset's own units -> ``metrics.json``, ``report.md`` with tables, renders with error maps
+and the L1/DAME scatter with its Pareto front.
+"""
+from __future__ import annotations
+
+import time
+from typing import Annotated
+
+import numpy as np
+
+from fwk.data.preprocess import PreprocessConfig, Preprocessor
+from fwk.data.split import SplitConfig, split_subjects
+from fwk.errors import RecipeError
+from fwk.hookspecs import hookimpl
+from fwk.protocols import FitData
+from fwk.recipes import Kind, Spec
+
+DEFAULT_METRICS = ["l1", "l2", "euclidean", "dame", "fmpd"]
+SPLITS = ("train", "val", "test")
+
+
+def prepare(collection, split_cfg, pre_cfg, seed, ctx, neutral: str = "neutral"):
+    """Split by subject and preprocess; saves split.json and stats/preprocess.npz.
+
+    Returns (split dict, Preprocessor, eval-space collections per split, transforms per split).
+    """
+    split = split_subjects(collection.subjects, split_cfg, seed)
+    ctx.write_json("split.json", split)
+    index = {s: i for i, s in enumerate(collection.subjects)}
+    j = collection.shape_index(neutral)
+    tr = np.array([index[s] for s in split["train"]])
+    pre = Preprocessor(pre_cfg).fit(np.asarray(collection.positions[tr, j]))
+    ctx.save_npz("stats/preprocess.npz", **pre.state_dict())
+    cols, transforms = {}, {}
+    for name in SPLITS:
+        idx = np.array([index[s] for s in split[name]], dtype=np.int64)
+        sub = collection.select(idx)
+        X, T = pre.transform(np.asarray(sub.positions), np.asarray(sub.positions[:, j]))
+        sub.positions = X
+        cols[name], transforms[name] = sub, T
+    return split, pre, cols, transforms
+
+
+class Reconstruct:
+    """Train/fit models on the train split and evaluate reconstructions on train/val/test."""
+
+    name = "reconstruct"
+
+    def __init__(
+        self,
+        dataset: Annotated[Spec, Kind("dataset")] = "synthetic-heads",
+        models: Annotated[dict[str, Spec], Kind("model")] | None = None,
+        split: SplitConfig | None = None,
+        preprocess: PreprocessConfig | None = None,
+        shapes: list[str] | None = None,
+        metrics: Annotated[list[Spec], Kind("metric")] | None = None,
+        renders: int = 2,
+        save_predictions: bool = False,
+        write_obj: int = 0,
+    ):
+        if not models:
+            raise RecipeError("models: a reconstruct recipe needs at least one model")
+        self.dataset = dataset
+        self.models = models
+        self.split = split or SplitConfig()
+        self.preprocess = preprocess or PreprocessConfig()
+        self.shapes = shapes or ["neutral"]
+        self.metrics = metrics
+        self.renders = renders
+        self.save_predictions = save_predictions
+        self.write_obj = write_obj
+
+    def run(self, ctx):
+        import torch
+
+        from fwk import evaluation as ev
+
+        ctx.log(f"loading dataset {self.dataset.name}")
+        dataset = self.dataset if not hasattr(self.dataset, "build") else self.dataset.build()
+        col = dataset.load(ctx.cache)
+        for s in self.shapes:
+            col.shape_index(s)
+        split, pre, cols, transforms = prepare(col, self.split, self.preprocess, ctx.seed, ctx)
+        template = col.template.with_vertices(pre.mean_neutral)
+        data = FitData(template, cols["train"], cols["val"], list(self.shapes))
+        metrics = [ctx.build("metric", m) for m in (self.metrics or DEFAULT_METRICS)]
+        ctx.log(f"{len(col.subjects)} subjects ({', '.join(f'{k} {len(v)}' for k, v in split.items())}), "
+                f"{template.n_vertices} vertices, shapes {', '.join(self.shapes)}")
+
+        stacks = {name: FitData(template, cols[name], cols[name], list(self.shapes)).stack("train") for name in SPLITS}
+        results: dict = {"models": {}, "timing": {}, "dataset": {"name": self.dataset.name, "n_vertices": template.n_vertices,
+                         "units": col.units, "scale": float(pre.scale), "subjects": {k: len(v) for k, v in split.items()}}}
+        predictions = {}
+        for label, spec in self.models.items():
+            model = spec.build()
+            family = getattr(model, "task_family", "reconstruct")
+            if family != "reconstruct":
+                raise RecipeError(f"models.{label}: {spec.name} is a {family} model, not a reconstruction model")
+            mctx = ctx.scoped(label)
+            state_path = ctx.run_dir / "models" / f"{label}.pt"
+            t0 = time.perf_counter()
+            if ctx.resume and state_path.exists():
+                ctx.log(f"[{label}] loading the finished model from {state_path}")
+                model.load_state_dict(torch.load(state_path, weights_only=False))
+            else:
+                ctx.log(f"[{label}] fitting {spec.name}")
+                model.fit(data, mctx)
+                ctx.save_torch(f"models/{label}.pt", model.state_dict())
+            fit_s = time.perf_counter() - t0
+            results["models"][label] = {}
+            predictions[label] = {}
+            t0 = time.perf_counter()
+            for name in SPLITS:
+                P = stacks[name]
+                if len(P) == 0:
+                    continue
+                pred = np.asarray(model.reconstruct(P), dtype=np.float64)
+                if not np.all(np.isfinite(pred)):
+                    ctx.log(f"[{label}] warning: non-finite reconstruction on {name}")
+                predictions[label][name] = pred
+                results["models"][label][name] = ev.evaluate_summary(pred, P, template, metrics, scale=pre.scale)
+            results["timing"][label] = {"fit_s": fit_s, "reconstruct_s": time.perf_counter() - t0}
+            ctx.log(f"[{label}] test " + ", ".join(
+                f"{m}={v['mean']:.4g}" for m, v in results["models"][label].get("test", {}).items()))
+        if self.save_predictions:
+            for label, d in predictions.items():
+                ctx.save_npz(f"predictions/{label}.npz", **d)
+        figures = ev.reconstruction_figures(ctx, template, stacks, predictions, metrics, n_rows=self.renders)
+        if self.write_obj:
+            self._write_objs(ctx, col.template, pre, transforms, predictions, stacks)
+        ev.write_report(ctx, f"Reconstruction: {ctx.recipe.get('name', 'run')}", results, figures,
+                        notes=[f"train epochs: {ctx.train.epochs} (recipe `train.epochs`)",
+                               f"evaluation space: registered and scaled into [-1, 1] (scale {pre.scale:.6g} per {col.units})"])
+
+    def _write_objs(self, ctx, template, pre, transforms, predictions, stacks):
+        from fwk.data.io import write_obj
+
+        n = min(self.write_obj, len(stacks["test"]))
+        for label, d in predictions.items():
+            if "test" not in d:
+                continue
+            # neutral-only stacks map one-to-one onto test subjects
+            if len(d["test"]) != len(transforms["test"].rotation):
+                continue
+            P = pre.inverse(d["test"][:n], transforms["test"].select(np.arange(n)))
+            for i in range(n):
+                write_obj(ctx.path("predictions", label, f"test_{i:03d}.obj"), P[i], template)
+
+
+@hookimpl
+def fwk_register_tasks():
+    return [Reconstruct]
