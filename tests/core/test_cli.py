@@ -1,0 +1,66 @@
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from fwk.cli import main
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_list_shows_every_kind(capsys):
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    for kind in ("dataset", "representation", "model", "metric", "task"):
+        assert f" {kind} " in out
+    for name in ("pca", "mlp-vae", "euclidean", "l1", "synthetic-heads", "reconstruct"):
+        assert name in out
+
+
+def test_list_unknown_kind_exit_2(capsys):
+    assert main(["list", "--kind", "modle"]) == 2
+    assert "did you mean model" in capsys.readouterr().err
+
+
+def test_show_model_pca(capsys):
+    assert main(["show", "model", "pca"]) == 0
+    out = capsys.readouterr().out
+    assert "n_components" in out and "parameters:" in out
+
+
+def test_show_unknown(capsys):
+    assert main(["show", "model", "pcaa"]) == 2
+    err = capsys.readouterr().err
+    assert "did you mean pca" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("override,match", [
+    ("models.pca.n_componets=3", "models.pca.n_componets: unknown parameter of pca; did you mean n_components?"),
+    ("models.pca.name=pcb", "models.pca.name: unknown model 'pcb'"),
+    ("train.epochs=many", "train.epochs: expected an integer"),
+])
+def test_bad_recipe_exits_nonzero_and_writes_no_run_dir(tmp_path, capsys, override, match):
+    runs = tmp_path / "runs"
+    rc = main(["run", str(REPO / "recipes/smoke/reconstruct.yaml"), override, "--runs-dir", str(runs), "--quiet"])
+    assert rc == 2
+    assert match in capsys.readouterr().err
+    assert not runs.exists() or not any(runs.iterdir())
+
+
+def test_debug_shows_traceback(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "fwk", "--debug", "show", "model", "nope"], capture_output=True, text=True)
+    assert r.returncode != 0 and "Traceback" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "fwk", "show", "model", "nope"], capture_output=True, text=True)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and r.stderr.count("\n") == 1
+
+
+def test_example_plugin_listed(capsys):
+    pytest.importorskip("fwk_example_plugin", reason="examples/fwk-example-plugin is not installed (CI installs it)")
+    from fwk.plugins import get_registry
+
+    get_registry(refresh=True)
+    assert main(["list", "--kind", "metric"]) == 0
+    out = capsys.readouterr().out
+    assert "chamfer" in out and "example" in out
