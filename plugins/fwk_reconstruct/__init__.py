@@ -36,7 +36,7 @@ def prepare(collection, split_cfg, pre_cfg, seed, ctx, neutral: str = "neutral")
     index = {s: i for i, s in enumerate(collection.subjects)}
     j = collection.shape_index(neutral)
     tr = np.array([index[s] for s in split["train"]])
-    pre = Preprocessor(pre_cfg).fit(np.asarray(collection.positions[tr, j]))
+    pre = Preprocessor(pre_cfg).fit(np.asarray(collection.positions[tr, j]), np.asarray(collection.positions[tr]))
     ctx.save_npz("stats/preprocess.npz", **pre.state_dict())
     cols, transforms = {}, {}
     for name in SPLITS:

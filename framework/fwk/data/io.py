@@ -1,0 +1,239 @@
+"""Mesh files: OBJ and PLY, with vertex order and count preserved.
+
+Common readers get OBJ files with UVs and quads wrong (DESIGN.md "Data", measured on the
+ICT-FaceKit files): trimesh splits vertices on UV seams, open3d drops quads, meshio refuses
+files whose ``vt`` count differs from the ``v`` count. This module parses OBJ itself: the
+topology is the order of the ``v`` lines; every polygon is fan-triangulated from its first
+corner (the same way for every mesh), and the original polygons, ``vt`` coordinates and the
+other lines (``mtllib``, ``usemtl``, ``g``, ``s``...) are kept so that a prediction is written
+back as an OBJ that drops into the user's pipeline unchanged.
+
+Face lines are parsed once per topology: a file whose face block is byte-identical to one
+seen before reuses the parsed Template (the ~158 ICT files share one).
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..cache import atomic_write_bytes
+from ..errors import DataError, TopologyError
+from .template import Template
+
+_TOPOLOGY_CACHE: dict[str, Template] = {}
+
+
+def _split_lines(data: bytes):
+    v_lines, face_block = [], []
+    for line in data.splitlines():
+        s = line.lstrip()
+        if s.startswith(b"v "):
+            v_lines.append(s[2:])
+        elif s.startswith(b"vt ") or s.startswith(b"vn ") or s.startswith(b"vp "):
+            face_block.append(s)
+        elif s and not s.startswith(b"#"):
+            face_block.append(s)
+    return v_lines, face_block
+
+
+def _parse_vertices(v_lines, path) -> np.ndarray:
+    if not v_lines:
+        raise DataError(f"{path}: no vertices (no `v` lines)")
+    try:
+        arr = np.loadtxt(io.BytesIO(b"\n".join(v_lines)), dtype=np.float64, usecols=(0, 1, 2), ndmin=2)
+    except ValueError as exc:
+        raise DataError(f"{path}: unreadable vertex line ({exc})") from None
+    return arr
+
+
+def _parse_topology(face_block, n_vertices: int, path) -> Template:
+    uvs, poly_v, poly_t, offsets, extra = [], [], [], [0], []
+    n_vt = 0
+    for raw in face_block:
+        line = raw.decode("utf-8", "replace").strip()
+        tag, _, rest = line.partition(" ")
+        if tag == "vt":
+            parts = rest.split()
+            uvs.append([float(parts[0]), float(parts[1]) if len(parts) > 1 else 0.0])
+            n_vt += 1
+        elif tag == "f":
+            corners = rest.split()
+            if len(corners) < 3:
+                raise DataError(f"{path}: a face with fewer than 3 corners: {line!r}")
+            for c in corners:
+                bits = c.split("/")
+                vi = int(bits[0])
+                vi = vi - 1 if vi > 0 else n_vertices + vi
+                poly_v.append(vi)
+                if len(bits) > 1 and bits[1]:
+                    ti = int(bits[1])
+                    poly_t.append(ti - 1 if ti > 0 else n_vt + ti)
+                else:
+                    poly_t.append(-1)
+            offsets.append(len(poly_v))
+        elif tag in ("vn", "vp", "l", "p"):
+            continue  # normals are recomputed; lines and points are not surfaces
+        else:
+            extra.append((len(offsets) - 1, line))
+    if len(offsets) == 1:
+        raise DataError(f"{path}: no faces (no `f` lines)")
+    poly_v = np.asarray(poly_v, dtype=np.int64)
+    if poly_v.min() < 0 or poly_v.max() >= n_vertices:
+        raise DataError(f"{path}: a face refers to a vertex that does not exist")
+    offsets = np.asarray(offsets, dtype=np.int64)
+    triangles = fan_triangulate(poly_v, offsets)
+    poly_t = np.asarray(poly_t, dtype=np.int64)
+    has_uv = bool(uvs) and (poly_t >= 0).any()
+    return Template(
+        vertices=np.zeros((n_vertices, 3)),
+        triangles=triangles,
+        poly_vertices=poly_v,
+        poly_offsets=offsets,
+        uvs=np.asarray(uvs, dtype=np.float64) if has_uv else None,
+        poly_uvs=poly_t if has_uv else None,
+        obj_extra=extra,
+        name=Path(path).stem,
+    )
+
+
+def fan_triangulate(poly_v: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Triangles (first, i, i+1) of every polygon, in polygon order (vectorised)."""
+    sizes = np.diff(offsets)
+    n_tri = np.maximum(sizes - 2, 0)
+    poly_of_tri = np.repeat(np.arange(len(sizes)), n_tri)
+    local = np.arange(n_tri.sum()) - np.repeat(np.cumsum(n_tri) - n_tri, n_tri)
+    start = offsets[:-1][poly_of_tri]
+    return np.stack([poly_v[start], poly_v[start + local + 1], poly_v[start + local + 2]], axis=1).astype(np.int64)
+
+
+def read_obj(path, units: str = "unit") -> tuple[np.ndarray, Template]:
+    """(V (n, 3) float64, Template) of an OBJ file; the Template's vertices are V."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc.strerror})") from None
+    v_lines, face_block = _split_lines(data)
+    V = _parse_vertices(v_lines, path)
+    key = hashlib.sha256(b"\n".join(face_block) + str(len(V)).encode()).hexdigest()
+    topo = _TOPOLOGY_CACHE.get(key)
+    if topo is None:
+        try:
+            topo = _parse_topology(face_block, len(V), path)
+        except (ValueError, IndexError) as exc:
+            raise DataError(f"{path}: unreadable face or texture line ({exc})") from None
+        if len(_TOPOLOGY_CACHE) > 64:
+            _TOPOLOGY_CACHE.clear()
+        _TOPOLOGY_CACHE[key] = topo
+    t = topo.with_vertices(V)
+    t.units = units
+    return V, t
+
+
+def read_ply(path, units: str = "unit") -> tuple[np.ndarray, Template]:
+    """(V, Template) of a PLY file (ASCII or binary), vertex order kept (trimesh, process=False)."""
+    import trimesh
+
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such file")
+    try:
+        m = trimesh.load(path, process=False, maintain_order=True, force="mesh")
+    except Exception as exc:
+        raise DataError(f"{path}: unreadable PLY ({exc})") from None
+    V = np.asarray(m.vertices, dtype=np.float64)
+    F = np.asarray(m.faces, dtype=np.int64)
+    if len(F) == 0:
+        raise DataError(f"{path}: no faces")
+    return V, Template(V, F, units=units, name=path.stem)
+
+
+def read_mesh(path, units: str = "unit") -> tuple[np.ndarray, Template]:
+    suffix = Path(path).suffix.lower()
+    if suffix == ".obj":
+        return read_obj(path, units)
+    if suffix == ".ply":
+        return read_ply(path, units)
+    raise DataError(f"{path}: unsupported mesh format {suffix!r} (OBJ and PLY are read)")
+
+
+def check_topology(template: Template, other: Template, path) -> None:
+    """Raise TopologyError naming ``path`` and what differs from ``template``."""
+    if other.n_vertices != template.n_vertices:
+        raise TopologyError(f"{path}: {other.n_vertices} vertices, expected {template.n_vertices} (the template's)")
+    if other.triangles.shape != template.triangles.shape or not np.array_equal(other.triangles, template.triangles):
+        if other.n_polygons != template.n_polygons:
+            what = f"{other.n_polygons} polygons, expected {template.n_polygons}"
+        else:
+            diff = np.flatnonzero((other.triangles != template.triangles).any(1)) if other.triangles.shape == template.triangles.shape else [0]
+            what = f"a different face list (first difference at triangle {int(diff[0])})"
+        raise TopologyError(f"{path}: {what}; every mesh must share the template's topology")
+
+
+def read_positions(path, template: Template) -> np.ndarray:
+    """Vertex positions of a mesh file that must share ``template``'s topology."""
+    V, t = read_mesh(path, template.units)
+    check_topology(template, t, path)
+    if not np.all(np.isfinite(V)):
+        raise DataError(f"{path}: vertex positions contain NaN or infinite values")
+    return V
+
+
+def _fmt(a: np.ndarray) -> list[str]:
+    return [" ".join(repr(float(x)) if False else f"{x:.9g}" for x in row) for row in a]
+
+
+def obj_text(V: np.ndarray, template: Template) -> str:
+    """OBJ text of positions V on ``template``: its polygons, ``vt`` and material lines."""
+    V = np.asarray(V, dtype=np.float64)
+    out = []
+    extra = sorted(template.obj_extra, key=lambda e: e[0]) if template.obj_extra else []
+    head = [line for pos, line in extra if pos == 0 and line.split(" ")[0] in ("mtllib", "o")]
+    out += head
+    out += ["v " + s for s in _fmt(V)]
+    if template.uvs is not None:
+        out += ["vt " + s for s in _fmt(template.uvs)]
+    pv, off = template.poly_vertices + 1, template.poly_offsets
+    pt = template.poly_uvs + 1 if template.poly_uvs is not None else None
+    ei = 0
+    extra_rest = [(pos, line) for pos, line in extra if not (pos == 0 and line.split(" ")[0] in ("mtllib", "o"))]
+    for p in range(len(off) - 1):
+        while ei < len(extra_rest) and extra_rest[ei][0] <= p:
+            out.append(extra_rest[ei][1])
+            ei += 1
+        a, b = off[p], off[p + 1]
+        if pt is not None and (pt[a:b] > 0).all():
+            out.append("f " + " ".join(f"{v}/{t}" for v, t in zip(pv[a:b], pt[a:b])))
+        else:
+            out.append("f " + " ".join(str(v) for v in pv[a:b]))
+    out += [line for _, line in extra_rest[ei:]]
+    return "\n".join(out) + "\n"
+
+
+def write_obj(path, V: np.ndarray, template: Template) -> Path:
+    """Write positions V with the template's original polygons, UVs and material lines (atomic)."""
+    V = np.asarray(V)
+    if V.shape != (template.n_vertices, 3):
+        raise ValueError(f"write_obj: positions of shape {V.shape}, template has {template.n_vertices} vertices")
+    path = Path(path)
+    atomic_write_bytes(path, obj_text(V, template).encode())
+    return path
+
+
+def write_ply(path, V: np.ndarray, template: Template) -> Path:
+    import trimesh
+
+    path = Path(path)
+    m = trimesh.Trimesh(np.asarray(V), template.triangles, process=False)
+    atomic_write_bytes(path, m.export(file_type="ply"))
+    return path
+
+
+def write_mesh(path, V, template) -> Path:
+    return write_ply(path, V, template) if str(path).lower().endswith(".ply") else write_obj(path, V, template)
