@@ -133,6 +133,12 @@ class Reconstruct:
             for label, d in predictions.items():
                 ctx.save_npz(f"predictions/{label}.npz", **d)
         figures = ev.reconstruction_figures(ctx, template, stacks, predictions, metrics, n_rows=self.renders)
+        from fwk.evaluation.report import scatter_figure
+
+        for y in ("dame", "fmpd"):
+            f = scatter_figure(ctx, results, "test", "l1", y)
+            if f is not None:
+                figures[f"L1 against {y.upper()} (test), Pareto front dashed"] = f
         if self.write_obj:
             self._write_objs(ctx, col.template, pre, transforms, predictions, stacks)
         ev.write_report(ctx, f"Reconstruction: {ctx.recipe.get('name', 'run')}", results, figures,

@@ -1,0 +1,156 @@
+"""``report.md`` and ``metrics.json`` of evaluating tasks, and the standard figures."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .core import evaluate
+from .plots import scatter_pareto
+
+SPLIT_ORDER = ("train", "val", "test")
+
+
+def _fmt(x, scale=1.0) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    v = x / scale
+    return f"{v:.4g}"
+
+
+def markdown_table(rows: list[list], columns: list[str]) -> str:
+    head = "| " + " | ".join(columns) + " |"
+    sep = "| " + " | ".join("---" for _ in columns) + " |"
+    body = ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join([head, sep, *body])
+
+
+def _scale_label(scale: float) -> str:
+    if scale == 1.0:
+        return ""
+    e = int(round(math.log10(scale)))
+    return f" ×1e{e}"
+
+
+def metric_columns(results: dict) -> list[str]:
+    names = []
+    for per_split in results.get("models", {}).values():
+        for per_metric in per_split.values():
+            for m in per_metric:
+                if m not in names:
+                    names.append(m)
+    return names
+
+
+DISPLAY = {"l1": 1e-3, "l2": 1e-5, "euclidean": 1e-3, "dame": 1e-2, "fmpd": 1e-2}
+
+
+def results_tables(results: dict, units: str = "") -> str:
+    """One table per split: rows = models, columns = metrics (mean, thesis display scale),
+    then one table of the same means in the dataset's units where defined."""
+    out = []
+    metrics = metric_columns(results)
+    models = list(results.get("models", {}))
+    for split in SPLIT_ORDER:
+        if not any(split in results["models"][m] for m in models):
+            continue
+        cols = ["model"] + [f"{m}{_scale_label(DISPLAY.get(m, 1.0))}" for m in metrics]
+        rows = []
+        for label in models:
+            r = results["models"][label].get(split, {})
+            rows.append([label] + [_fmt(r.get(m, {}).get("mean"), DISPLAY.get(m, 1.0)) for m in metrics])
+        out.append(f"### {split} (mean over meshes, evaluation space)\n\n" + markdown_table(rows, cols))
+    inp = [m for m in metrics if any("mean_input" in results["models"][l].get("test", {}).get(m, {}) for l in models)]
+    if inp and units:
+        cols = ["model"] + [f"{m} ({units}{'^2' if m == 'l2' else ''})" for m in inp]
+        rows = [[label] + [_fmt(results["models"][label].get("test", {}).get(m, {}).get("mean_input")) for m in inp]
+                for label in models]
+        out.append(f"### test, in the dataset's units ({units})\n\n" + markdown_table(rows, cols))
+    return "\n\n".join(out)
+
+
+def write_report(ctx, title: str, results: dict, figures: dict | None = None, notes: list[str] | None = None,
+                 sections: list[tuple[str, str]] | None = None) -> Path:
+    """Write ``metrics.json`` (``results`` plus figure paths and notes) and ``report.md``."""
+    figures = figures or {}
+    results = dict(results)
+    results["figures"] = {k: str(v) for k, v in figures.items()}
+    results["notes"] = list(notes or [])
+    ctx.write_json("metrics.json", results)
+    units = results.get("dataset", {}).get("units", "")
+    parts = [f"# {title}", ""]
+    ds = results.get("dataset")
+    if ds:
+        parts.append("Dataset: " + ", ".join(f"{k} {v}" for k, v in ds.items()) + "\n")
+    for n in notes or []:
+        parts.append(f"- {n}")
+    parts.append("")
+    parts.append("Metrics: l1 and l2 are the thesis's L1 and L2 norms (mean absolute / squared coordinate error), "
+                 "euclidean the mean per-vertex distance; DAME and FMPD are perceptual (lower is better). "
+                 "Columns show the mean divided by the factor in the header (×1e-3 means the number is in thousandths).\n")
+    if results.get("models"):
+        parts.append("## Results\n")
+        parts.append(results_tables(results, units))
+    if results.get("timing"):
+        rows = [[k, *(f"{v:.3g}" for v in t.values())] for k, t in results["timing"].items()]
+        cols = ["model", *next(iter(results["timing"].values())).keys()]
+        parts.append("\n## Time (seconds)\n\n" + markdown_table(rows, cols))
+    for head, text in sections or []:
+        parts.append(f"\n## {head}\n\n{text}")
+    if figures:
+        parts.append("\n## Figures\n")
+        for name, p in figures.items():
+            rel = Path(p).relative_to(ctx.run_dir) if Path(p).is_absolute() and ctx.run_dir in Path(p).parents else p
+            parts.append(f"### {name}\n\n![{name}]({rel})\n")
+    return ctx.write_text("report.md", "\n".join(parts) + "\n")
+
+
+def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metrics, n_rows: int = 2,
+                           split: str = "test") -> dict:
+    """Renders (ground truth first, then each model with L1 and, where present, DAME error maps,
+    shared colour limits) and the L1/DAME scatter with its Pareto front."""
+    figures = {}
+    names = [m.name for m in metrics]
+    P = stacks.get(split)
+    if n_rows and P is not None and len(P) and predictions:
+        n = min(n_rows, len(P))
+        by = {m.name: m for m in metrics}
+        maps = {}
+        for label, d in predictions.items():
+            if split in d:
+                maps[label] = evaluate(d[split][:n], P[:n], template, [by[k] for k in ("l1", "dame") if k in by])
+        for key in ("l1", "dame"):
+            if key not in names:
+                continue
+            vals = np.concatenate([maps[l][key]["maps"].ravel() for l in maps]) if maps else np.zeros(1)
+            clim = (0.0, float(np.percentile(vals, 99)) or 1e-12)
+            rows = []
+            for i in range(n):
+                row = [{"V": P[i], "label": f"ground truth {i}"}]
+                for label in maps:
+                    row.append({"V": predictions[label][split][i], "scalars": maps[label][key]["maps"][i],
+                                "clim": clim, "label": label, "bar": key.upper(), "cmap": "inferno" if key == "dame" else "viridis"})
+                rows.append(row)
+            try:
+                from .render import render_grid
+
+                figures[f"{split} reconstructions with {key.upper()} error maps (front)"] = render_grid(
+                    rows, template, ctx.path("figures", f"{split}_{key}_front.png"), view="front")
+                figures[f"{split} reconstructions with {key.upper()} error maps (three-quarter)"] = render_grid(
+                    rows, template, ctx.path("figures", f"{split}_{key}_34.png"), view="three-quarter")
+            except Exception as exc:  # no OpenGL at all: report it, keep the numbers
+                ctx.log(f"warning: renders skipped ({type(exc).__name__}: {exc})")
+    return figures
+
+
+def scatter_figure(ctx, results: dict, split: str = "test", x: str = "l1", y: str = "dame", name: str | None = None):
+    pts = {}
+    for label, per in results.get("models", {}).items():
+        r = per.get(split, {})
+        if x in r and y in r:
+            pts[label] = (r[x]["mean"], r[y]["mean"])
+    if not pts:
+        return None
+    return scatter_pareto(pts, ctx.path("figures", name or f"{split}_{x}_{y}_scatter.png"), f"{x.upper()} ({split})",
+                          f"{y.upper()} ({split})", title=f"{x.upper()} against {y.upper()}, {split} split")

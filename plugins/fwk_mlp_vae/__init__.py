@@ -1,0 +1,160 @@
+"""Model ``mlp-vae``: the fully connected mesh VAE (Tan et al. 2018, "Variational autoencoders
+for deforming 3D mesh models"; cited by the thesis, 2.2).
+
+The representation's features F (n x c, scaled) are flattened to a vector and encoded by a
+multi-layer perceptron to the mean mu and log-variance log sigma^2 of q(z | F); z = mu + sigma
+eps (eps ~ N(0, I)) is decoded by the mirrored perceptron. Loss (thesis table 3.2, eqs.
+3.20-3.22): the L1 norm between the ground truth and the prediction in the representation's
+own *unscaled* space (the scaling is undone differentiably), plus the weighted KL divergence
+KL(q(z|F) || N(0, I)) = -1/2 sum(1 + log sigma^2 - mu^2 - sigma^2), weight ``kl_weight``.
+Activations ELU (thesis 3.4). At inference the mean mu is decoded.
+"""
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+import torch
+from torch import nn
+
+from fwk.hookspecs import hookimpl
+from fwk.recipes import Kind, Spec
+
+
+def kl_divergence(mu, logvar):
+    return -0.5 * torch.mean(torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=1))
+
+
+def _mlp(sizes, last_act=False):
+    layers = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2 or last_act:
+            layers.append(nn.ELU())
+    return nn.Sequential(*layers)
+
+
+class _Net(torch.nn.Module):
+    def __init__(self, d_in, hidden, latent):
+        super().__init__()
+        self.enc = _mlp([d_in, *hidden], last_act=True)
+        self.mu = nn.Linear(hidden[-1] if hidden else d_in, latent)
+        self.logvar = nn.Linear(hidden[-1] if hidden else d_in, latent)
+        self.dec = _mlp([latent, *reversed(hidden), d_in])
+
+    def encode(self, x):
+        h = self.enc(x.flatten(1))
+        return self.mu(h), self.logvar(h)
+
+    def decode(self, z, shape):
+        return self.dec(z).reshape(len(z), *shape)
+
+
+def _lightning_module(net, unscale, shape, kl_weight):
+    import lightning.pytorch as pl
+
+    from fwk.engine import make_optimizer
+
+    class Module(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.net = net
+
+        def _loss(self, batch, stage):
+            (F,) = batch
+            mu, logvar = self.net.encode(F)
+            z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if self.training else mu
+            G = self.net.decode(z, shape)
+            rec = torch.mean(torch.abs(unscale(G) - unscale(F)))
+            kl = kl_divergence(mu, logvar)
+            loss = rec + kl_weight * kl
+            self.log(f"{stage}_loss", loss, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(F))
+            self.log(f"{stage}_l1", rec, on_epoch=True, on_step=False, batch_size=len(F))
+            return loss
+
+        def training_step(self, batch, _):
+            return self._loss(batch, "train")
+
+        def validation_step(self, batch, _):
+            return self._loss(batch, "val")
+
+        def configure_optimizers(self):
+            return make_optimizer(self.parameters(), self.train_config)
+
+    return Module()
+
+
+class MLPVAE:
+    """Fully connected mesh VAE (Tan et al. 2018)."""
+
+    name = "mlp-vae"
+    task_family = "reconstruct"
+
+    def __init__(self, latent: int = 64, hidden: list[int] | None = None,
+                 representation: Annotated[Spec, Kind("representation")] | None = None,
+                 kl_weight: float | None = None, train: dict | None = None):
+        self.latent = latent
+        self.hidden = list(hidden) if hidden else [512, 256]
+        self.representation_spec = representation
+        self.kl_weight = kl_weight
+        self.train_overrides = train or {}
+        self.rep = self.net = None
+        self.shape = None
+
+    def _make_rep(self):
+        if self.representation_spec is None:
+            from fwk.plugins import get_registry
+
+            return get_registry().get("representation", "euclidean")(scaling="std")
+        return self.representation_spec.build()
+
+    def fit(self, data, ctx) -> None:
+        from fwk.engine import fit, seed_everything
+
+        P, V = data.stack("train"), data.stack("val")
+        self.rep = self._make_rep()
+        self.rep.fit(P, None, data.template)
+        F = torch.as_tensor(self.rep.encode(P))
+        Fv = torch.as_tensor(self.rep.encode(V)) if len(V) else None
+        self.shape = tuple(F.shape[1:])
+        seed_everything(ctx.seed)
+        self.net = _Net(int(np.prod(self.shape)), self.hidden, self.latent)
+        config = ctx.train.replace(**self.train_overrides)
+        kl = config.kl_weight if self.kl_weight is None else self.kl_weight
+        module = _lightning_module(self.net, self.rep.unscale, self.shape, kl)
+        fit(module, F, Fv, ctx, self.name, config)
+        self.net.eval()
+
+    @torch.no_grad()
+    def encode(self, P) -> np.ndarray:
+        mu, _ = self.net.encode(torch.as_tensor(self.rep.encode(P)))
+        return mu.numpy().astype(np.float64)
+
+    @torch.no_grad()
+    def decode(self, z) -> np.ndarray:
+        G = self.net.decode(torch.as_tensor(np.asarray(z), dtype=torch.float32), self.shape)
+        return self.rep.decode(G.numpy())
+
+    def reconstruct(self, P) -> np.ndarray:
+        return self.decode(self.encode(P))
+
+    def sample(self, n: int, seed: int = 0) -> np.ndarray:
+        z = np.random.default_rng(seed).standard_normal((n, self.latent))
+        return self.decode(z)
+
+    def state_dict(self) -> dict:
+        return {"net": self.net.state_dict(), "rep": self.rep.state_dict(), "shape": self.shape,
+                "latent": self.latent, "hidden": self.hidden}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.rep = self._make_rep()
+        self.rep.load_state_dict(d["rep"])
+        self.shape, self.latent, self.hidden = tuple(d["shape"]), int(d["latent"]), list(d["hidden"])
+        self.net = _Net(int(np.prod(self.shape)), self.hidden, self.latent)
+        self.net.load_state_dict(d["net"])
+        self.net.eval()
+
+
+@hookimpl
+def fwk_register_models():
+    return [MLPVAE]

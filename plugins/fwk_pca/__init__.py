@@ -1,0 +1,93 @@
+"""Model ``pca``: the linear 3D morphable model (Blanz & Vetter 1999; thesis 2.1).
+
+Training shapes are encoded by a representation (default ``euclidean``, no scaling) and
+flattened to vectors x_i in R^{nc}. With the mean mu and the centred data matrix
+X = [x_1 - mu, ...], the model keeps the top-K right singular vectors W (K x nc) of X and the
+singular values s: encode(x) = W (x - mu), decode(z) = mu + W^T z, sample z ~ N(0, diag(s^2 /
+(m - 1))). The SVD is taken of the small Gram matrix X X^T when there are fewer samples than
+coordinates (always the case for meshes), so it costs O(m^2 nc), not O(m (nc)^2).
+"""
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+
+from fwk.hookspecs import hookimpl
+from fwk.recipes import Kind, Spec
+
+
+class PCA:
+    """Linear 3DMM: principal components of the training shapes."""
+
+    name = "pca"
+    task_family = "reconstruct"
+
+    def __init__(self, n_components: int = 64,
+                 representation: Annotated[Spec, Kind("representation")] | None = None):
+        self.n_components = n_components
+        self.representation_spec = representation
+        self.rep = None
+        self.mean = self.components = self.singular_values = None
+        self.n_train = 0
+
+    def _make_rep(self, ctx=None):
+        if self.representation_spec is None:
+            from fwk.plugins import get_registry
+
+            cls = get_registry().get("representation", "euclidean")
+            return cls(scaling="none")
+        return self.representation_spec.build()
+
+    def fit(self, data, ctx=None) -> None:
+        P = data.stack("train") if hasattr(data, "stack") else np.asarray(data)
+        self.rep = self._make_rep(ctx)
+        self.rep.fit(P, None, getattr(data, "template", None))
+        F = self.rep.encode(P).astype(np.float64).reshape(len(P), -1)
+        self.mean = F.mean(axis=0)
+        X = F - self.mean
+        k = int(min(self.n_components, max(len(P) - 1, 1), X.shape[1]))
+        G = X @ X.T
+        evals, evecs = np.linalg.eigh(G)
+        order = np.argsort(evals)[::-1][:k]
+        s = np.sqrt(np.clip(evals[order], 0, None))
+        keep = s > s.max() * 1e-10 if len(s) and s.max() > 0 else np.zeros(len(s), bool)
+        s, U = s[keep], evecs[:, order][:, keep]
+        self.components = (U / s).T @ X  # right singular vectors, (k, nc)
+        self.singular_values = s
+        self.n_train = len(P)
+        self._shape = P.shape[1:]
+        self._channels = F.shape[1] // P.shape[1]
+
+    def encode(self, P) -> np.ndarray:
+        F = self.rep.encode(np.asarray(P, dtype=np.float64)).astype(np.float64).reshape(len(P), -1)
+        return (F - self.mean) @ self.components.T
+
+    def decode(self, z) -> np.ndarray:
+        F = self.mean + np.asarray(z, dtype=np.float64) @ self.components
+        return self.rep.decode(F.reshape(len(F), self._shape[0], self._channels))
+
+    def reconstruct(self, P) -> np.ndarray:
+        return self.decode(self.encode(P))
+
+    def sample(self, n: int, seed: int = 0) -> np.ndarray:
+        rng = np.random.default_rng(seed)
+        sd = self.singular_values / np.sqrt(max(self.n_train - 1, 1))
+        return self.decode(rng.standard_normal((n, len(sd))) * sd)
+
+    def state_dict(self) -> dict:
+        return {"mean": self.mean, "components": self.components, "singular_values": self.singular_values,
+                "n_train": self.n_train, "shape": self._shape, "channels": self._channels,
+                "rep": self.rep.state_dict(), "rep_name": self.rep.name}
+
+    def load_state_dict(self, d: dict) -> None:
+        self.rep = self._make_rep()
+        self.rep.load_state_dict(d["rep"])
+        self.mean, self.components = np.asarray(d["mean"]), np.asarray(d["components"])
+        self.singular_values, self.n_train = np.asarray(d["singular_values"]), int(d["n_train"])
+        self._shape, self._channels = tuple(d["shape"]), int(d["channels"])
+
+
+@hookimpl
+def fwk_register_models():
+    return [PCA]
