@@ -1,0 +1,72 @@
+"""Edge structures of a triangle mesh: unique edges, edge-face adjacency, border / interior /
+non-manifold classification, vertex-edge incidence. Cached per topology (triangles)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+_CACHE: dict = {}
+
+
+@dataclass
+class EdgeTopology:
+    n_vertices: int
+    edges: np.ndarray            # (e, 2) unique undirected edges, i < j
+    face_edges: np.ndarray       # (m, 3) edge index of the edge opposite corner k of each face
+    edge_count: np.ndarray       # (e,) number of faces using each edge
+    interior: np.ndarray         # (e_i,) indices of manifold interior edges (exactly two faces, consistently oriented)
+    f1: np.ndarray               # (e_i,) first face of each interior edge (the edge runs a -> b in it)
+    f2: np.ndarray               # (e_i,) second face
+    a: np.ndarray                # (e_i,) edge start vertex as oriented in f1
+    b: np.ndarray                # (e_i,) edge end vertex
+    border_vertex: np.ndarray    # (n,) bool: on a border edge
+    vertex_edge: sp.csr_matrix   # (n, e_i) incidence of interior edges on vertices
+
+    @property
+    def border(self) -> np.ndarray:
+        return np.flatnonzero(self.edge_count == 1)
+
+    @property
+    def non_manifold(self) -> np.ndarray:
+        return np.flatnonzero(self.edge_count > 2)
+
+
+def edge_topology(F: np.ndarray, n_vertices: int | None = None) -> EdgeTopology:
+    F = np.ascontiguousarray(F, dtype=np.int64)
+    n = int(n_vertices if n_vertices is not None else F.max() + 1)
+    key = (n, F.shape, hash(F.tobytes()))
+    hit = _CACHE.get(key)
+    if hit is not None:
+        return hit
+    m = len(F)
+    # directed half-edges opposite corner k: (F[:, k+1], F[:, k+2])
+    he_a = np.concatenate([F[:, 1], F[:, 2], F[:, 0]])
+    he_b = np.concatenate([F[:, 2], F[:, 0], F[:, 1]])
+    he_f = np.tile(np.arange(m), 3)
+    lo, hi = np.minimum(he_a, he_b), np.maximum(he_a, he_b)
+    keys = lo * n + hi
+    uniq, inv, count = np.unique(keys, return_inverse=True, return_counts=True)
+    edges = np.stack([uniq // n, uniq % n], axis=1)
+    face_edges = inv.reshape(3, m).T.copy()
+    # interior manifold edges: two half-edges, opposite directions
+    order = np.argsort(inv, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(count)[:-1]])
+    two = np.flatnonzero(count == 2)
+    h1 = order[starts[two]]
+    h2 = order[starts[two] + 1]
+    consistent = he_a[h1] == he_b[h2]
+    interior = two[consistent]
+    h1, h2 = h1[consistent], h2[consistent]
+    border_vertex = np.zeros(n, dtype=bool)
+    border_vertex[edges[count == 1].ravel()] = True
+    ne = len(interior)
+    rows = np.concatenate([he_a[h1], he_b[h1]])
+    cols = np.concatenate([np.arange(ne), np.arange(ne)])
+    ve = sp.csr_matrix((np.ones(2 * ne), (rows, cols)), shape=(n, ne))
+    topo = EdgeTopology(n, edges, face_edges, count, interior, he_f[h1], he_f[h2], he_a[h1], he_b[h1], border_vertex, ve)
+    if len(_CACHE) > 32:
+        _CACHE.clear()
+    _CACHE[key] = topo
+    return topo
