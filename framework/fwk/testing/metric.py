@@ -1,0 +1,66 @@
+"""MetricContract: what every metric plugin must satisfy."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def small_mesh():
+    """A bumpy open grid (triangles), 9 x 9 vertices, and its Template."""
+    from fwk.data import Template
+
+    n = 9
+    x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
+    z = 0.1 * np.sin(3 * x) * np.cos(2 * y)
+    V = np.stack([x.ravel(), y.ravel(), z.ravel()], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    F = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    return V, Template(V, F)
+
+
+class MetricContract:
+    component: type = None
+    params: dict = {}
+
+    def make(self):
+        return self.component(**self.params)
+
+    def test_declares_name_and_units(self):
+        m = self.make()
+        assert isinstance(m.name, str) and m.name
+        assert isinstance(getattr(m, "units", None), str)
+
+    def test_shapes_and_identity(self):
+        V, t = small_mesh()
+        rng = np.random.default_rng(0)
+        P = np.stack([V + rng.normal(0, 0.01, V.shape) for _ in range(3)])
+        T = np.stack([V] * 3)
+        s, m = self.make()(P, T, t)
+        assert s.shape == (3,) and m.shape == (3, len(V))
+        assert np.all(np.isfinite(s)) and np.all(np.isfinite(m))
+        s0, m0 = self.make()(T, T, t)
+        assert np.allclose(s0, 0) and np.allclose(m0, 0)
+
+    def test_batch_equals_single(self):
+        V, t = small_mesh()
+        rng = np.random.default_rng(1)
+        P = np.stack([V + rng.normal(0, 0.01, V.shape) for _ in range(2)])
+        T = np.stack([V, V + 0.001])
+        s, m = self.make()(P, T, t)
+        for i in range(2):
+            si, mi = self.make()(P[i:i + 1], T[i:i + 1], t)
+            assert np.allclose(si, s[i]) and np.allclose(mi, m[i])
+
+    def test_rigid_invariance_when_declared(self):
+        m = self.make()
+        if not getattr(m, "rigid_invariant", False):
+            return
+        from scipy.spatial.transform import Rotation
+
+        V, t = small_mesh()
+        rng = np.random.default_rng(2)
+        P = V + rng.normal(0, 0.01, V.shape)
+        R = Rotation.from_euler("xyz", [0.3, -0.5, 1.1]).as_matrix()
+        s1, _ = m(P[None], V[None], t)
+        s2, _ = m((2.5 * P @ R.T + 3.0)[None], (2.5 * V @ R.T + 3.0)[None], t)
+        assert np.allclose(s1, s2, rtol=1e-8, atol=1e-12)
