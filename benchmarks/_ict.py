@@ -1,0 +1,31 @@
+"""Shared by the benchmarks: the ICT-FaceKit face-head region (11,248 vertices), or a
+synthetic head of the same size when the data is absent."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def face_head(n_subjects: int = 2):
+    from fwk.cache import Cache
+    from fwk.plugins import get_registry
+    from fwk.testing import ict_path
+
+    reg = get_registry()
+    folder = ict_path()
+    if folder is not None:
+        col = reg.get("dataset", "ict-facekit")(path=str(folder), n_subjects=n_subjects).load(Cache())
+        return col, "ict-facekit face-head"
+    col = reg.get("dataset", "synthetic-heads")(n_subjects=n_subjects, n_vertices=11248).load(Cache())
+    return col, "synthetic-heads (ICT data not found)"
+
+
+def timeit(fn, repeat: int = 7) -> float:
+    import time
+
+    fn()
+    best = np.inf
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
