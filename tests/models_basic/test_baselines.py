@@ -1,0 +1,86 @@
+import numpy as np
+import pytest
+
+from fwk.plugins import get_registry
+from fwk.testing.model import ModelContract, tiny_fit_data
+from fwk.testing.representation import RepresentationContract, small_batch
+
+REG = get_registry()
+
+
+@pytest.mark.parametrize("scaling", ["none", "std", "norm"])
+class TestEuclidean(RepresentationContract):
+    component = REG.get("representation", "euclidean")
+
+    @pytest.fixture(autouse=True)
+    def _params(self, scaling):
+        self.params = {"scaling": scaling}
+
+
+def test_euclidean_scalings_match_definitions():
+    P, t = small_batch()
+    E = REG.get("representation", "euclidean")
+    r = E(scaling="norm", a=1.0)
+    r.fit(P, None, t)
+    F = r.encode(P).astype(np.float64)
+    for c in range(3):  # corrected eqs 3.9-3.10: each channel spans exactly [-1, 1] on train
+        assert F[..., c].min() == pytest.approx(-1, abs=1e-6) and F[..., c].max() == pytest.approx(1, abs=1e-6)
+    r = E(scaling="std")
+    r.fit(P, None, t)
+    F = r.encode(P).astype(np.float64)
+    assert np.allclose(F.mean(0), 0, atol=1e-5)
+    sd = P.std(0)
+    assert np.allclose(F.std(0)[sd > 1e-6], 1, atol=1e-4)
+    # relative: offsets from a per-sample reference
+    r = E(scaling="none", relative=True)
+    r.fit(P[1:], P[:-1], t)
+    assert np.allclose(r.encode(P[1:], P[:-1]), P[1:] - P[:-1], atol=1e-6)
+    assert np.allclose(r.decode(r.encode(P[1:], P[:-1]), P[:-1]), P[1:], atol=1e-6)
+
+
+class TestPCAContract(ModelContract):
+    component = REG.get("model", "pca")
+    params = {"n_components": 5}
+
+
+class TestMLPVAEContract(ModelContract):
+    component = REG.get("model", "mlp-vae")
+    params = {"latent": 8, "hidden": [64]}
+
+
+def test_pca_matches_numpy_svd():
+    data = tiny_fit_data()
+    P = data.stack("train")
+    m = REG.get("model", "pca")(n_components=4)
+    m.fit(data)
+    X = P.reshape(len(P), -1)
+    mu = X.mean(0)
+    U, s, Vt = np.linalg.svd(X - mu, full_matrices=False)
+    # the representation hands PCA float32 features: agreement to float32 precision
+    assert np.allclose(m.singular_values, s[:4], rtol=1e-6)
+    assert np.allclose(np.abs(m.components @ Vt[:4].T), np.eye(4), atol=1e-5)
+    Q = data.stack("val").reshape(-1, X.shape[1])
+    ref = mu + (Q - mu) @ Vt[:4].T @ Vt[:4]
+    assert np.allclose(m.reconstruct(data.stack("val")).reshape(len(Q), -1), ref, atol=1e-6)
+    # all components reproduce the training set exactly
+    full = REG.get("model", "pca")(n_components=100)
+    full.fit(data)
+    assert np.allclose(full.reconstruct(P), P, atol=1e-6)
+
+
+def test_mlp_vae_training_loss_decreases(tmp_path):
+    import json
+
+    from fwk.runs import make_test_context
+
+    data = tiny_fit_data(n_subjects=24)
+    ctx = make_test_context(tmp_path, epochs=15, batch_size=8, lr=1e-3)
+    m = REG.get("model", "mlp-vae")(latent=8, hidden=[128])
+    m.fit(data, ctx)
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    (d,) = {p.parent for p in (ctx.run_dir / "tb").rglob("events.*")}
+    ea = EventAccumulator(str(d))
+    ea.Reload()
+    loss = [e.value for e in ea.Scalars("train_l1")]
+    assert len(loss) == 15 and loss[-1] < 0.5 * loss[0], loss
