@@ -201,11 +201,18 @@ def validate_params(cls: type, params: dict, path: str, registry: Registry, labe
                 out[key] = value
                 continue
             raise RecipeError(f"{kp}: unknown parameter of {label}{did_you_mean(key, ps)}")
+        default = ps[key].default
+        if isinstance(value, dict) and "name" not in value and isinstance(default, str) and _is_component(hints.get(key)):
+            value = {"name": default, **value}  # `conv: {length: 3}` keeps the default conv
         out[key] = convert(value, hints.get(key, ps[key].annotation), kp, registry)
     for name, p in ps.items():
         if p.default is p.empty and name not in out:
             raise RecipeError(f"{path + '.' if path else ''}{name}: missing required parameter of {label}")
     return out
+
+
+def _is_component(tp) -> bool:
+    return get_origin(tp) is Annotated and any(isinstance(m, Kind) for m in get_args(tp)[1:])
 
 
 def make_spec(kind: str, value, path: str, registry: Registry) -> Spec:

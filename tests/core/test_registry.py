@@ -56,3 +56,20 @@ def test_builtin_entrypoints_load_without_breakage():
     assert not reg.broken, reg.broken
     for kind in ("dataset", "representation", "model", "metric", "task"):
         assert reg.names(kind), kind
+
+
+def test_every_kind_registers_through_its_hook():
+    from fwk.hookspecs import HOOKS, KINDS
+
+    classes = {}
+    hooks = {}
+    for kind in KINDS:
+        cls = type(f"C_{kind}", (), {"name": f"x-{kind}", "__doc__": f"A {kind}."})
+        classes[kind] = cls
+        hooks[HOOKS[kind]] = (lambda c: (lambda: [c]))(cls)
+    # fwk_register_datasets fwk_register_representations fwk_register_samplers fwk_register_convs
+    # fwk_register_models fwk_register_metrics fwk_register_assemblers fwk_register_tasks
+    reg = registry_from(_plugin("all_kinds", **hooks))
+    for kind in KINDS:
+        assert reg.get(kind, f"x-{kind}") is classes[kind]
+        assert reg.entry(kind, f"x-{kind}").summary == f"A {kind}."
