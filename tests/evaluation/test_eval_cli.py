@@ -55,3 +55,19 @@ def test_eval_ict_meshes(tmp_path, capsys):
     r = json.loads(capsys.readouterr().out)
     assert set(r) == {"l1", "l2", "euclidean", "dame", "fmpd"}
     assert all(np.isfinite(v["mean"]) and v["mean"] > 0 for v in r.values())
+
+
+def test_report_rebuild_and_combine(tmp_path, capsys):
+    from fwk.evaluation.cli_report import _Dir
+    from fwk.evaluation.report import write_report
+
+    for name, v in (("a", 0.001), ("b", 0.002)):
+        ctx = _Dir(tmp_path / name)
+        write_report(ctx, name, {"models": {"pca": {"test": {"l1": {"mean": v}, "dame": {"mean": 2 * v}}}}})
+    (tmp_path / "a" / "report.md").unlink()
+    assert main(["report", str(tmp_path / "a")]) == 0
+    assert (tmp_path / "a" / "report.md").exists()
+    assert main(["report", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "c")]) == 0
+    text = (tmp_path / "c" / "report.md").read_text()
+    assert "a:pca" in text and "b:pca" in text and "scatter" in text
+    assert main(["report", str(tmp_path / "nothing")]) == 2
