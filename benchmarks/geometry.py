@@ -68,7 +68,19 @@ def main():
     out["dense_assembly_ms"] = 1000 * (time.perf_counter() - t0) / len(P)
     out["dense_x_gb"] = X.nbytes / 2**30
     out["assembly_max_difference"] = float(np.abs(low - low_dense).max())
-    out["dr_roundtrip_ms"] = None  # the `dr` representation is not implemented yet (issue 3, item 4)
+    from fwk.plugins import get_registry
+
+    dr = get_registry().get("representation", "dr")(scaling="norm")
+    dr.fit(P, None, t)
+    Q = np.asarray(col.positions[0, 1])[None]  # an expression of subject 0
+    dr.decode(dr.encode(Q), target=Q)
+    best = np.inf
+    for _ in range(7):
+        t0 = time.perf_counter()
+        X = dr.decode(dr.encode(Q), target=Q)
+        best = min(best, time.perf_counter() - t0)
+    out["dr_roundtrip_ms"] = 1000 * best
+    out["dr_roundtrip_max_error"] = float(np.abs(X - Q).max())
 
     print(f"mesh: {source}, {t.n_vertices} vertices, k = {a.k}, batch {len(P)}")
     for key, v in out.items():

@@ -42,8 +42,9 @@ class Representation(Protocol):
     def fit(self, P: np.ndarray, ref: np.ndarray | None, template: "Template") -> None: ...
     def encode(self, P: np.ndarray, ref: np.ndarray | None = None) -> np.ndarray:
         """(b, n, 3) float64 -> (b, n, c) float32, scaled (std / norm / none)."""
-    def decode(self, F: np.ndarray, ref: np.ndarray | None = None) -> np.ndarray:
-        """Inverse of encode: (b, n, c) -> (b, n, 3) float64."""
+    def decode(self, F: np.ndarray, ref: np.ndarray | None = None, target: np.ndarray | None = None) -> np.ndarray:
+        """Inverse of encode: (b, n, c) -> (b, n, 3) float64. ``target`` (optional ground truth)
+        places representations that lose position (dr) by rigid registration onto it."""
     def unscale(self, F: "torch.Tensor") -> "torch.Tensor":
         """Differentiable: undo std / norm (the loss space of thesis table 3.2)."""
     def state_dict(self) -> dict: ...
@@ -102,7 +103,8 @@ class Assembler(Protocol):
 
     def fit(self, template: "Template", mean: np.ndarray) -> None: ...
     def split(self, P: np.ndarray) -> list[np.ndarray]:
-        """(b, n, 3) -> bands, each (b, n, 3), that sum back to P exactly (see DESIGN.md)."""
+        """(b, n, 3) -> bands, each (b, n, 3) and centred on the mean as in DESIGN.md (band_j - mean
+        sum to P - mean), so that ``assemble(split(P)) == P`` exactly."""
     def assemble(self, bands: list[np.ndarray]) -> np.ndarray: ...
 
 
