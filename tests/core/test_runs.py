@@ -97,3 +97,22 @@ def test_mesh_folder_bad_file_named_and_no_run_dir(tmp_path, capsys):
     err = capsys.readouterr().err
     assert str(Path("c") / "neutral.obj") in err
     assert not runs.exists() or not any(runs.iterdir())
+
+
+def test_ict_recipe_trains_pca(tmp_path, monkeypatch):
+    from fwk.testing import ICT_SKIP_REASON, ict_path
+
+    folder = ict_path()
+    if folder is None:
+        pytest.skip(ICT_SKIP_REASON)
+    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
+    runs = tmp_path / "runs"
+    rc = main(["--quiet", "run", str(REPO / "recipes/smoke/reconstruct_ict.yaml"), f"dataset.path={folder}",
+               "--runs-dir", str(runs)])
+    assert rc == 0
+    (d,) = list(runs.iterdir())
+    m = json.loads((d / "metrics.json").read_text())
+    assert m["dataset"]["n_vertices"] == 11248 and m["dataset"]["units"] == "cm"
+    for split in ("train", "val", "test"):
+        assert math.isfinite(m["models"]["pca"][split]["l1"]["mean"])
+    assert m["models"]["pca"]["test"]["l1"]["mean"] > m["models"]["pca"]["train"]["l1"]["mean"]
