@@ -36,7 +36,12 @@ def cmd_list(args) -> int:
         from .registry import did_you_mean
 
         raise FwkError(f"--kind {args.kind}: unknown kind{did_you_mean(args.kind, KINDS)} (kinds: {', '.join(KINDS)})")
-    rows = [(e.name, e.kind, e.plugin, e.version, e.summary) for e in reg if e.kind in kinds]
+    rows = []
+    for kind in kinds:
+        entries = [e for e in reg if e.kind == kind]
+        rows += [(e.name, e.kind, e.plugin, e.version, e.summary) for e in entries]
+        if not entries:
+            rows.append(("-", kind, "-", "-", "(no component of this kind is registered)"))
     head = ("name", "kind", "plugin", "version", "summary")
     widths = [max(len(str(r[i])) for r in [head, *rows]) for i in range(4)]
     print("  ".join(h.ljust(w) for h, w in zip(head[:4], widths)) + "  " + head[4])
