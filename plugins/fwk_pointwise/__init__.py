@@ -27,49 +27,55 @@ def _pair(pred, target):
     return pred, target
 
 
-class L1:
-    """Mean absolute coordinate error (thesis L1 norm)."""
+class _Pointwise:
+    """Shared shape of the point-wise metrics: a per-vertex value, averaged over vertices."""
 
-    name = "l1"
     units = "input"
     power = 1
     display_scale = 1e-3
     rigid_invariant = False
 
+    @staticmethod
+    def per_vertex(diff: np.ndarray) -> np.ndarray:  # (b, n, 3) -> (b, n)
+        raise NotImplementedError
+
     def __call__(self, pred, target, template=None):
         pred, target = _pair(pred, target)
-        m = np.abs(pred - target).mean(axis=-1)
+        m = self.per_vertex(pred - target)
         return m.mean(axis=-1), m
 
 
-class L2:
+class L1(_Pointwise):
+    """Mean absolute coordinate error (thesis L1 norm)."""
+
+    name = "l1"
+
+    @staticmethod
+    def per_vertex(diff):
+        return np.abs(diff).mean(axis=-1)
+
+
+class L2(_Pointwise):
     """Mean squared coordinate error (thesis L2 norm)."""
 
     name = "l2"
     units = "input^2"
     power = 2
     display_scale = 1e-5
-    rigid_invariant = False
 
-    def __call__(self, pred, target, template=None):
-        pred, target = _pair(pred, target)
-        m = ((pred - target) ** 2).mean(axis=-1)
-        return m.mean(axis=-1), m
+    @staticmethod
+    def per_vertex(diff):
+        return (diff**2).mean(axis=-1)
 
 
-class EuclideanError:
+class EuclideanError(_Pointwise):
     """Mean per-vertex Euclidean distance (CoMA's error)."""
 
     name = "euclidean"
-    units = "input"
-    power = 1
-    display_scale = 1e-3
-    rigid_invariant = False
 
-    def __call__(self, pred, target, template=None):
-        pred, target = _pair(pred, target)
-        m = np.linalg.norm(pred - target, axis=-1)
-        return m.mean(axis=-1), m
+    @staticmethod
+    def per_vertex(diff):
+        return np.linalg.norm(diff, axis=-1)
 
 
 @hookimpl

@@ -17,6 +17,21 @@ def _plt():
     return plt
 
 
+def _finish(fig, ax, path, xlabel, ylabel, title):
+    plt = _plt()
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def scatter_pareto(points: dict, path, xlabel: str, ylabel: str, title: str | None = None,
                    annotate: bool = True, groups: dict | None = None) -> Path:
     """``points``: label -> (x, y), both minimised; the non-dominated points are joined by the
@@ -41,17 +56,7 @@ def scatter_pareto(points: dict, path, xlabel: str, ylabel: str, title: str | No
     if annotate:
         for i, k in enumerate(labels):
             ax.annotate(str(k), P[i], fontsize=7, xytext=(3, 3), textcoords="offset points")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    if title:
-        ax.set_title(title)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _finish(fig, ax, path, xlabel, ylabel, title)
 
 
 def line_plot(series: dict, path, xlabel: str, ylabel: str, title: str | None = None, logy: bool = False) -> Path:
@@ -62,15 +67,5 @@ def line_plot(series: dict, path, xlabel: str, ylabel: str, title: str | None = 
         ax.plot(x, y, marker="o", ms=3, label=name)
     if logy:
         ax.set_yscale("log")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    if title:
-        ax.set_title(title)
-    ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _finish(fig, ax, path, xlabel, ylabel, title)
