@@ -156,8 +156,6 @@ def make_test_context(tmp_path, seed: int = 0, registry: Registry | None = None,
     from .plugins import get_registry
 
     train = TrainConfig(**train_overrides) if train_overrides else TrainConfig(epochs=2, batch_size=8)
-    if not train_overrides:
-        pass
     tmp_path = Path(tmp_path)
     return RunContext(tmp_path / "run", registry or get_registry(), Cache(tmp_path / "cache"), seed=seed,
                       train=train, device="cpu", quiet=True)

@@ -82,9 +82,8 @@ class Reconstruct:
 
         from fwk import evaluation as ev
 
-        ctx.log(f"loading dataset {self.dataset.name}")
-        dataset = self.dataset if not hasattr(self.dataset, "build") else self.dataset.build()
-        col = dataset.load(ctx.cache)
+        ctx.log(f"loading dataset {getattr(self.dataset, 'name', self.dataset)}")
+        col = ctx.build("dataset", self.dataset).load(ctx.cache)
         for s in self.shapes:
             col.shape_index(s)
         split, pre, cols, transforms = prepare(col, self.split, self.preprocess, ctx.seed, ctx)
@@ -95,14 +94,14 @@ class Reconstruct:
                 f"{template.n_vertices} vertices, shapes {', '.join(self.shapes)}")
 
         stacks = {name: FitData(template, cols[name], cols[name], list(self.shapes)).stack("train") for name in SPLITS}
-        results: dict = {"models": {}, "timing": {}, "dataset": {"name": self.dataset.name, "n_vertices": template.n_vertices,
+        results: dict = {"models": {}, "timing": {}, "dataset": {"name": getattr(self.dataset, "name", self.dataset), "n_vertices": template.n_vertices,
                          "units": col.units, "scale": float(pre.scale), "subjects": {k: len(v) for k, v in split.items()}}}
         predictions = {}
         for label, spec in self.models.items():
-            model = spec.build()
+            model = ctx.build("model", spec)
             family = getattr(model, "task_family", "reconstruct")
             if family != "reconstruct":
-                raise RecipeError(f"models.{label}: {spec.name} is a {family} model, not a reconstruction model")
+                raise RecipeError(f"models.{label}: {model.name} is a {family} model, not a reconstruction model")
             mctx = ctx.scoped(label)
             state_path = ctx.run_dir / "models" / f"{label}.pt"
             t0 = time.perf_counter()
@@ -110,7 +109,7 @@ class Reconstruct:
                 ctx.log(f"[{label}] loading the finished model from {state_path}")
                 model.load_state_dict(torch.load(state_path, weights_only=False))
             else:
-                ctx.log(f"[{label}] fitting {spec.name}")
+                ctx.log(f"[{label}] fitting {model.name}")
                 model.fit(data, mctx)
                 ctx.save_torch(f"models/{label}.pt", model.state_dict())
             fit_s = time.perf_counter() - t0
