@@ -131,3 +131,16 @@ def test_eigenbasis_several_components_and_unweighted():
     # deterministic signs
     w2, U2 = eigenbasis(V, F, 20)
     assert np.array_equal(np.sign(U.max(0) + U.min(0)), np.sign(U2.max(0) + U2.min(0)))
+
+
+def test_per_component_solve_matches_dense():
+    V1, F1 = bumpy_sphere(3, seed=1)
+    V2, F2 = bumpy_sphere(3, seed=2)
+    V = np.vstack([V1, 2.0 * V2 + 5])  # a larger second component takes more of the spectrum
+    F = np.vstack([F1, F2 + len(V1)])
+    L, M = cotangent_laplacian(V, F), mass_matrix(V, F)
+    w, U = generalized_eigs(L, M, 120, slice_size=40)
+    wd = la.eigh(L.toarray(), M.toarray(), eigvals_only=True)
+    assert np.allclose(w, wd[:120], atol=1e-9)
+    assert np.allclose(U.T @ (M @ U), np.eye(120), atol=1e-9)
+    assert np.abs(L @ U - (M @ U) * w).max() < 1e-8
