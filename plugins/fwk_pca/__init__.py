@@ -68,7 +68,9 @@ class PCA:
         return self.rep.decode(F.reshape(len(F), self._shape[0], self._channels))
 
     def reconstruct(self, P) -> np.ndarray:
-        return self.decode(self.encode(P))
+        """Project and decode; representations that lose position (dr) are registered to P."""
+        F = self.mean + self.encode(P) @ self.components
+        return self.rep.decode(F.reshape(len(F), self._shape[0], self._channels), None, P)
 
     def sample(self, n: int, seed: int = 0) -> np.ndarray:
         rng = np.random.default_rng(seed)
