@@ -159,7 +159,7 @@ class ICTFaceKit:
         else:
             extra = list(t.obj_extra)
         sub = Template(t.vertices[verts], fan_triangulate(pv, new_off), pv, new_off, t.uvs, uv_corners, extra,
-                       units="cm", name=f"ict-facekit-{self.region}")
+                       units="cm", name=f"ict-facekit-{self.region}", uv_lines=t.uv_lines)
         return verts, sub
 
     # ---------------------------------------------------------------------- load

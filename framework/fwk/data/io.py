@@ -51,7 +51,7 @@ def _parse_vertices(v_lines, path) -> np.ndarray:
 
 
 def _parse_topology(face_block, n_vertices: int, path) -> Template:
-    uvs, poly_v, poly_t, offsets, extra = [], [], [], [0], []
+    uvs, uv_lines, poly_v, poly_t, offsets, extra = [], [], [], [], [0], []
     n_vt = 0
     for raw in face_block:
         line = raw.decode("utf-8", "replace").strip()
@@ -59,6 +59,7 @@ def _parse_topology(face_block, n_vertices: int, path) -> Template:
         if tag == "vt":
             parts = rest.split()
             uvs.append([float(parts[0]), float(parts[1]) if len(parts) > 1 else 0.0])
+            uv_lines.append(line)
             n_vt += 1
         elif tag == "f":
             corners = rest.split()
@@ -97,6 +98,7 @@ def _parse_topology(face_block, n_vertices: int, path) -> Template:
         poly_uvs=poly_t if has_uv else None,
         obj_extra=extra,
         name=Path(path).stem,
+        uv_lines=uv_lines if has_uv else None,
     )
 
 
@@ -197,7 +199,9 @@ def obj_text(V: np.ndarray, template: Template) -> str:
     head = [line for pos, line in extra if pos == 0 and line.split(" ")[0] in ("mtllib", "o")]
     out += head
     out += ["v " + s for s in _fmt(V)]
-    if template.uvs is not None:
+    if template.uv_lines is not None and len(template.uv_lines) == len(template.uvs):
+        out += list(template.uv_lines)
+    elif template.uvs is not None:
         out += ["vt " + s for s in _fmt(template.uvs)]
     pv, off = template.poly_vertices + 1, template.poly_offsets
     pt = template.poly_uvs + 1 if template.poly_uvs is not None else None

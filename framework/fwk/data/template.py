@@ -18,6 +18,7 @@ class Template:
     poly_offsets  (P + 1,) int64: polygon p is poly_vertices[poly_offsets[p]:poly_offsets[p+1]]
     uvs           (t, 2) float64 texture coordinates (OBJ ``vt``), or None
     poly_uvs      flat int64 ``vt`` indices aligned with poly_vertices (-1: none), or None
+    uv_lines      the original ``vt`` lines (text), so UVs are written back byte for byte
     obj_extra     OBJ lines that are not v/vt/f (mtllib, usemtl, g, o, s ...) as
                   (number of polygons written before the line, line) so a mesh is written back
                   exactly as the user's file had it
@@ -37,6 +38,7 @@ class Template:
     landmarks: dict[str, int] = field(default_factory=dict)
     units: str = "unit"
     name: str = "template"
+    uv_lines: list[str] | None = None  # the file's own ``vt`` lines, written back verbatim
 
     def __post_init__(self):
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64)
