@@ -70,3 +70,20 @@ def edge_topology(F: np.ndarray, n_vertices: int | None = None) -> EdgeTopology:
         _CACHE.clear()
     _CACHE[key] = topo
     return topo
+
+
+def one_ring(F: np.ndarray, n_vertices: int | None = None) -> sp.csr_matrix:
+    """Vertex adjacency as CSR: row i's ``indices`` are the one-ring neighbours of i (sorted)."""
+    topo = edge_topology(F, n_vertices)
+    e = topo.edges
+    n = topo.n_vertices
+    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    A.sort_indices()
+    return A
+
+
+def connected_components(F: np.ndarray, n_vertices: int | None = None) -> np.ndarray:
+    """(n,) component label of every vertex (an isolated vertex is a component of its own)."""
+    from scipy.sparse.csgraph import connected_components as cc
+
+    return cc(one_ring(F, n_vertices), directed=False)[1].astype(np.int64)
