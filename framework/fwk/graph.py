@@ -12,7 +12,8 @@ def torch_sparse(M):
 
     M = sp.coo_matrix(M)
     idx = torch.as_tensor(np.vstack([M.row, M.col]), dtype=torch.long)
-    return torch.sparse_coo_tensor(idx, torch.as_tensor(M.data, dtype=torch.float32), M.shape).coalesce()
+    return torch.sparse_coo_tensor(idx, torch.as_tensor(M.data, dtype=torch.float32), M.shape,
+                                   check_invariants=True).coalesce()  # built once per level: checking is cheap
 
 
 def sparse_apply(M, x):

@@ -83,9 +83,11 @@ class Sampler(Protocol):
 
 class Conv(Protocol):
     """A graph convolution: ``Cls(in_channels, out_channels, hierarchy, level, **params)`` is a
-    torch.nn.Module mapping (b, n_level, c_in) -> (b, n_level, c_out)."""
+    torch.nn.Module mapping (b, n_level, c_in) -> (b, n_level, c_out). The class lists the
+    arguments the model supplies in ``build_args`` so that recipes only give ``**params``."""
 
     name: str
+    build_args: tuple = ("in_channels", "out_channels", "hierarchy", "level")
 
 
 @runtime_checkable

@@ -191,7 +191,9 @@ def validate_params(cls: type, params: dict, path: str, registry: Registry, labe
     init = cls.__init__ if not dataclasses.is_dataclass(cls) else cls
     sig = inspect.signature(init)
     hints = _hints(cls.__init__) if not dataclasses.is_dataclass(cls) else _hints(cls)
-    ps = {n: p for n, p in sig.parameters.items() if n != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
+    supplied = set(getattr(cls, "build_args", ()))  # given by the framework at build time, not the recipe
+    ps = {n: p for n, p in sig.parameters.items()
+          if n != "self" and n not in supplied and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
     var_kw = any(p.kind == p.VAR_KEYWORD for p in sig.parameters.values())
     out = {}
     for key, value in params.items():
@@ -208,6 +210,9 @@ def validate_params(cls: type, params: dict, path: str, registry: Registry, labe
     for name, p in ps.items():
         if p.default is p.empty and name not in out:
             raise RecipeError(f"{path + '.' if path else ''}{name}: missing required parameter of {label}")
+        if name not in out and isinstance(p.default, str) and _is_component(hints.get(name)):
+            # a default component given by name becomes a Spec like a recipe's would
+            out[name] = convert(p.default, hints[name], f"{path + '.' if path else ''}{name}", registry)
     return out
 
 

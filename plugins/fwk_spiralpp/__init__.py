@@ -41,6 +41,7 @@ class SpiralPP(nn.Module):
     """SpiralNet++ convolution (fixed-length spirals, shared linear layer)."""
 
     name = "spiral++"
+    build_args = ("in_channels", "out_channels", "hierarchy", "level")
 
     def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0, length: int = 9,
                  dilation: int = 1):

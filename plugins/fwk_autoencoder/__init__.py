@@ -1,0 +1,239 @@
+"""Models ``ae`` and ``vae``: graph (variational) autoencoders composed from a recipe
+(thesis 3.3, 3.4, appendix A; CoMA / SpiralNet++ / Neural 3DMM / FeaStNet / LSA-3DMM layout).
+
+A sampler builds the template's hierarchy once (levels 0..L, sparse down D_i and up U_i). With
+channels [c_0 = |f|, c_1, ..., c_L]:
+
+    encoder:  for i in 0..L-1:  x <- D_i ELU(conv_i(x))          (level i -> i+1)
+              z = Linear(flatten(x))                             (ae)   or  mu, log sigma^2 (vae)
+    decoder:  x = Linear(z) reshaped to (n_L, c_L)
+              for i in L-1..0:  x <- ELU(conv'_i(U_i x))           (level i+1 -> i)
+              out = conv_out(x)                                   (level 0, c_0 channels, no activation)
+
+Each conv is built by the recipe's ``conv`` component at its level (``Cls(c_in, c_out, hierarchy,
+level, **params)``), so any registered conv plugs in. Horizontal blocks at one level share the
+level's operators (one hierarchy per template, cached). Losses (thesis table 3.2, eqs. 3.19-3.23):
+the L1 norm in the representation's own unscaled space, plus ``kl_weight`` x KL for ``vae``.
+Thesis defaults: channels [|f|, 16, 32, 64, 128], pooling factor 4, latent 64, ELU.
+
+Composable API for other models (Deep Spectral Meshes, personalised blendshapes):
+``m.build_encoder(template, in_channels, ctx)`` returns a module (b, n, c_in) -> (mu, logvar)
+(logvar None for ``ae``); ``m.build_decoder(template, out_channels, ctx, latent_in=None)`` a module
+(b, latent_in) -> (b, n, c_out).
+"""
+from __future__ import annotations
+
+from typing import Annotated
+
+import numpy as np
+import torch
+from torch import nn
+
+from fwk.graph import sparse_apply, torch_sparse
+from fwk.hookspecs import hookimpl
+from fwk.recipes import Kind, Spec
+
+ACTIVATIONS = {"elu": nn.ELU, "relu": nn.ReLU, "leaky_relu": nn.LeakyReLU}
+
+
+class _Sparse(nn.Module):
+    """A fixed sparse operator (kept as a buffer so ``.to(device)`` moves it)."""
+
+    def __init__(self, M):
+        super().__init__()
+        self.register_buffer("M", torch_sparse(M))
+
+    def forward(self, x):
+        return sparse_apply(self.M, x)
+
+
+class Encoder(nn.Module):
+    def __init__(self, conv, hierarchy, channels, latent, variational, act):
+        super().__init__()
+        L = len(channels) - 1
+        self.convs = nn.ModuleList(conv.build(channels[i], channels[i + 1], hierarchy, i) for i in range(L))
+        self.pools = nn.ModuleList(_Sparse(hierarchy.down[i]) for i in range(L))
+        self.act = act()
+        d = hierarchy.levels[L].n_vertices * channels[-1]
+        self.mu = nn.Linear(d, latent)
+        self.logvar = nn.Linear(d, latent) if variational else None
+
+    def forward(self, x):
+        for conv, pool in zip(self.convs, self.pools):
+            x = pool(self.act(conv(x)))
+        h = x.flatten(1)
+        return self.mu(h), (self.logvar(h) if self.logvar is not None else None)
+
+
+class Decoder(nn.Module):
+    def __init__(self, conv, hierarchy, channels, latent_in, out_channels, act):
+        super().__init__()
+        L = len(channels) - 1
+        self.n_last, self.c_last = hierarchy.levels[L].n_vertices, channels[-1]
+        self.fc = nn.Linear(latent_in, self.n_last * self.c_last)
+        self.unpools = nn.ModuleList(_Sparse(hierarchy.up[i]) for i in reversed(range(L)))
+        self.convs = nn.ModuleList(conv.build(channels[i + 1], channels[i] if i else channels[1], hierarchy, i)
+                                   for i in reversed(range(L)))
+        self.out = conv.build(channels[1], out_channels, hierarchy, 0)
+        self.act = act()
+
+    def forward(self, z):
+        x = self.fc(z).reshape(len(z), self.n_last, self.c_last)
+        for unpool, conv in zip(self.unpools, self.convs):
+            x = self.act(conv(unpool(x)))
+        return self.out(x)
+
+
+def kl_divergence(mu, logvar):
+    return -0.5 * torch.mean(torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=1))
+
+
+class _Net(nn.Module):
+    def __init__(self, enc, dec):
+        super().__init__()
+        self.enc, self.dec = enc, dec
+
+
+def _module(net, unscale, kl_weight, variational):
+    import lightning.pytorch as pl
+
+    from fwk.engine import make_optimizer
+
+    class Module(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.net = net
+
+        def _loss(self, batch, stage):
+            (F,) = batch
+            mu, logvar = self.net.enc(F)
+            z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if (variational and self.training) else mu
+            G = self.net.dec(z)
+            rec = torch.mean(torch.abs(unscale(G) - unscale(F)))
+            loss = rec + (kl_weight * kl_divergence(mu, logvar) if variational else 0.0)
+            self.log(f"{stage}_loss", loss, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(F))
+            self.log(f"{stage}_l1", rec, on_epoch=True, on_step=False, batch_size=len(F))
+            return loss
+
+        def training_step(self, batch, _):
+            return self._loss(batch, "train")
+
+        def validation_step(self, batch, _):
+            return self._loss(batch, "val")
+
+        def configure_optimizers(self):
+            return make_optimizer(self.parameters(), self.train_config)
+
+    return Module()
+
+
+class AE:
+    """Graph autoencoder composed of a conv and a sampler (thesis 3.4 architecture)."""
+
+    name = "ae"
+    task_family = "reconstruct"
+    variational = False
+
+    def __init__(self, conv: Annotated[Spec, Kind("conv")] = "spiral++",
+                 sampler: Annotated[Spec, Kind("sampler")] = "quadric",
+                 channels: list[int] | None = None, latent: int = 64, activation: str = "elu",
+                 representation: Annotated[Spec, Kind("representation")] | None = None,
+                 kl_weight: float | None = None, train: dict | None = None):
+        if activation not in ACTIVATIONS:
+            from fwk.errors import RecipeError
+            from fwk.registry import did_you_mean
+
+            raise RecipeError(f"activation: unknown {activation!r}{did_you_mean(activation, ACTIVATIONS)}")
+        self.conv, self.sampler = conv, sampler
+        self.channels = list(channels) if channels else [16, 32, 64, 128]
+        self.latent, self.activation = latent, activation
+        self.representation_spec, self.kl_weight, self.train_overrides = representation, kl_weight, train or {}
+        self.rep = self.net = self.hierarchy = None
+        self.shape = None
+
+    # ---- composable parts
+    def _hierarchy(self, template, ctx=None):
+        if self.hierarchy is None:
+            self.hierarchy = self.sampler.build().build(template, getattr(ctx, "cache", None))
+        return self.hierarchy
+
+    def build_encoder(self, template, in_channels: int, ctx=None) -> nn.Module:
+        h = self._hierarchy(template, ctx)
+        ch = [in_channels, *self.channels][: len(h.levels)]
+        return Encoder(self.conv, h, ch, self.latent, self.variational, ACTIVATIONS[self.activation])
+
+    def build_decoder(self, template, out_channels: int, ctx=None, latent_in: int | None = None) -> nn.Module:
+        h = self._hierarchy(template, ctx)
+        ch = [out_channels, *self.channels][: len(h.levels)]
+        return Decoder(self.conv, h, ch, latent_in or self.latent, out_channels, ACTIVATIONS[self.activation])
+
+    # ---- the Model protocol
+    def _make_rep(self):
+        if self.representation_spec is None:
+            from fwk.plugins import get_registry
+
+            return get_registry().get("representation", "euclidean")(scaling="std")
+        return self.representation_spec.build()
+
+    def fit(self, data, ctx) -> None:
+        from fwk.engine import fit, seed_everything
+
+        P, V = data.stack("train"), data.stack("val")
+        self.rep = self._make_rep()
+        self.rep.fit(P, None, data.template)
+        F = torch.as_tensor(self.rep.encode(P))
+        Fv = torch.as_tensor(self.rep.encode(V)) if len(V) else None
+        self.shape = tuple(F.shape[1:])
+        self._template = data.template
+        seed_everything(ctx.seed)
+        c = self.shape[1]
+        self.net = _Net(self.build_encoder(data.template, c, ctx), self.build_decoder(data.template, c, ctx))
+        config = ctx.train.replace(**self.train_overrides)
+        kl = config.kl_weight if self.kl_weight is None else self.kl_weight
+        fit(_module(self.net, self.rep.unscale, kl, self.variational), F, Fv, ctx, self.name, config)
+        self.net.eval()
+
+    @torch.no_grad()
+    def encode(self, P) -> np.ndarray:
+        mu, _ = self.net.enc(torch.as_tensor(self.rep.encode(P)))
+        return mu.numpy().astype(np.float64)
+
+    @torch.no_grad()
+    def decode(self, z, target=None) -> np.ndarray:
+        G = self.net.dec(torch.as_tensor(np.asarray(z), dtype=torch.float32))
+        return self.rep.decode(G.numpy(), None, target)
+
+    def reconstruct(self, P) -> np.ndarray:
+        """Decode the (posterior mean) code; dr outputs are registered to the input (thesis 3.3.10)."""
+        return self.decode(self.encode(P), target=P)
+
+    def sample(self, n: int, seed: int = 0) -> np.ndarray:
+        return self.decode(np.random.default_rng(seed).standard_normal((n, self.latent)))
+
+    def state_dict(self) -> dict:
+        return {"net": self.net.state_dict(), "rep": self.rep.state_dict(), "shape": self.shape,
+                "template_vertices": self._template.vertices, "template_triangles": self._template.triangles}
+
+    def load_state_dict(self, d: dict) -> None:
+        from fwk.data import Template
+
+        self.rep = self._make_rep()
+        self.rep.load_state_dict(d["rep"])
+        self.shape = tuple(d["shape"])
+        self._template = Template(d["template_vertices"], d["template_triangles"])
+        c = self.shape[1]
+        self.net = _Net(self.build_encoder(self._template, c), self.build_decoder(self._template, c))
+        self.net.load_state_dict(d["net"])
+        self.net.eval()
+
+
+class VAE(AE):
+    """Graph variational autoencoder (reparameterised latent, weighted KL term)."""
+
+    name = "vae"
+    variational = True
+
+
+@hookimpl
+def fwk_register_models():
+    return [AE, VAE]
