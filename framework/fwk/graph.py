@@ -53,13 +53,15 @@ def ordered_one_rings(F: np.ndarray, n: int) -> list[list[int]]:
     return rings
 
 
-def spirals(F: np.ndarray, n: int, length: int, dilation: int = 1) -> np.ndarray:
+def spirals(F: np.ndarray, n: int, length: int, dilation: int = 1, first=None, pad: int | None = None) -> np.ndarray:
     """SpiralNet++ spirals (Gong et al. 2019): the vertex, its one-ring in mesh order, then the
     following rings (each ordered by walking the previous ring), cut to ``length * dilation``
     and taken every ``dilation``. Where rings run out (small components, borders) the spiral is
     padded with the centre vertex itself: an explicit, documented choice instead of the
     reference implementation's silent k-nearest-neighbour fallback. Returns (n, length)."""
     rings = ordered_one_rings(F, n)
+    if first is not None:  # rotate each cyclic ring to start at the neighbour chosen by first(v, ring)
+        rings = [r[r.index(first(v, r)):] + r[:r.index(first(v, r))] if r else r for v, r in enumerate(rings)]
     need = length * dilation
     out = np.empty((n, length), dtype=np.int64)
     for v in range(n):
@@ -74,6 +76,38 @@ def spirals(F: np.ndarray, n: int, length: int, dilation: int = 1) -> np.ndarray
                         sp_.append(w)
                         nf.append(w)
             frontier = nf
-        sp_ = (sp_ + [v] * need)[:need]
+        sp_ = (sp_ + [v if pad is None else pad] * need)[:need]
         out[v] = sp_[::dilation][:length]
     return out
+
+
+def bfs_distance(adj, sources) -> np.ndarray:
+    """Hop distances from ``sources`` over a CSR adjacency (inf where unreachable)."""
+    from scipy.sparse.csgraph import shortest_path
+
+    d = shortest_path(adj, unweighted=True, indices=np.atleast_1d(sources), directed=False)
+    return d.min(axis=0) if d.ndim == 2 else d
+
+
+def neighbourhoods(edges: np.ndarray, n: int, k: int, include_self: bool = True) -> np.ndarray:
+    """(n, k) the vertex (optionally) then its adjacency entries in index order, padded with the
+    vertex itself where there are fewer."""
+    adj = sp.coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
+                        shape=(n, n)).tocsr()
+    adj.sort_indices()
+    out = np.empty((n, k), dtype=np.int64)
+    for v in range(n):
+        nb = list(adj.indices[adj.indptr[v]:adj.indptr[v + 1]])
+        row = ([v] if include_self else []) + nb
+        out[v] = (row + [v] * k)[:k]
+    return out
+
+
+def edge_index(edges: np.ndarray, n: int, self_loops: bool = True):
+    """torch_geometric edge_index (2, E) with both directions (and self loops)."""
+    import torch
+
+    e = np.r_[edges, edges[:, ::-1]]
+    if self_loops:
+        e = np.r_[e, np.stack([np.arange(n), np.arange(n)], 1)]
+    return torch.as_tensor(e.T.copy(), dtype=torch.long)
