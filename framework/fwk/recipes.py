@@ -32,7 +32,7 @@ import yaml
 from .errors import RecipeError
 from .registry import Registry, did_you_mean
 
-RESERVED = ("task", "extends", "name", "seed", "train", "description")
+RESERVED = ("task", "extends", "name", "seed", "train", "description", "source")
 
 
 class Kind:
@@ -159,7 +159,7 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> dict:
     data = _load_with_extends(path)
     data = apply_overrides(data, overrides or [])
     data.setdefault("name", path.stem)
-    data["_source"] = str(path.resolve())
+    data["_source"] = str(path.resolve())  # where relative paths inside the recipe start
     return data
 
 
@@ -346,7 +346,7 @@ def resolve(data: dict, registry: Registry) -> Resolved:
     from .engine import TrainConfig
 
     data = dict(data)
-    source = data.pop("_source", None)
+    source = data.pop("_source", None) or data.get("source")
     if "task" not in data:
         raise RecipeError(f"task: missing; choices: {', '.join(registry.names('task'))}")
     task_name = data["task"]

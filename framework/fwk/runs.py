@@ -73,6 +73,7 @@ class RunContext:
         self.quiet = quiet
         self.resume = resume
         self.scope = scope
+        self.source: str | None = None  # the recipe file, for paths relative to it
         self.log_file = log_file if log_file is not None else self.run_dir / "log.txt"
 
     # files -------------------------------------------------------------------------
@@ -225,8 +226,8 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
         data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
         if recipe_path:
             fresh = load_recipe(recipe_path, overrides)
-            fresh.pop("_source", None)
-            if to_plain(fresh) != {k: v for k, v in data.items() if k != "_source"}:
+            fresh["source"] = fresh.pop("_source", None)
+            if to_plain(fresh) != {k: v for k, v in data.items()}:
                 raise FwkError(f"--resume {resume}: the recipe differs from the one the run was started with")
         resolved = resolve(data, registry)
         created = False
@@ -238,8 +239,11 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
     try:
         ctx = RunContext(run_dir, registry, cache, resolved.seed, recipe=resolved.data, train=resolved.train,
                          device=device, quiet=quiet, resume=bool(resume))
+        ctx.source = resolved.source
         if created:
             plain = {k: v for k, v in resolved.data.items() if k != "_source"}
+            if resolved.source:
+                plain["source"] = resolved.source  # the recipe file: relative paths resolve from it
             ctx.write_text("recipe.yaml", yaml.safe_dump(plain, sort_keys=False))
             ctx.write_json("versions.json", versions(registry))
         ctx.log(f"fwk run {resolved.name}: task {resolved.task.name}, run directory {run_dir}")

@@ -1,0 +1,106 @@
+"""Task ``grid``: run many configurations and compare them in one table (thesis 3.3.7, tables
+3.3-3.5, figure 3.3).
+
+Members are either recipe files (``recipes: [a.yaml, b.yaml]``, relative to the grid recipe) or
+inline configurations merged onto a ``base`` recipe (``configs: {name: {key: value, ...}}``,
+mappings merged key by key as ``extends:`` does). Each member runs as a sub-run in
+``<run>/<name>/`` with its own recipe, split, statistics, checkpoints and report; a member whose
+``metrics.json`` exists is finished and is not run again, so a killed grid resumes where it
+stopped (``fwk run --resume``). The grid's report has one row per configuration and model with
+L1, L2, DAME and FMPD on train and test, and the L1/DAME scatter with its Pareto front.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import yaml
+
+from fwk.errors import FwkError, RecipeError
+from fwk.hookspecs import hookimpl
+
+COLUMNS = ("l1", "l2", "dame", "fmpd")
+
+
+class Grid:
+    """Run a list of recipes (or configurations of one base recipe) and compare them."""
+
+    name = "grid"
+
+    def __init__(self, recipes: list[str] | None = None, base: str | None = None,
+                 configs: dict[str, dict] | None = None, splits: list[str] | None = None):
+        if not recipes and not configs:
+            raise RecipeError("recipes: a grid needs `recipes` or `base` with `configs`")
+        if configs and not base:
+            raise RecipeError("base: `configs` are merged onto a `base` recipe; give its path")
+        self.recipes, self.base, self.configs = recipes or [], base, configs or {}
+        self.splits = splits or ["train", "test"]
+
+    def members(self, ctx) -> dict[str, dict]:
+        from fwk.recipes import deep_merge, load_recipe
+
+        here = Path(ctx.source).parent if getattr(ctx, "source", None) else Path.cwd()
+        out = {}
+        for r in self.recipes:
+            p = (here / r).resolve()
+            out[p.stem] = load_recipe(p)
+        if self.configs:
+            base = load_recipe((here / self.base).resolve())
+            for name, cfg in self.configs.items():
+                d = deep_merge(base, cfg or {})
+                d["name"] = name
+                out[name] = d
+        return out
+
+    def run(self, ctx):
+        from fwk.evaluation.report import markdown_table, scatter_figure, write_report
+        from fwk.recipes import resolve
+        from fwk.runs import RunContext, run_task
+
+        members = self.members(ctx)
+        resolved = {}
+        for name, data in members.items():  # validate every member before running any
+            try:
+                resolved[name] = resolve(data, ctx.registry)
+            except RecipeError as exc:
+                raise RecipeError(f"grid member {name}: {exc}") from None
+        for i, (name, r) in enumerate(resolved.items()):
+            sub = ctx.run_dir / name
+            if (sub / "metrics.json").exists():
+                ctx.log(f"[{i + 1}/{len(resolved)}] {name}: finished before, not run again")
+                continue
+            ctx.log(f"[{i + 1}/{len(resolved)}] {name}")
+            sub.mkdir(parents=True, exist_ok=True)
+            plain = {k: v for k, v in r.data.items() if k != "_source"}
+            (sub / "recipe.yaml").write_text(yaml.safe_dump(plain, sort_keys=False))
+            child = RunContext(sub, ctx.registry, ctx.cache, r.seed, recipe=r.data, train=r.train, device=ctx.device,
+                               quiet=ctx.quiet, resume=True, log_file=ctx.log_file)
+            child.source = r.source
+            run_task(r, child)
+        results = {"models": {}, "members": list(resolved)}
+        for name in resolved:
+            p = ctx.run_dir / name / "metrics.json"
+            if not p.exists():
+                raise FwkError(f"grid member {name} wrote no metrics.json")
+            m = json.loads(p.read_text())
+            for label, per in m.get("models", {}).items():
+                key = name if len(m["models"]) == 1 else f"{name}/{label}"
+                results["models"][key] = per
+            results.setdefault("dataset", m.get("dataset", {}))
+        from fwk.evaluation.report import DISPLAY, _fmt, _scale_label
+
+        cols = ["configuration"] + [f"{m}{_scale_label(DISPLAY[m])} {s}" for s in self.splits for m in COLUMNS]
+        rows = [[key] + [_fmt(per.get(s, {}).get(m, {}).get("mean"), DISPLAY[m]) for s in self.splits for m in COLUMNS]
+                for key, per in results["models"].items()]
+        figures = {}
+        for y in ("dame", "fmpd"):
+            f = scatter_figure(ctx, results, "test", "l1", y)
+            if f is not None:
+                figures[f"L1 against {y.upper()} (test), Pareto front dashed"] = f
+        write_report(ctx, f"Grid: {ctx.recipe.get('name', 'grid')} ({len(rows)} configurations)", results, figures,
+                     sections=[("All configurations", markdown_table(rows, cols))])
+
+
+@hookimpl
+def fwk_register_tasks():
+    return [Grid]
