@@ -1,0 +1,145 @@
+"""Sampler ``simple``: the connectivity-only graph sampling of the fully convolutional mesh
+autoencoder (Zhou et al. 2020, "Fully Convolutional Mesh Autoencoder using Efficient
+Spatially Varying Kernels"; thesis 3.3, appendix A).
+
+On each level's graph, per connected component: walk the vertices in breadth-first order from
+the component's first vertex; a vertex not yet covered becomes a centre and covers every vertex
+within ``stride - 1`` hops. Centres are therefore at least ``stride`` hops apart and every vertex
+lies within ``stride - 1`` hops of a centre. The next level's vertices are the centres; two
+centres are joined when they are at most ``2 stride - 1`` hops apart (their covering balls touch
+or overlap), which gives non-manifold graphs, as in the paper.
+
+Neighbourhoods, stored in ``Level.extra`` as padded index arrays with boolean masks:
+
+* ``conv_nbrs`` / ``conv_mask`` on every level: the vertices within ``radius`` hops of each
+  vertex (itself first): the support of a stride-1 convolution;
+* ``pool_nbrs`` / ``pool_mask`` on level i + 1: for each centre, the level-i vertices within
+  ``radius`` hops (a strided convolution's support, and ``down``: their mean);
+* ``unpool_nbrs`` / ``unpool_mask`` on level i: for each level-i vertex, the centres whose pool
+  neighbourhood contains it (a transposed convolution's support, and ``up``: their mean).
+
+``down`` and ``up`` are sparse averaging operators (rows sum to 1). Several connected components
+are handled, each keeping at least one centre; nothing n x n is dense.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import breadth_first_order, connected_components
+
+from fwk.errors import RecipeError
+from fwk.hookspecs import hookimpl
+from fwk.protocols import Hierarchy, Level
+
+
+def _adj(edges, n):
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    A.data[:] = 1.0
+    return A
+
+
+def _within(A, hops):
+    """Boolean CSR reachability within ``hops`` (including the vertex itself)."""
+    n = A.shape[0]
+    R = sp.identity(n, format="csr", dtype=np.float64)
+    step = (A + sp.identity(n, format="csr")).tocsr()
+    for _ in range(hops):
+        R = (R @ step).tocsr()
+        R.data[:] = 1.0
+    return R
+
+
+def _padded(R, first=None):
+    """Rows of a CSR pattern as (n, K) padded indices and a mask; ``first[i]`` leads row i."""
+    R = R.tocsr()
+    R.sort_indices()
+    counts = np.diff(R.indptr)
+    K = int(counts.max()) if len(counts) else 1
+    idx = np.zeros((R.shape[0], K), dtype=np.int64)
+    mask = np.zeros((R.shape[0], K), dtype=bool)
+    for i in range(R.shape[0]):
+        row = list(R.indices[R.indptr[i]:R.indptr[i + 1]])
+        if first is not None and first[i] in row:
+            row.remove(first[i])
+            row.insert(0, first[i])
+        idx[i, :len(row)] = row
+        mask[i, :len(row)] = True
+        idx[i, len(row):] = row[0] if row else 0
+    return idx, mask
+
+
+def _mean_op(R):
+    R = R.tocsr().astype(np.float64)
+    R.data[:] = 1.0
+    d = np.asarray(R.sum(1)).ravel()
+    return sp.diags(1.0 / np.maximum(d, 1)) @ R
+
+
+def centres_bfs(A, stride):
+    n = A.shape[0]
+    _, labels = connected_components(A, directed=False)
+    covered = np.zeros(n, bool)
+    cover = _within(A, stride - 1)
+    centres = []
+    for c in range(labels.max() + 1):
+        start = int(np.flatnonzero(labels == c)[0])
+        order = breadth_first_order(A, start, directed=False, return_predecessors=False)
+        for v in order:
+            if not covered[v]:
+                centres.append(int(v))
+                covered[cover.indices[cover.indptr[v]:cover.indptr[v + 1]]] = True
+    return np.array(sorted(centres), dtype=np.int64)
+
+
+class Simple:
+    """Connectivity-only sampling (Zhou et al. 2020): BFS centres with a stride, radius neighbourhoods."""
+
+    name = "simple"
+
+    def __init__(self, levels: int = 4, stride: int = 2, radius: int = 2, min_vertices: int = 1):
+        if stride < 2:
+            raise RecipeError(f"stride: at least 2 (a stride of 1 keeps every vertex), got {stride}")
+        if radius < stride - 1:
+            raise RecipeError(f"radius: at least stride - 1 = {stride - 1} so every vertex is pooled, got {radius}")
+        self.n_levels, self.stride, self.radius, self.min_vertices = levels, stride, radius, min_vertices
+
+    def build(self, template, cache=None) -> Hierarchy:
+        def make():
+            n = template.n_vertices
+            A = _adj(template.edges, n)
+            V = np.asarray(template.vertices, dtype=np.float64)
+            levels = [Level(n, np.asarray(template.edges), np.asarray(template.triangles), V)]
+            downs, ups = [], []
+            for _ in range(self.n_levels):
+                C = centres_bfs(A, self.stride)
+                P = _within(A, self.radius)[C]  # (n_c, n): pool neighbourhoods
+                D = _mean_op(P)
+                U = _mean_op(P.T)
+                reach = _within(A, 2 * self.stride - 1)[C][:, C].tocoo()
+                keep = reach.row < reach.col
+                E = np.stack([reach.row[keep], reach.col[keep]], 1)
+                lv = levels[-1]
+                conv = _within(A, self.radius)
+                lv.extra["conv_nbrs"], lv.extra["conv_mask"] = _padded(conv, first=np.arange(A.shape[0]))
+                lv.extra["unpool_nbrs"], lv.extra["unpool_mask"] = _padded(P.T.tocsr())
+                nxt = Level(len(C), E, None, V[C])
+                nxt.extra["pool_nbrs"], nxt.extra["pool_mask"] = _padded(P, first=C)
+                nxt.extra["centres"] = C
+                downs.append(D.tocsr())
+                ups.append(U.tocsr())
+                levels.append(nxt)
+                A, V = _adj(E, len(C)), V[C]
+            last = levels[-1]
+            last.extra["conv_nbrs"], last.extra["conv_mask"] = _padded(_within(A, self.radius), first=np.arange(A.shape[0]))
+            return Hierarchy(levels, downs, ups)
+
+        if cache is None:
+            return make()
+        return cache.get_or_build("simple", (template.vertices, template.triangles, self.n_levels, self.stride,
+                                             self.radius, "v1"), make)
+
+
+@hookimpl
+def fwk_register_samplers():
+    return [Simple]
