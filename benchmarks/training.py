@@ -50,9 +50,15 @@ def main():
     for n in a.sizes:
         t, src = template_of(n)
         x = torch.randn(16, t.n_vertices, 3, device=dev)
-        for name, conv in CONVS.items():
-            m = make_spec("model", {"name": "ae", "conv": conv, "channels": [16, 32, 64, 128], "latent": 64,
-                                    "sampler": {"name": "quadric", "factors": [4, 4, 4, 4]}}, "model", reg).build()
+        for name, conv in {**CONVS, "vcconv": None}.items():
+            if conv is None:  # the thesis's fully convolutional vcconv VAE (section 3.4)
+                spec = {"name": "vae", "conv": {"name": "vcconv", "weight_num": 35}, "channels": [32, 64, 128, 128, 8],
+                        "latent": 64, "sampler": {"name": "simple", "levels": 5}, "fully_convolutional": True,
+                        "residual_rate": 0.5}
+            else:
+                spec = {"name": "ae", "conv": conv, "channels": [16, 32, 64, 128], "latent": 64,
+                        "sampler": {"name": "quadric", "factors": [4, 4, 4, 4]}}
+            m = make_spec("model", spec, "model", reg).build()
             enc, dec = m.build_encoder(t, 3).to(dev), m.build_decoder(t, 3).to(dev)
             params = sum(p.numel() for p in list(enc.parameters()) + list(dec.parameters()))
             opt = torch.optim.Adam(list(enc.parameters()) + list(dec.parameters()), 1e-3)

@@ -111,3 +111,40 @@ def edge_index(edges: np.ndarray, n: int, self_loops: bool = True):
     if self_loops:
         e = np.r_[e, np.stack([np.arange(n), np.arange(n)], 1)]
     return torch.as_tensor(e.T.copy(), dtype=torch.long)
+
+
+def reach(A, hops: int):
+    """Boolean-pattern CSR of the vertices within ``hops`` of each vertex (itself included)."""
+    n = A.shape[0]
+    R = sp.identity(n, format="csr", dtype=np.float64)
+    step = (sp.csr_matrix(A) + sp.identity(n, format="csr")).tocsr()
+    for _ in range(hops):
+        R = (R @ step).tocsr()
+        R.data[:] = 1.0
+    return R
+
+
+def padded_rows(R, first=None):
+    """Rows of a CSR pattern as (n, K) padded indices and a boolean mask; ``first[i]`` leads row i."""
+    R = sp.csr_matrix(R)
+    R.sort_indices()
+    counts = np.diff(R.indptr)
+    K = int(counts.max()) if len(counts) else 1
+    idx = np.zeros((R.shape[0], K), dtype=np.int64)
+    mask = np.zeros((R.shape[0], K), dtype=bool)
+    for i in range(R.shape[0]):
+        row = list(R.indices[R.indptr[i]:R.indptr[i + 1]])
+        if first is not None and first[i] in row:
+            row.remove(first[i])
+            row.insert(0, first[i])
+        idx[i, :len(row)] = row
+        mask[i, :len(row)] = True
+        idx[i, len(row):] = row[0] if row else 0
+    return idx, mask
+
+
+def adjacency(edges, n: int):
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    A.data[:] = 1.0
+    return A

@@ -16,6 +16,12 @@ level's operators (one hierarchy per template, cached). Losses (thesis table 3.2
 the L1 norm in the representation's own unscaled space, plus ``kl_weight`` x KL for ``vae``.
 Thesis defaults: channels [|f|, 16, 32, 64, 128], pooling factor 4, latent 64, ELU.
 
+``fully_convolutional: true`` builds Zhou et al.'s fully convolutional layout instead (the
+thesis's vcconv VAE: ``conv: vcconv``, ``sampler: {name: simple, levels: 5}``, channels
+[|f|, 32, 64, 128, 128, 8], residual rate 0.5): each encoder level is a strided convolution
+(mode ``down``) with a residual path, each decoder level a transposed one (mode ``up``); no
+separate pooling. The last level's features (flattened) meet the latent through linear layers.
+
 Composable API for other models (Deep Spectral Meshes, personalised blendshapes):
 ``m.build_encoder(template, in_channels, ctx)`` returns a module (b, n, c_in) -> (mu, logvar)
 (logvar None for ``ae``); ``m.build_decoder(template, out_channels, ctx, latent_in=None)`` a module
@@ -84,6 +90,50 @@ class Decoder(nn.Module):
         return self.out(x)
 
 
+class ConvEncoder(nn.Module):
+    """Fully convolutional encoder (Zhou et al. 2020): strided convs with residual blocks."""
+
+    def __init__(self, conv, hierarchy, channels, latent, variational, act, residual_rate):
+        super().__init__()
+        L = len(channels) - 1
+        self.convs = nn.ModuleList(conv.build(channels[i], channels[i + 1], hierarchy, i, mode="down",
+                                              residual_rate=residual_rate) for i in range(L))
+        self.act = act()
+        d = hierarchy.levels[L].n_vertices * channels[-1]
+        self.mu = nn.Linear(d, latent)
+        self.logvar = nn.Linear(d, latent) if variational else None
+
+    def forward(self, x):
+        for i, conv in enumerate(self.convs):
+            x = conv(x)
+            if i < len(self.convs) - 1:
+                x = self.act(x)
+        h = x.flatten(1)
+        return self.mu(h), (self.logvar(h) if self.logvar is not None else None)
+
+
+class ConvDecoder(nn.Module):
+    """Fully convolutional decoder: transposed convs with residual blocks, mirroring the encoder."""
+
+    def __init__(self, conv, hierarchy, channels, latent_in, out_channels, act, residual_rate):
+        super().__init__()
+        L = len(channels) - 1
+        self.n_last, self.c_last = hierarchy.levels[L].n_vertices, channels[-1]
+        self.fc = nn.Linear(latent_in, self.n_last * self.c_last)
+        chans = [out_channels, *channels[1:]]
+        self.convs = nn.ModuleList(conv.build(chans[i + 1], chans[i], hierarchy, i, mode="up",
+                                              residual_rate=residual_rate) for i in reversed(range(L)))
+        self.act = act()
+
+    def forward(self, z):
+        x = self.fc(z).reshape(len(z), self.n_last, self.c_last)
+        for i, conv in enumerate(self.convs):
+            x = conv(x)
+            if i < len(self.convs) - 1:
+                x = self.act(x)
+        return x
+
+
 def kl_divergence(mu, logvar):
     return -0.5 * torch.mean(torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=1))
 
@@ -138,7 +188,8 @@ class AE:
                  sampler: Annotated[Spec, Kind("sampler")] = "quadric",
                  channels: list[int] | None = None, latent: int = 64, activation: str = "elu",
                  representation: Annotated[Spec, Kind("representation")] | None = None,
-                 kl_weight: float | None = None, train: dict | None = None):
+                 kl_weight: float | None = None, train: dict | None = None,
+                 fully_convolutional: bool = False, residual_rate: float = 0.5):
         if activation not in ACTIVATIONS:
             from fwk.errors import RecipeError
             from fwk.registry import did_you_mean
@@ -150,6 +201,7 @@ class AE:
         self.representation_spec, self.kl_weight, self.train_overrides = representation, kl_weight, train or {}
         self.rep = self.net = self.hierarchy = None
         self.shape = None
+        self.fully_convolutional, self.residual_rate = fully_convolutional, residual_rate
 
     # ---- composable parts
     def _hierarchy(self, template, ctx=None):
@@ -160,11 +212,17 @@ class AE:
     def build_encoder(self, template, in_channels: int, ctx=None) -> nn.Module:
         h = self._hierarchy(template, ctx)
         ch = [in_channels, *self.channels][: len(h.levels)]
+        if self.fully_convolutional:
+            return ConvEncoder(self.conv, h, ch, self.latent, self.variational, ACTIVATIONS[self.activation],
+                               self.residual_rate)
         return Encoder(self.conv, h, ch, self.latent, self.variational, ACTIVATIONS[self.activation])
 
     def build_decoder(self, template, out_channels: int, ctx=None, latent_in: int | None = None) -> nn.Module:
         h = self._hierarchy(template, ctx)
         ch = [out_channels, *self.channels][: len(h.levels)]
+        if self.fully_convolutional:
+            return ConvDecoder(self.conv, h, ch, latent_in or self.latent, out_channels, ACTIVATIONS[self.activation],
+                               self.residual_rate)
         return Decoder(self.conv, h, ch, latent_in or self.latent, out_channels, ACTIVATIONS[self.activation])
 
     # ---- the Model protocol

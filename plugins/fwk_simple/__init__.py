@@ -28,45 +28,12 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components
 
 from fwk.errors import RecipeError
+from fwk.graph import adjacency, padded_rows, reach
 from fwk.hookspecs import hookimpl
 from fwk.protocols import Hierarchy, Level
 
 
-def _adj(edges, n):
-    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
-    A.data[:] = 1.0
-    return A
-
-
-def _within(A, hops):
-    """Boolean CSR reachability within ``hops`` (including the vertex itself)."""
-    n = A.shape[0]
-    R = sp.identity(n, format="csr", dtype=np.float64)
-    step = (A + sp.identity(n, format="csr")).tocsr()
-    for _ in range(hops):
-        R = (R @ step).tocsr()
-        R.data[:] = 1.0
-    return R
-
-
-def _padded(R, first=None):
-    """Rows of a CSR pattern as (n, K) padded indices and a mask; ``first[i]`` leads row i."""
-    R = R.tocsr()
-    R.sort_indices()
-    counts = np.diff(R.indptr)
-    K = int(counts.max()) if len(counts) else 1
-    idx = np.zeros((R.shape[0], K), dtype=np.int64)
-    mask = np.zeros((R.shape[0], K), dtype=bool)
-    for i in range(R.shape[0]):
-        row = list(R.indices[R.indptr[i]:R.indptr[i + 1]])
-        if first is not None and first[i] in row:
-            row.remove(first[i])
-            row.insert(0, first[i])
-        idx[i, :len(row)] = row
-        mask[i, :len(row)] = True
-        idx[i, len(row):] = row[0] if row else 0
-    return idx, mask
+_adj, _within, _padded = adjacency, reach, padded_rows
 
 
 def _mean_op(R):

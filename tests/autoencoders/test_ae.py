@@ -68,3 +68,22 @@ def test_encoder_and_decoder_compose_across_specs():
     assert mu.shape == (2, 8) and logvar.shape == (2, 8)
     y = dec(torch.cat([mu, mu, mu], dim=1))
     assert y.shape == (2, t.n_vertices, 9)
+
+
+def test_fully_convolutional_vcconv_vae_learns(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from fwk.runs import make_test_context
+
+    data = tiny_fit_data(n_subjects=24)
+    ctx = make_test_context(tmp_path, epochs=30, batch_size=8, lr=1e-3)  # a slower starter than the spirals
+    m = _spec("vae", conv={"name": "vcconv", "weight_num": 8}, sampler={"name": "simple", "levels": 3},
+              channels=[16, 16, 8], fully_convolutional=True, residual_rate=0.5).build()
+    m.fit(data, ctx)
+    (d,) = {p.parent for p in (ctx.run_dir / "tb").rglob("events.*")}
+    ea = EventAccumulator(str(d))
+    ea.Reload()
+    loss = [e.value for e in ea.Scalars("train_l1")]
+    assert loss[-1] < 0.7 * loss[0], loss
+    R = m.reconstruct(data.stack("val"))
+    assert R.shape == data.stack("val").shape and np.isfinite(R).all()

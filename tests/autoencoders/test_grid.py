@@ -34,4 +34,4 @@ def test_smoke_grid_recipe_validates():
     from fwk.recipes import load_recipe, resolve
 
     r = resolve(load_recipe(REPO / "recipes/smoke/grid.yaml"), get_registry())
-    assert len(r.task.params["configs"]) == 16
+    assert len(r.task.params["configs"]) == 20

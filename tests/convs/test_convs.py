@@ -84,3 +84,40 @@ def test_each_conv_autoencoder_learns(tmp_path, conv, epochs):
     ea.Reload()
     loss = [e.value for e in ea.Scalars("train_l1")]
     assert loss[-1] < 0.7 * loss[0], loss
+
+
+class TestVCConvContract(ConvContract):
+    component = REG.get("conv", "vcconv")
+    params = {"weight_num": 6}
+    sampler = ("simple", {"levels": 2})
+
+
+class TestVCConvOnQuadric(ConvContract):
+    component = REG.get("conv", "vcconv")
+    params = {"weight_num": 6, "radius": 1, "residual_rate": 0.5}
+
+
+def test_vcconv_strided_and_transposed_shapes_and_naive_reference():
+    import torch
+
+    from fwk.testing.sampler import two_components
+
+    h = REG.get("sampler", "simple")(levels=2).build(two_components())
+    VC = REG.get("conv", "vcconv")
+    down = VC(3, 5, h, 0, weight_num=4, mode="down", residual_rate=0.5)
+    up = VC(5, 3, h, 0, weight_num=4, mode="up", residual_rate=0.5)
+    x = torch.randn(2, h.levels[0].n_vertices, 3)
+    z = down(x)
+    assert z.shape == (2, h.levels[1].n_vertices, 5)
+    assert up(z).shape == x.shape
+    # naive: y_i = b + sum_j sum_m A_ijm B_m^T x_j over the pool neighbourhood of centre i
+    plain = VC(3, 5, h, 0, weight_num=4, mode="down")
+    y = plain(x)
+    idx, mask = h.levels[1].extra["pool_nbrs"], h.levels[1].extra["pool_mask"]
+    for i in (0, 7):
+        acc = plain.bias.clone()
+        for k in range(idx.shape[1]):
+            if mask[i, k]:
+                W = sum(plain.coef[i, k, m] * plain.basis[m] for m in range(4))
+                acc = acc + x[1, idx[i, k]] @ W
+        assert torch.allclose(y[1, i], acc, atol=1e-5)

@@ -1,0 +1,111 @@
+"""Conv ``vcconv``: the spatially varying convolution of the fully convolutional mesh
+autoencoder (Zhou et al. 2020, "Fully Convolutional Mesh Autoencoder using Efficient Spatially
+Varying Kernels"; thesis 3.3, 3.4, appendix A).
+
+A global basis of M kernels B_m (c_in x c_out, ``weight_num`` = M, thesis: 35) is shared by the
+whole mesh; each output vertex i has its own sampling coefficients A_ijm for every vertex j of
+its neighbourhood N(i), so the kernel W_ij = sum_m A_ijm B_m varies over the mesh:
+
+    y_i = b + sum_{j in N(i)} sum_m A_ijm B_m^T x_j
+        = b + sum_m B_m^T (sum_j A_ijm x_j)            (computed in this cheaper order)
+
+``mode`` chooses the support (from the ``simple`` sampler's neighbourhoods; for other samplers
+the vertices within ``radius`` hops):
+
+* ``same``: N(i) = vertices within the kernel radius on the same level (stride 1);
+* ``down``: a strided convolution, level l -> l + 1: N(c) = the pool neighbourhood of centre c;
+* ``up``: the transposed convolution, level l + 1 -> l: N(i) = the centres whose pool
+  neighbourhood contains i.
+
+With ``residual_rate`` r the block adds a residual path (Zhou et al.'s up/down residual layers):
+y = sqrt(1 - r) conv(x) + sqrt(r) res(x), where res averages the input over the same support
+with learned non-negative weights normalised to sum to one (|w_ij| / sum_j |w_ij|; the identity
+when the vertex count is unchanged) followed by a linear channel map when c_in != c_out.
+Neighbourhoods are padded to a fixed size with a mask; everything is gathers and einsums.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from fwk.errors import RecipeError
+from fwk.graph import adjacency, padded_rows, reach
+from fwk.hookspecs import hookimpl
+
+MODES = ("same", "down", "up")
+
+
+def support(hierarchy, level: int, mode: str, radius: int):
+    lv = hierarchy.levels[level]
+    if mode == "same":
+        if "conv_nbrs" in lv.extra:
+            return lv.extra["conv_nbrs"], lv.extra["conv_mask"], lv.n_vertices, lv.n_vertices
+        R = reach(adjacency(lv.edges, lv.n_vertices), radius)
+        idx, mask = padded_rows(R, first=np.arange(lv.n_vertices))
+        return idx, mask, lv.n_vertices, lv.n_vertices
+    nxt = hierarchy.levels[level + 1]
+    if mode == "down":
+        if "pool_nbrs" in nxt.extra:
+            return nxt.extra["pool_nbrs"], nxt.extra["pool_mask"], lv.n_vertices, nxt.n_vertices
+        idx, mask = padded_rows(hierarchy.down[level])
+        return idx, mask, lv.n_vertices, nxt.n_vertices
+    if "unpool_nbrs" in lv.extra:
+        return lv.extra["unpool_nbrs"], lv.extra["unpool_mask"], nxt.n_vertices, lv.n_vertices
+    idx, mask = padded_rows(hierarchy.up[level])
+    return idx, mask, nxt.n_vertices, lv.n_vertices
+
+
+class VCConv(nn.Module):
+    """Spatially varying kernels from a shared basis (Zhou et al. 2020); strided and transposed modes."""
+
+    name = "vcconv"
+    build_args = ("in_channels", "out_channels", "hierarchy", "level")
+
+    def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0, weight_num: int = 35,
+                 mode: str = "same", radius: int = 2, residual_rate: float | None = None):
+        super().__init__()
+        if mode not in MODES:
+            raise RecipeError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
+        idx, mask, self.n_in, self.n_out = support(hierarchy, level, mode, radius)
+        self.register_buffer("index", torch.as_tensor(idx, dtype=torch.long))
+        self.register_buffer("mask", torch.as_tensor(mask, dtype=torch.float32))
+        K = idx.shape[1]
+        self.K = K
+        self.basis = nn.Parameter(torch.randn(weight_num, in_channels, out_channels) *
+                                  math.sqrt(2.0 / (in_channels * K)))
+        self.coef = nn.Parameter(torch.randn(self.n_out, K, weight_num) / math.sqrt(weight_num))
+        self.bias = nn.Parameter(torch.zeros(out_channels))
+        self.r = residual_rate
+        if residual_rate is not None:
+            if not 0.0 <= residual_rate <= 1.0:
+                raise RecipeError(f"residual_rate: expected a number in [0, 1], got {residual_rate}")
+            self.res_w = nn.Parameter(torch.ones(self.n_out, K)) if mode != "same" else None
+            self.res_lin = nn.Linear(in_channels, out_channels, bias=False) if in_channels != out_channels else None
+
+    def _gather(self, x):
+        b, n, c = x.shape
+        return x[:, self.index.reshape(-1)].reshape(b, self.n_out, self.K, c) * self.mask[None, :, :, None]
+
+    def forward(self, x):
+        X = self._gather(x)
+        T = torch.einsum("nkm,bnkc->bnmc", self.coef, X)
+        y = torch.einsum("bnmc,mco->bno", T, self.basis) + self.bias
+        if self.r is None:
+            return y
+        if self.res_w is None:
+            res = x
+        else:
+            w = self.res_w.abs() * self.mask
+            w = w / w.sum(1, keepdim=True).clamp_min(1e-12)
+            res = torch.einsum("nk,bnkc->bnc", w, X)
+        if self.res_lin is not None:
+            res = self.res_lin(res)
+        return math.sqrt(1 - self.r) * y + math.sqrt(self.r) * res
+
+
+@hookimpl
+def fwk_register_convs():
+    return [VCConv]
