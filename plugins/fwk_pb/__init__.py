@@ -1,0 +1,572 @@
+"""Models ``pb`` and ``pbs``: personalised blendshapes from a neutral head (thesis chapter 5).
+
+Data (thesis 5.2.1; the task preprocesses): each neutral is centred, rigidly registered to the
+mean training neutral P-bar and the whole dataset scaled into [-1, 1]; a subject's expressions
+move with its neutral. Inputs and targets (eqs. 5.1-5.4):
+
+    F_neut = g(P_neutral - P-bar)            F_expr = g(P_expression - P_neutral)
+
+where g is a representation: ``euclidean`` (std: per-vertex standardisation of the offsets) or
+``dr`` (norm: the deformation of the neutral from P-bar, and of the expression from the
+subject's own neutral, normalised into [-1, 1]).
+
+``pb`` (section 5.2), ``mode: end-to-end``: per expression one variational graph autoencoder
+E_neutral -> z -> D_expression, loss (eqs. 5.5 / 5.6)
+
+    L = || unscale(F_expr) - unscale(D(z)) ||_1 + phi KL(N(0, 1) || q(z | F_neut))
+
+(unscale = denorm for norm, destd for std: the L1 norm in the representation's own units),
+inference (eq. 5.7) P'_expr = g^-1(D(mu)) + P_neutral (for ``dr``: integrated against the
+neutral). ``mode: two-step`` (5.2.2): step 1 trains a VAE on neutrals alone (all training
+neutrals, with or without expressions); its encoder is frozen; step 2 trains one decoder per
+expression from the neutral's latent mean. The networks come from any registered autoencoder
+model (``network: {name: vae, ...}``) through its ``build_encoder`` / ``build_decoder``.
+
+``pbs`` (section 5.3): two end-to-end PB networks trained together (one loop, one optimiser,
+separate parameters and losses), one ``euclidean`` std (spatial) and one ``dr`` norm
+(differential). At inference both are converted to positions and assembled (eq. 5.10)
+
+    P'_expr = (I - X_k) P'_diff + X_k P'_spatial,      X_k = U_k U_k^T M
+
+with the ``spectral`` assembler fitted on the mean neutral (U_k: the k smallest generalised
+eigenvectors of its cotangent Laplacian, M its mass matrix; X_k never formed). k = 0 gives
+P'_diff, k = n gives P'_spatial. The differential prediction carries no position; PBS places
+it by a rigid (Kabsch) fit onto P'_spatial, so no ground truth is needed at inference.
+
+Pareto-optimal k (5.3.4): after training, for every expression the validation subjects are
+assembled at every k of a sweep (default: the thesis's 37 values {0, 10, ..., 100, 120, ...,
+200, 230, ..., 500, 550, ..., 1000, n} for n = 14,921, scaled to the template's n and
+deduplicated) and scored with L1 and with the perceptual DAME and FMPD; the Pareto front of
+(L1, ``knee_metric``) is found and k is chosen at its knee: both objectives are normalised to
+[0, 1] over the front, and the knee is the front point farthest below the chord joining the
+front's two ends (the "maximum distance to the chord" rule; a front of one or two points
+takes the point with the smallest normalised sum). The sweep, the fronts and the choice are
+kept in the state and saved with the run; ``predict`` and ``fwk apply`` use the chosen k.
+
+Beyond the thesis (its future work, ``conditional: true``): one network pair for all
+expressions, the expression given to the decoders as a one-hot condition concatenated to z.
+"""
+from __future__ import annotations
+
+import inspect
+from typing import Annotated
+
+import numpy as np
+import torch
+from torch import nn
+
+from fwk.errors import DataError, RecipeError
+from fwk.hookspecs import hookimpl
+from fwk.recipes import Kind, Spec
+
+THESIS_KS = [*range(0, 101, 10), *range(120, 201, 20), *range(230, 471, 30), *range(500, 1001, 50)]
+THESIS_N = 14921
+MODES = ("end-to-end", "two-step")
+
+
+def thesis_ks(n: int) -> list[int]:
+    """The thesis's 37 k values (0 .. 1000 and n = 14,921) scaled to a template of n vertices."""
+    ks = sorted({int(round(k * n / THESIS_N)) for k in THESIS_KS} | {n})
+    return ks
+
+
+def knee(x, y) -> int:
+    """Index (into x, y) of the knee of a Pareto front given by points (x, y), both minimised:
+    normalise both to [0, 1], take the point farthest below the chord joining the two ends."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if len(x) <= 2:
+        xn = (x - x.min()) / (np.ptp(x) or 1.0)
+        yn = (y - y.min()) / (np.ptp(y) or 1.0)
+        return int(np.argmin(xn + yn))
+    order = np.argsort(x)
+    xs, ys = x[order], y[order]
+    xn = (xs - xs[0]) / ((xs[-1] - xs[0]) or 1.0)
+    yn = (ys - ys.min()) / (np.ptp(ys) or 1.0)
+    a, b = np.array([xn[0], yn[0]]), np.array([xn[-1], yn[-1]])
+    d = b - a
+    # signed distance below the chord (positive: the front bulges towards the origin)
+    dist = (d[0] * (yn - a[1]) - d[1] * (xn - a[0])) / (np.hypot(*d) or 1.0)
+    return int(order[int(np.argmin(dist))])
+
+
+def _registry():
+    from fwk.plugins import get_registry
+
+    return get_registry()
+
+
+def _spec(kind: str, value, path: str):
+    from fwk.recipes import make_spec
+
+    return make_spec(kind, value, path, _registry())
+
+
+def _build_rep(spec, relative: bool):
+    """A representation from its spec; euclidean gets ``relative: true`` unless the recipe says."""
+    spec = _spec("representation", spec, "representation")
+    extra = {}
+    if "relative" in inspect.signature(spec.cls.__init__).parameters and "relative" not in spec.params:
+        extra["relative"] = relative
+    return spec.build(**extra)
+
+
+class _Net(nn.Module):
+    def __init__(self, enc, dec):
+        super().__init__()
+        self.enc, self.dec = enc, dec
+
+
+def _kl(mu, logvar):
+    if logvar is None:
+        return mu.new_zeros(())
+    return -0.5 * torch.mean(torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=1))
+
+
+def _joint_module(owner, kl_weight: float, stage_name: str):
+    """One LightningModule training every network of ``owner`` together (sum of the losses;
+    separate parameters, so each net gets exactly its own loss's gradient)."""
+    import lightning.pytorch as pl
+
+    from fwk.engine import make_optimizer
+
+    class Joint(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.nets = owner.nets
+
+        def _loss(self, batch, stage):
+            B, E = owner.n_branches, len(owner.expressions)
+            X, Y, mask = batch[:B], batch[B:B + B * E], batch[-1]
+            total = 0.0
+            for b in range(B):
+                unscale = owner.out_reps[b].unscale
+                z = owner._latent(b, X[b], sample=self.training)
+                kl = z[1]
+                for e in range(E):
+                    m = mask[:, e]
+                    if not bool(m.any()):
+                        continue
+                    G = owner._decode(b, e, z[0])
+                    err = torch.abs(unscale(G[m]) - unscale(Y[b * E + e][m])).mean()
+                    total = total + err
+                    self.log(f"{stage}_l1_{owner.branch_names[b]}_{owner.expressions[e]}", err, on_epoch=True,
+                             on_step=False, batch_size=int(m.sum()))
+                total = total + kl_weight * kl
+            self.log(f"{stage}_loss", total, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(mask))
+            return total
+
+        def training_step(self, batch, _):
+            return self._loss(batch, "train")
+
+        def validation_step(self, batch, _):
+            return self._loss(batch, "val")
+
+        def configure_optimizers(self):
+            return make_optimizer([p for p in self.parameters() if p.requires_grad], self.train_config)
+
+    return Joint()
+
+
+def _neutral_module(net, unscale, kl_weight):
+    """Two-step PB, step 1: a VAE on neutrals (reconstruction of F_neut)."""
+    import lightning.pytorch as pl
+
+    from fwk.engine import make_optimizer
+
+    class Step1(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.net = net
+
+        def _loss(self, batch, stage):
+            (F,) = batch
+            mu, logvar = self.net.enc(F)
+            z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if (logvar is not None and self.training) else mu
+            err = torch.abs(unscale(self.net.dec(z)) - unscale(F)).mean()
+            loss = err + kl_weight * _kl(mu, logvar)
+            self.log(f"{stage}_loss", loss, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(F))
+            return loss
+
+        def training_step(self, batch, _):
+            return self._loss(batch, "train")
+
+        def validation_step(self, batch, _):
+            return self._loss(batch, "val")
+
+        def configure_optimizers(self):
+            return make_optimizer(self.parameters(), self.train_config)
+
+    return Step1()
+
+
+class _Blend:
+    """Shared machinery: branches (one representation each), networks per branch and expression."""
+
+    task_family = "blendshapes"
+
+    def _init(self, network, branches, mode, expressions, conditional, kl_weight, train):
+        if mode not in MODES:
+            raise RecipeError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
+        if conditional and mode != "end-to-end":
+            raise RecipeError("conditional: only with mode end-to-end")
+        self.network = network
+        self.branch_specs = branches
+        self.mode, self.conditional = mode, conditional
+        self.expressions = list(expressions) if expressions else None
+        self.kl_weight, self.train_overrides = kl_weight, dict(train or {})
+        self.in_reps = self.out_reps = None
+        self.nets = None
+        self._net_model = None
+        self.template = None
+        self.shape = None
+
+    # ------------------------------------------------------------------ networks
+    @property
+    def n_branches(self) -> int:
+        return len(self.branch_specs)
+
+    def _network_model(self):
+        if self._net_model is None:
+            spec = _spec("model", self.network, "network")
+            m = spec.build()
+            if not hasattr(m, "build_encoder") or not hasattr(m, "build_decoder"):
+                raise RecipeError(f"network: model {spec.name!r} has no build_encoder/build_decoder (use ae or vae)")
+            self._net_model = m
+        return self._net_model
+
+    def _make_nets(self, template, channels, ctx=None):
+        m = self._network_model()
+        latent = int(getattr(m, "latent", 64))
+        E = len(self.expressions)
+        nets = nn.ModuleDict()
+        for b, c in enumerate(channels):
+            if self.conditional:
+                nets[f"b{b}"] = _Net(m.build_encoder(template, c, ctx), m.build_decoder(template, c, ctx, latent + E))
+            elif self.mode == "two-step":
+                enc = m.build_encoder(template, c, ctx)
+                nets[f"b{b}_neutral"] = _Net(enc, m.build_decoder(template, c, ctx))
+                nets[f"b{b}"] = _Net(enc, nn.ModuleList(m.build_decoder(template, c, ctx) for _ in range(E)))
+            else:
+                nets[f"b{b}"] = _Net(nn.ModuleList(m.build_encoder(template, c, ctx) for _ in range(E)),
+                                     nn.ModuleList(m.build_decoder(template, c, ctx) for _ in range(E)))
+        self.nets = nets
+        self._latent_dim = latent
+
+    def _latent(self, b, X, sample: bool):
+        """(codes, kl): codes per expression (list) or one shared code."""
+        net = self.nets[f"b{b}"]
+        if self.conditional or self.mode == "two-step":
+            mu, logvar = net.enc(X)
+            if self.mode == "two-step":
+                return [mu] * len(self.expressions), mu.new_zeros(())  # frozen encoder, latent mean
+            z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if (sample and logvar is not None) else mu
+            return [z] * len(self.expressions), _kl(mu, logvar)
+        zs, kl = [], 0.0
+        for enc in net.enc:
+            mu, logvar = enc(X)
+            zs.append(mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if (sample and logvar is not None) else mu)
+            kl = kl + _kl(mu, logvar)
+        return zs, kl
+
+    def _decode(self, b, e, zs):
+        net = self.nets[f"b{b}"]
+        z = zs[e]
+        if self.conditional:
+            cond = torch.zeros(len(z), len(self.expressions), dtype=z.dtype, device=z.device)
+            cond[:, e] = 1.0
+            return net.dec(torch.cat([z, cond], dim=1))
+        return net.dec[e](z)
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, data, ctx) -> None:
+        from fwk.engine import fit, seed_everything
+
+        tr, va = data.train, data.val
+        names = [s for s in tr.shape_names if s != "neutral"]
+        if self.expressions is None:
+            self.expressions = [s for s in names if s in (data.shapes or names)] or names
+        for e in self.expressions:
+            tr.shape_index(e)
+        self.template = data.template
+        self.in_reps = [_build_rep(s, True) for s in self.branch_specs]
+        self.out_reps = [_build_rep(s, True) for s in self.branch_specs]
+
+        def arrays(col, fit_reps: bool):
+            j0 = col.shape_index("neutral")
+            keep = col.present[:, j0]
+            N = np.asarray(col.positions[keep, j0])
+            idx = [col.shape_index(e) for e in self.expressions]
+            mask = col.present[keep][:, idx]
+            if len(N) == 0:
+                return None
+            X, Y = [], []
+            for b in range(self.n_branches):
+                if fit_reps:
+                    self.in_reps[b].fit(N, None, data.template)
+                X.append(torch.as_tensor(self.in_reps[b].encode(N)))
+            for b in range(self.n_branches):
+                if fit_reps:
+                    has = mask.any(1)
+                    Pe = np.concatenate([np.asarray(col.positions[keep, j])[mask[:, i]] for i, j in enumerate(idx)])
+                    Ne = np.concatenate([N[mask[:, i]] for i in range(len(idx))])
+                    if len(Pe) == 0 or not has.any():
+                        raise DataError(f"{self.name}: no training subject has any of {', '.join(self.expressions)}")
+                    self.out_reps[b].fit(Pe, Ne, data.template)
+                for i, j in enumerate(idx):
+                    Pj = np.asarray(col.positions[keep, j]).copy()
+                    Pj[~mask[:, i]] = N[~mask[:, i]]  # missing shapes: any finite stand-in, masked out of the loss
+                    Y.append(torch.as_tensor(self.out_reps[b].encode(Pj, N)))
+            return X, Y, torch.as_tensor(mask), N
+
+        train = arrays(tr, True)
+        if train is None:
+            raise DataError(f"{self.name}: the training split has no neutrals")
+        val = arrays(va, False)
+        X, Y, mask, N = train
+        channels = [x.shape[-1] for x in X]
+        self.shape = (data.template.n_vertices, channels)
+        seed_everything(ctx.seed)
+        self._make_nets(data.template, channels, ctx)
+        config = ctx.train.replace(**self.train_overrides)
+        kl = config.kl_weight if self.kl_weight is None else self.kl_weight
+        if self.mode == "two-step":
+            # step 1: a VAE on every training neutral (with or without expressions), then frozen
+            j0 = tr.shape_index("neutral")
+            for b in range(self.n_branches):
+                Nall = np.asarray(tr.positions[tr.present[:, j0], j0])
+                Fn = torch.as_tensor(self.in_reps[b].encode(Nall))
+                Fv = val[0][b] if val is not None else None
+                fit(_neutral_module(self.nets[f"b{b}_neutral"], self.in_reps[b].unscale, kl), Fn, Fv, ctx,
+                    f"{self.name}-step1-{self.branch_names[b]}", config)
+                for p in self.nets[f"b{b}"].enc.parameters():
+                    p.requires_grad_(False)
+        self.nets.train()
+        train_t = (*X, *Y, mask)
+        val_t = (*val[0], *val[1], val[2]) if val is not None else None
+        fit(_joint_module(self, kl, self.name), train_t, val_t, ctx,
+            f"{self.name}-step2" if self.mode == "two-step" else self.name, config)
+        self.nets.eval()
+
+    # ------------------------------------------------------------------ inference
+    def _check(self, neutrals, expression):
+        if self.nets is None:
+            raise RuntimeError(f"{self.name}: not fitted")
+        if expression not in self.expressions:
+            raise DataError(f"{self.name}: not trained for expression {expression!r} (trained: {', '.join(self.expressions)})")
+        N = np.asarray(neutrals, dtype=np.float64)
+        if N.ndim == 2:
+            N = N[None]
+        if N.shape[1:] != (self.shape[0], 3):
+            raise DataError(f"{self.name}: neutrals of shape {N.shape[1:]}, trained on {self.shape[0]} vertices")
+        return N
+
+    @torch.no_grad()
+    def branch_features(self, N, expression: str, b: int) -> np.ndarray:
+        """Network output F'_expr (b, n, c) of branch b for neutrals N in the evaluation space."""
+        e = self.expressions.index(expression)
+        X = torch.as_tensor(self.in_reps[b].encode(N))
+        zs, _ = self._latent(b, X, sample=False)
+        return self._decode(b, e, zs).numpy()
+
+    def branch_predict(self, N, expression: str, b: int, target=None) -> np.ndarray:
+        """Eq. 5.7: P'_expr = g^-1(F'_expr) relative to the neutral (dr integrated against it)."""
+        return self.out_reps[b].decode(self.branch_features(N, expression, b), N, target)
+
+    # ------------------------------------------------------------------ saving
+    def _base_state(self) -> dict:
+        return {"expressions": self.expressions, "nets": self.nets.state_dict(), "shape": self.shape,
+                "in_reps": [r.state_dict() for r in self.in_reps], "out_reps": [r.state_dict() for r in self.out_reps],
+                "template_vertices": self.template.vertices, "template_triangles": self.template.triangles}
+
+    def _load_base(self, d: dict) -> None:
+        from fwk.data import Template
+
+        self.expressions = list(d["expressions"])
+        self.shape = (int(d["shape"][0]), list(d["shape"][1]))
+        self.template = Template(np.asarray(d["template_vertices"]), np.asarray(d["template_triangles"]))
+        self.in_reps = [_build_rep(s, True) for s in self.branch_specs]
+        self.out_reps = [_build_rep(s, True) for s in self.branch_specs]
+        for r, s in zip(self.in_reps, d["in_reps"]):
+            r.load_state_dict(s)
+        for r, s in zip(self.out_reps, d["out_reps"]):
+            r.load_state_dict(s)
+        self._make_nets(self.template, self.shape[1])
+        self.nets.load_state_dict(d["nets"])
+        self.nets.eval()
+
+
+class PB(_Blend):
+    """Personalised blendshapes: a graph VAE from the neutral to each expression (end-to-end or two-step)."""
+
+    name = "pb"
+
+    def __init__(self, representation: Annotated[Spec, Kind("representation")] = "euclidean",
+                 network: Annotated[Spec, Kind("model")] = "vae", mode: str = "end-to-end",
+                 expressions: list[str] | None = None, conditional: bool = False,
+                 kl_weight: float | None = None, train: dict | None = None):
+        self._init(network, [representation], mode, expressions, conditional, kl_weight, train)
+        self.branch_names = [getattr(representation, "name", str(representation))]
+
+    def predict(self, neutrals, expression: str, target=None) -> np.ndarray:
+        """(b, n, 3) neutrals -> (b, n, 3) the expression (``target``: ground truth that a ``dr``
+        output is rigidly registered onto, the thesis's evaluation protocol; None at inference)."""
+        N = self._check(neutrals, expression)
+        return self.branch_predict(N, expression, 0, target)
+
+    def state_dict(self) -> dict:
+        return {"kind": "pb", **self._base_state()}
+
+    def load_state_dict(self, d: dict) -> None:
+        self._load_base(d)
+
+
+class PBS(_Blend):
+    """PB with spectral assembly: a euclidean and a dr PB combined per expression at a Pareto-optimal k."""
+
+    name = "pbs"
+
+    def __init__(self, spatial: Annotated[Spec, Kind("representation")] = "euclidean",
+                 differential: Annotated[Spec, Kind("representation")] = "dr",
+                 network: Annotated[Spec, Kind("model")] = "vae", expressions: list[str] | None = None,
+                 conditional: bool = False, k: int | dict[str, int] | None = None, ks: list[int] | None = None,
+                 knee_metric: str = "fmpd", sweep_metrics: list[str] | None = None,
+                 kl_weight: float | None = None, train: dict | None = None):
+        self._init(network, [spatial, differential], "end-to-end", expressions, conditional, kl_weight, train)
+        self.branch_names = ["spatial", "differential"]
+        self.k_fixed, self.ks_param = k, ks
+        self.knee_metric = knee_metric
+        self.sweep_metrics = list(sweep_metrics or ["l1", "dame", "fmpd"])
+        if knee_metric not in self.sweep_metrics:
+            raise RecipeError(f"knee_metric: {knee_metric!r} must be one of sweep_metrics ({', '.join(self.sweep_metrics)})")
+        self.k: dict[str, int] = {}
+        self.sweep: dict = {}
+        self.assembler = None
+
+    # ------------------------------------------------------------------ assembly
+    def _ks(self, n: int) -> list[int]:
+        ks = sorted({min(int(k), n) for k in self.ks_param}) if self.ks_param else thesis_ks(n)
+        if any(k < 0 for k in ks):
+            raise RecipeError("ks: k values must be >= 0")
+        return ks
+
+    def _fit_assembler(self, template, kmax: int, cache=None):
+        n = template.n_vertices
+        kmax = int(min(kmax, n - 1))
+        if self.assembler is not None and self.assembler.proj.U.shape[1] >= kmax:
+            return
+        if kmax <= 0:
+            self.assembler = None
+            return
+        cls = _registry().get("assembler", "spectral")
+        a = cls(k=kmax)
+        a.fit(template, template.vertices, cache=cache) if "cache" in inspect.signature(a.fit).parameters \
+            else a.fit(template, template.vertices)
+        self.assembler = a
+
+    def branches(self, N, expression: str):
+        """(P'_spatial, P'_diff): both networks' predictions in positions; the differential one
+        placed by a rigid fit onto the spatial one (no ground truth needed)."""
+        Ps = self.branch_predict(N, expression, 0)
+        Pd = self.branch_predict(N, expression, 1, target=Ps)
+        return Ps, Pd
+
+    def assemble(self, Ps, Pd, ks) -> np.ndarray:
+        """Eq. 5.10 for every k in ks: (len(ks), b, n, 3); k = 0 -> P'_diff, k >= n -> P'_spatial."""
+        n = Ps.shape[1]
+        out = np.empty((len(ks), *Ps.shape))
+        inner = [i for i, k in enumerate(ks) if 0 < k < n]
+        for i, k in enumerate(ks):
+            if k <= 0:
+                out[i] = Pd
+            elif k >= n:
+                out[i] = Ps
+        if inner:
+            out[inner] = self.assembler.assemble_many(Ps, Pd, [ks[i] for i in inner])
+        return out
+
+    def predict(self, neutrals, expression: str, target=None, k: int | None = None) -> np.ndarray:
+        """(b, n, 3) neutrals -> the expression at the chosen k (``target`` is not used: PBS
+        needs no ground truth)."""
+        N = self._check(neutrals, expression)
+        k = self.k.get(expression, self.shape[0]) if k is None else int(k)
+        Ps, Pd = self.branches(N, expression)
+        return self.assemble(Ps, Pd, [k])[0]
+
+    def ends(self, neutrals, expression: str, target=None) -> dict:
+        """The two single end-to-end PB predictions inside PBS (k = n and the dr network, the
+        latter registered onto ``target`` when given, as the thesis evaluates dr outputs)."""
+        N = self._check(neutrals, expression)
+        return {"pb-euclidean-std": self.branch_predict(N, expression, 0),
+                "pb-dr-norm": self.branch_predict(N, expression, 1, target=target)}
+
+    # ------------------------------------------------------------------ k selection
+    def fit(self, data, ctx) -> None:
+        super().fit(data, ctx)
+        n = data.template.n_vertices
+        ks = self._ks(n)
+        fixed = self.k_fixed
+        self._fit_assembler(data.template, max([k for k in ks if k < n] + ([fixed] if isinstance(fixed, int) else
+                                                                        list((fixed or {}).values())) + [1]),
+                            getattr(ctx, "cache", None))
+        if fixed is not None:
+            self.k = {e: int(fixed if isinstance(fixed, int) else fixed.get(e, n)) for e in self.expressions}
+            self.sweep = {}
+            return
+        self.select_k(data.val, ks, ctx)
+
+    def select_k(self, col, ks, ctx=None) -> dict:
+        """Sweep ks on the subjects of ``col`` (validation), per expression: metrics, Pareto
+        front of (L1, knee_metric), knee. Sets and returns ``self.k``."""
+        from fwk.evaluation import evaluate, pareto_front
+
+        reg = _registry()
+        metrics = [reg.get("metric", m)() for m in self.sweep_metrics]
+        j0 = col.shape_index("neutral")
+        self.sweep = {}
+        for e in self.expressions:
+            je = col.shape_index(e)
+            ok = col.present[:, j0] & col.present[:, je]
+            if not ok.any():
+                self.k[e] = int(ks[-1])
+                if ctx is not None:
+                    ctx.log(f"[{self.name}] {e}: no validation subject, k = {self.k[e]}")
+                continue
+            N, G = np.asarray(col.positions[ok, j0]), np.asarray(col.positions[ok, je])
+            Ps, Pd = self.branches(N, e)
+            allP = self.assemble(Ps, Pd, ks)
+            scores = {m.name: [] for m in metrics}
+            for P in allP:
+                res = evaluate(P, G, self.template, metrics)
+                for m in metrics:
+                    scores[m.name].append(float(res[m.name]["scores"].mean()))
+            entry = {"ks": list(map(int, ks)), **{k: v for k, v in scores.items()}, "n_subjects": int(ok.sum())}
+            for pm in [m for m in self.sweep_metrics if m != "l1"]:
+                pts = np.stack([scores["l1"], scores[pm]], 1)
+                entry[f"front_{pm}"] = [int(ks[i]) for i in pareto_front(pts)]
+            front = pareto_front(np.stack([scores["l1"], scores[self.knee_metric]], 1))
+            i = front[knee(np.asarray(scores["l1"])[front], np.asarray(scores[self.knee_metric])[front])]
+            self.k[e] = int(ks[i])
+            entry["chosen"] = self.k[e]
+            entry["knee_metric"] = self.knee_metric
+            self.sweep[e] = entry
+            if ctx is not None:
+                ctx.log(f"[{self.name}] {e}: Pareto front (L1, {self.knee_metric.upper()}) at k = "
+                        f"{[int(ks[j]) for j in front]}, knee k = {self.k[e]}")
+        return self.k
+
+    def state_dict(self) -> dict:
+        return {"kind": "pbs", **self._base_state(), "k": dict(self.k), "sweep": self.sweep,
+                "assembler": None if self.assembler is None else self.assembler.state_dict()}
+
+    def load_state_dict(self, d: dict) -> None:
+        self._load_base(d)
+        self.k = {str(k): int(v) for k, v in d["k"].items()}
+        self.sweep = d.get("sweep", {})
+        if d.get("assembler") is not None:
+            self.assembler = _registry().get("assembler", "spectral")(k=int(d["assembler"]["cuts"][-1]))
+            self.assembler.load_state_dict(d["assembler"])
+
+
+@hookimpl
+def fwk_register_models():
+    return [PB, PBS]
