@@ -17,13 +17,11 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import random
 import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -39,7 +37,7 @@ class TrainConfig:
     lr_decay: float = 0.99
     kl_weight: float = 1e-6
     accelerator: str = "auto"
-    devices: Any = 1
+    devices: int | str = 1
     strategy: str = "auto"
     precision: str = "32-true"
     keep_checkpoints: int = 3
@@ -71,22 +69,44 @@ def make_optimizer(params, config: TrainConfig):
 
 
 class EpochSampler(torch.utils.data.Sampler):
-    """A shuffle that depends only on (seed, epoch): identical after a resume."""
+    """A shuffle that depends only on (seed, epoch), so it is identical after a resume.
 
-    def __init__(self, n: int, seed: int, shuffle: bool = True):
+    With several processes (DDP) each rank takes every ``num_replicas``-th index of the same
+    permutation, padded by wrapping around so that every rank sees as many samples; rank and
+    world size default to those of ``torch.distributed`` when it is initialised.
+    """
+
+    def __init__(self, n: int, seed: int, shuffle: bool = True, num_replicas: int | None = None,
+                 rank: int | None = None):
         self.n, self.seed, self.shuffle, self.epoch = n, seed, shuffle, 0
+        self._replicas, self._rank = num_replicas, rank
+
+    def _world(self) -> tuple[int, int]:
+        if self._replicas is not None:
+            return self._replicas, self._rank or 0
+        dist = torch.distributed
+        if dist.is_available() and dist.is_initialized():
+            return dist.get_world_size(), dist.get_rank()
+        return 1, 0
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
 
     def __iter__(self):
-        if not self.shuffle:
-            return iter(range(self.n))
-        g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
-        return iter(torch.randperm(self.n, generator=g).tolist())
+        if self.shuffle:
+            g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+            idx = torch.randperm(self.n, generator=g).tolist()
+        else:
+            idx = list(range(self.n))
+        world, rank = self._world()
+        if world > 1:
+            total = len(self) * world
+            idx = (idx * (total // max(self.n, 1) + 1))[:total][rank::world]
+        return iter(idx)
 
     def __len__(self):
-        return self.n
+        world, _ = self._world()
+        return -(-self.n // world)
 
 
 def _as_dataset(data):
@@ -101,31 +121,64 @@ def _as_dataset(data):
 
 
 def make_loader(data, batch_size: int, seed: int, shuffle: bool, num_workers: int = 0):
+    """A DataLoader over tensors / a tuple of tensors / a Dataset, batches in EpochSampler order."""
     ds = _as_dataset(data)
     if ds is None or len(ds) == 0:
         return None
     return torch.utils.data.DataLoader(ds, batch_size=batch_size, sampler=EpochSampler(len(ds), seed, shuffle),
-                                       num_workers=num_workers, drop_last=False)
+                                       num_workers=num_workers, drop_last=False,
+                                       persistent_workers=num_workers > 0,
+                                       # its own generator: creating an iterator draws a worker base
+                                       # seed, which must not consume the global RNG (exact resume)
+                                       generator=torch.Generator().manual_seed(seed))
 
 
-def _rng_callback():
+def _rng_state() -> dict:
+    # plain tensors and tuples only: loadable with torch.load(weights_only=True)
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    return {"torch": torch.get_rng_state(), "numpy": (str(kind), torch.as_tensor(keys.astype(np.int64)), int(pos),
+            int(has_gauss), float(cached)), "python": random.getstate(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
+
+
+def _set_rng_state(st: dict) -> None:
+    torch.set_rng_state(st["torch"])
+    kind, keys, pos, has_gauss, cached = st["numpy"]
+    np.random.set_state((kind, np.asarray(keys).astype(np.uint32), pos, has_gauss, cached))
+    random.setstate(st["python"])
+    if st.get("cuda") and torch.cuda.is_available() and len(st["cuda"]) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all(st["cuda"])
+
+
+def _callbacks():
     import lightning.pytorch as pl
 
     class RNGState(pl.Callback):
         """Store and restore the RNG states with every checkpoint (exact resume)."""
 
         def on_save_checkpoint(self, trainer, module, checkpoint):
-            checkpoint["fwk_rng"] = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
-                                     "python": random.getstate()}
+            checkpoint["fwk_rng"] = _rng_state()
 
         def on_load_checkpoint(self, trainer, module, checkpoint):
-            st = checkpoint.get("fwk_rng")
-            if st:
-                torch.set_rng_state(st["torch"])
-                np.random.set_state(st["numpy"])
-                random.setstate(st["python"])
+            if checkpoint.get("fwk_rng"):
+                _set_rng_state(checkpoint["fwk_rng"])
 
-    return RNGState()
+    class ManualSchedulers(pl.Callback):
+        """Manual optimisation (several optimisers): step each per-epoch scheduler at the end of
+        the epoch's last batch, where Lightning steps them in automatic optimisation (before
+        validation and the checkpoint), unless the module already stepped it itself."""
+
+        def on_train_epoch_start(self, trainer, module):
+            self._seen = [c.scheduler.last_epoch for c in trainer.lr_scheduler_configs]
+
+        def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+            if module.automatic_optimization or batch_idx + 1 < trainer.num_training_batches:
+                return
+            for c, seen in zip(trainer.lr_scheduler_configs, self._seen):
+                if c.interval == "epoch" and not c.reduce_on_plateau and c.scheduler.last_epoch == seen:
+                    c.scheduler.step()
+
+    return [RNGState(), ManualSchedulers()]
 
 
 def _quiet_lightning():
@@ -134,17 +187,55 @@ def _quiet_lightning():
     for pat in (".*does not have many workers.*", ".*num_workers.*", ".*LeafSpec.*", ".*is deprecated.*",
                 ".*TensorBoard.*", ".*smaller than the logging interval.*", ".*Checkpoint directory.*exists.*",
                 ".*predict_dataloader.*", ".*sync_dist.*", ".*GPU available but not used.*", ".*_pytree.*",
-                ".*Precision.*", ".*treespec.*", ".*litlogger.*"):
+                ".*Precision.*", ".*treespec.*", ".*litlogger.*", ".*does not have a deterministic implementation.*",
+                ".*lr_scheduler.step.*", ".*weights_only.*"):
         warnings.filterwarnings("ignore", message=pat)
+
+
+def _loadable(path: Path):
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception:
+        return None
+
+
+def _resume_point(ckdir: Path):
+    """The newest readable checkpoint (a run killed while writing ``last.ckpt`` leaves it
+    truncated; the previous epoch's file then serves): (path, checkpoint dict) or (None, None)."""
+    def epoch_of(p):
+        digits = "".join(ch for ch in p.stem if ch.isdigit())
+        return int(digits) if digits else -1
+
+    cands = [ckdir / "last.ckpt"] + sorted(ckdir.glob("epoch*.ckpt"), key=epoch_of, reverse=True)
+    for p in cands:
+        if p.exists():
+            ck = _loadable(p)
+            if ck is not None and "state_dict" in ck:
+                return p, ck
+    return None, None
+
+
+def _epochs_done(ck: dict) -> int:
+    try:
+        return int(ck["loops"]["fit_loop"]["epoch_progress"]["current"]["processed"])
+    except (KeyError, TypeError):
+        return int(ck.get("epoch", -1)) + 1
 
 
 def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     """Train ``module`` (a LightningModule) on ``train`` (tensors or a Dataset), validating on
-    ``val`` every epoch; checkpoints under ``ctx.path('checkpoints', name)``. Returns the module.
+    ``val`` (or None) every epoch; checkpoints under ``ctx.path('checkpoints', name)``.
+    Returns the module, in eval mode.
 
     The module reads its settings from ``module.train_config`` (set here) in
-    ``configure_optimizers`` (use ``make_optimizer``). A finished training (final checkpoint at
-    the last epoch) is loaded, not repeated.
+    ``configure_optimizers`` (use ``make_optimizer``; return a list of them, one per optimiser,
+    with ``automatic_optimization = False`` for several). Parameters are initialised by the
+    caller (seed first: ``seed_everything(ctx.seed)``); shuffling and sampling noise are seeded
+    here from ``ctx.seed``.
+
+    With ``ctx.resume`` and a checkpoint of this name, training continues from it and ends with
+    the weights an uninterrupted run gives; a finished training is loaded, not repeated. Without
+    ``ctx.resume`` old checkpoints of this name are discarded and training starts afresh.
     """
     import lightning.pytorch as pl
     from lightning.pytorch.callbacks import ModelCheckpoint
@@ -153,9 +244,21 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     _quiet_lightning()
     config = config or ctx.train
     module.train_config = config
-    seed_everything(ctx.seed)
     ckdir = ctx.path("checkpoints", name, "x").parent
     tbdir = ctx.path("tb", name, "x").parent
+    ckpt_path = None
+    if getattr(ctx, "resume", False):
+        ckpt_path, ck = _resume_point(ckdir)
+        if ck is not None and _epochs_done(ck) >= config.epochs:
+            if hasattr(module, "on_load_checkpoint"):
+                module.on_load_checkpoint(ck)
+            module.load_state_dict(ck["state_dict"])
+            module.eval()
+            return module
+    else:
+        for p in list(ckdir.glob("*.ckpt")):
+            p.unlink()
+    seed_everything(ctx.seed)
     train_loader = make_loader(train, config.batch_size, ctx.seed, True, config.num_workers)
     if train_loader is None:
         from ..errors import DataError
@@ -165,22 +268,29 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     accelerator = config.accelerator
     if accelerator == "auto" and getattr(ctx, "device", "cpu") == "cpu":
         accelerator = "cpu"
+    on_cpu = accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
     checkpoint = ModelCheckpoint(dirpath=ckdir, filename="epoch{epoch:03d}", auto_insert_metric_name=False,
                                  save_last=True, save_top_k=max(1, config.keep_checkpoints), monitor="epoch",
                                  mode="max", every_n_epochs=1, save_on_train_epoch_end=val_loader is None)
     show_bar = not ctx.quiet and sys.stderr.isatty()
-    trainer = pl.Trainer(
-        max_epochs=config.epochs, accelerator=accelerator, devices=config.devices, strategy=config.strategy,
-        precision=config.precision, deterministic=True, logger=TensorBoardLogger(str(tbdir), name="", version=""),
-        callbacks=[checkpoint, _rng_callback()], enable_progress_bar=show_bar, enable_model_summary=False,
-        log_every_n_steps=config.log_every_n_steps, num_sanity_val_steps=0, default_root_dir=str(ckdir),
-        use_distributed_sampler=False,
-    )
-    last = ckdir / "last.ckpt"
-    ckpt_path = str(last) if last.exists() else None
-    with warnings.catch_warnings():
-        _quiet_lightning()
-        trainer.fit(module, train_loader, val_loader, ckpt_path=ckpt_path)
+    det = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
+    try:
+        with warnings.catch_warnings():
+            _quiet_lightning()
+            trainer = pl.Trainer(
+                max_epochs=config.epochs, accelerator=accelerator, devices=config.devices,
+                strategy=config.strategy, precision=config.precision,
+                # bit-exact on CPU; on GPUs some scatter kernels have no deterministic variant
+                deterministic=True if on_cpu else "warn",
+                logger=TensorBoardLogger(str(tbdir), name="", version=""),
+                callbacks=[checkpoint, *_callbacks()], enable_progress_bar=show_bar, enable_model_summary=False,
+                log_every_n_steps=config.log_every_n_steps, num_sanity_val_steps=0, default_root_dir=str(ckdir),
+                use_distributed_sampler=False,
+            )
+            trainer.fit(module, train_loader, val_loader, ckpt_path=str(ckpt_path) if ckpt_path else None,
+                        weights_only=False)
+    finally:
+        torch.use_deterministic_algorithms(det[0], warn_only=det[1])
     module.eval()
     return module
 
