@@ -33,32 +33,92 @@ def _fix_signs(U: np.ndarray) -> np.ndarray:
     return U * s
 
 
-def _slice(L, M, sigma, nev, v0):
-    A = (L - sigma * M).tocsc()
-    lu = splu(A, permc_spec="COLAMD")  # MMD_AT_PLUS_A: 35x slower to factor, 7x to solve (measured)
-    op = LinearOperator(A.shape, matvec=lu.solve, dtype=np.float64)
-    nev = min(nev, L.shape[0] - 2)
+def has_cholmod() -> bool:
+    """Whether scikit-sparse's CHOLMOD is importable (optional: ``pip install scikit-sparse``)."""
+    try:
+        import sksparse.cholmod  # noqa: F401
+    except Exception:
+        return False
+    return True
+
+
+class ShiftedFactors:
+    """Factorisations of A(sigma) = L - sigma M for one pair (L, M), with Sylvester's inertia.
+
+    ``backend="cholmod"`` (scikit-sparse, when installed): one symbolic analysis, then a
+    simplicial LDL^T per shift (no pivoting, so every solve's residual is checked and a shift
+    whose factor is inaccurate falls back to SuperLU); the number of negative entries of D is
+    the number of eigenvalues below sigma (Sylvester's law of inertia). ``"splu"``: SciPy's
+    SuperLU with a COLAMD ordering (no inertia). ``"auto"``: CHOLMOD if importable."""
+
+    def __init__(self, L, M, backend: str = "auto"):
+        self.L, self.M = L.tocsc(), M.tocsc()
+        if backend == "auto":
+            backend = "cholmod" if has_cholmod() else "splu"
+        if backend not in ("cholmod", "splu"):
+            raise ValueError(f"backend must be auto, cholmod or splu, got {backend!r}")
+        self.backend = backend
+        self._sym = None
+        self._probe = np.random.default_rng(1).standard_normal(L.shape[0])
+
+    def factor(self, sigma: float):
+        """(solve, n_below): a solver for A(sigma) x = b and the eigenvalue count below sigma
+        (None when unknown)."""
+        A = (self.L - sigma * self.M).tocsc()
+        if self.backend == "cholmod":
+            from sksparse.cholmod import CholmodError, analyze
+
+            try:
+                if self._sym is None:
+                    self._sym = analyze(A, mode="simplicial")
+                f = self._sym.cholesky(A)
+                b = self._probe
+                x = f(b)
+                # backward error of one solve: LDL^T without pivoting is not always stable
+                if np.all(np.isfinite(x)) and np.linalg.norm(A @ x - b) <= 1e-10 * (
+                        abs(A).sum(axis=0).max() * np.linalg.norm(x) + np.linalg.norm(b)):
+                    return f, int((f.D() < 0).sum())
+            except CholmodError:
+                pass
+        lu = splu(A, permc_spec="COLAMD")  # MMD_AT_PLUS_A: 35x slower to factor, 7x to solve (measured)
+        return lu.solve, None
+
+
+def _slice(fac: ShiftedFactors, sigma, nev, v0, deflate=None):
+    """The ``nev`` eigenpairs nearest ``sigma`` (shift-invert Lanczos); ``deflate`` (n, d):
+    M-orthonormal eigenvectors already known, projected out of the operator (they move to
+    infinity), so that missing copies of a repeated eigenvalue can be found."""
+    L, M = fac.L, fac.M
+    solve, below = fac.factor(sigma)
+    if deflate is not None and deflate.shape[1]:
+        B, MB = deflate, M @ deflate
+        inner = solve
+        solve = lambda x: (lambda y: y - B @ (MB.T @ y))(inner(x))
+        v0 = v0 - B @ (MB.T @ v0)
+    op = LinearOperator(L.shape, matvec=solve, dtype=np.float64)
+    nev = min(nev, L.shape[0] - 2 - (0 if deflate is None else deflate.shape[1]))
     w, U = eigsh(L, k=nev, M=M, sigma=sigma, OPinv=op, which="LM", v0=v0, ncv=min(L.shape[0], 2 * nev + 1),
                  tol=1e-12)
     o = np.argsort(w)
-    return w[o], U[:, o]
+    return w[o], U[:, o], below
 
 
-def generalized_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def generalized_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0,
+                     backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """The k smallest eigenpairs of L u = lambda M u (see module doc).
 
     A mesh of several connected components (ICT-FaceKit's full head has 56) is solved one
     component at a time: the spectrum is the union of the components' spectra. Each component
     first gets a share of k proportional to its mass (Weyl's law: eigenvalue counts grow with
     area), plus a margin; a component whose largest computed eigenvalue lies below the k-th
-    smallest of the union is asked for more until none does."""
+    smallest of the union is asked for more until none does. ``backend``: see ShiftedFactors."""
     from scipy.sparse.csgraph import connected_components
 
     L = sp.csr_matrix(L)
     M = sp.csr_matrix(M)
     n_comp, labels = connected_components(L, directed=False)
     if n_comp == 1 or k >= L.shape[0] - 2:
-        return _connected_eigs(L, M, k, slice_size, seed)
+        return _connected_eigs(L, M, k, slice_size, seed, backend)
     idx = [np.flatnonzero(labels == c) for c in range(n_comp)]
     mass = np.array([M.diagonal()[i].sum() for i in idx])
     want = [min(len(i), int(np.ceil(k * m / mass.sum() * 1.2)) + 4) for i, m in zip(idx, mass)]
@@ -67,7 +127,7 @@ def generalized_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0) -> tuple
         for c, i in enumerate(idx):
             if c not in got or len(got[c][0]) < want[c]:
                 Lc, Mc = L[i][:, i], M[i][:, i]
-                got[c] = _connected_eigs(Lc, Mc, want[c], slice_size, seed)
+                got[c] = _connected_eigs(Lc, Mc, want[c], slice_size, seed, backend)
         allw = np.sort(np.concatenate([got[c][0] for c in got]))
         if len(allw) < k:
             grow = [c for c in got if len(got[c][0]) < len(idx[c])]
@@ -91,7 +151,18 @@ def generalized_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0) -> tuple
     return w[order], U
 
 
-def _connected_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def _ritz(C, L, M):
+    """Eigenpairs of L u = lambda M u restricted to the range of C: a rank-revealing
+    M-orthonormal basis of that range, then Rayleigh-Ritz (the columns of C may be dependent,
+    and mixtures of close eigenvalues are separated again)."""
+    g, Q = np.linalg.eigh(C.T @ (M @ C))
+    ok = g > 1e-8  # the columns have M-norm <= 1: a smaller remainder is round-off
+    X = C @ (Q[:, ok] / np.sqrt(g[ok]))
+    h, Z = np.linalg.eigh(X.T @ (L @ X))
+    return h, X @ Z
+
+
+def _connected_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0, backend: str = "auto"):
     """The k smallest eigenpairs by spectrum slicing (one connected component or any mesh)."""
     n = L.shape[0]
     if k >= n - 2 or n <= 400:
@@ -101,57 +172,82 @@ def _connected_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0) -> tuple[
         return w[:k], U[:, :k]
     if k <= 0:
         return np.zeros(0), np.zeros((n, 0))
-    L = L.tocsc()
-    M = M.tocsc()
+    fac = ShiftedFactors(L, M, backend)
+    M = fac.M
     v0 = np.random.default_rng(seed).standard_normal(n)
-    scale = float((L.diagonal() / M.diagonal()).mean())
-    sigma = -1e-6 * scale
+    scale = float((fac.L.diagonal() / M.diagonal()).mean())
+    rel = lambda x: 1e-7 * max(abs(x), 1e-9 * scale)  # eigenvalues closer than this are one cluster
     # every slice asks for a margin of extra pairs and drops the farthest ones: Lanczos converges
     # last (and may miss copies of repeated eigenvalues) at the far end of a slice
     margin = lambda m: m + max(6, m // 10)
-    w, U = _slice(L, M, sigma, margin(min(slice_size, k)), v0)
-    w, U = w[: min(slice_size, k)], U[:, : min(slice_size, k)]
-    vals, vecs = [w], [U]
-    found = w[-1]
-    width = max(w[-1] - w[0], 1e-12 * scale)
-    step = 0.45 * width
+    vals, vecs = [], []
+    found = -np.inf
+    step = None
     while sum(len(x) for x in vals) < k:
         need = k - sum(len(x) for x in vals)
-        nev = min(slice_size, max(need + 10, 20))
-        sigma = found + step
-        w, U = _slice(L, M, sigma, margin(nev), v0)
-        far = np.argsort(np.abs(w - sigma), kind="stable")[:nev]
-        far.sort()
-        w, U = w[far], U[:, far]
-        d = np.max(np.abs(w - sigma))
-        tol = 1e-9 * max(abs(found), scale * 1e-9)
-        if sigma - d > found + tol and len(w) >= nev:
-            step *= 0.5  # a gap would be possible: walk less far
-            continue
+        nev = min(slice_size, k) if not vals else min(slice_size, max(need + 10, 20))
+        sigma = -1e-6 * scale if not vals else found + step
+        wa, Ua, _ = _slice(fac, sigma, margin(nev), v0)
+        near_first = np.sort(np.argsort(np.abs(wa - sigma), kind="stable")[:nev])
+        w, U = wa[near_first], Ua[:, near_first]
+        if vals:
+            d = np.max(np.abs(w - sigma))
+            if sigma - d > found + rel(found) and len(w) >= nev:
+                step *= 0.5  # the slice might not reach back to `found`: walk less far
+                continue
         # keep eigenvalues beyond `found`, and merge the cluster at `found` by projection
-        near = np.abs(w - found) <= 1e-7 * max(abs(found), 1.0)
-        new = w > found + 1e-7 * max(abs(found), 1.0)
+        near = np.abs(w - found) <= rel(found) if vals else np.zeros(len(w), bool)
+        new = w > found + rel(found) if vals else np.ones(len(w), bool)
         keep_w, keep_U = list(w[new]), [U[:, new]]
         if near.any():
             prev = np.concatenate(vecs, axis=1)
             pv = np.concatenate(vals)
-            cl = np.abs(pv - found) <= 1e-7 * max(abs(found), 1.0)
-            B = prev[:, cl]
+            B = prev[:, np.abs(pv - found) <= rel(found)]
             C = U[:, near] - B @ (B.T @ (M @ U[:, near]))
-            norms = np.sqrt(np.einsum("ij,ij->j", C, M @ C))
-            extra = norms > 1e-6
-            if extra.any():
-                keep_w = list(w[near][extra]) + keep_w
-                keep_U = [C[:, extra] / norms[extra]] + keep_U
-        if keep_w:
-            kw = np.asarray(keep_w)
-            vals.append(kw)
-            vecs.append(np.concatenate(keep_U, axis=1))
-            found = kw.max()
-            width = max(w[-1] - w[0], width * 0.5)
-            step = 0.45 * width
-        else:
+            # what is left of the new copies is the part of the eigenspace not found yet: an
+            # M-orthonormal basis of its range (rank-revealing; the copies are not independent)
+            rw, rU = _ritz(C, fac.L, M)
+            if len(rw):
+                keep_w = list(rw) + keep_w
+                keep_U = [rU] + keep_U
+        if not keep_w:
             step *= 2.0
+            continue
+        kw = np.asarray(keep_w)
+        top = kw.max()
+        # Sylvester's inertia (CHOLMOD only): the count of eigenvalues below a point c under the
+        # top cluster (a slice may cut through a multiplet; the next one completes it) must equal
+        # what was found below c, or Lanczos missed copies of a repeated eigenvalue
+        allw = np.concatenate([*vals, kw])
+        lower = allw[allw < top - rel(top)]
+        c = 0.5 * (lower.max() + allw[allw >= top - rel(top)].min()) if len(lower) else None
+        have = len(lower)
+        below = fac.factor(c)[1] if fac.backend == "cholmod" and c is not None else None
+        tries = 0
+        while below is not None and below > have and tries < 3:
+            # single-vector Lanczos can miss copies of a repeated eigenvalue: look for them around
+            # c with everything found so far deflated, and keep what lies below c
+            tries += 1
+            B = np.concatenate([*vecs, *keep_U], axis=1)
+            wm, Um, _ = _slice(fac, c, (below - have) + 8 * tries, v0, deflate=B)
+            sel = wm < c
+            if sel.any():
+                rw, rU = _ritz(Um[:, sel] - B @ ((M @ B).T @ Um[:, sel]), fac.L, M)
+                keep_w = list(rw) + keep_w
+                keep_U = [rU] + keep_U
+                have += len(rw)
+        if below is not None and below != have:
+            import warnings
+
+            warnings.warn(f"eigenbasis: {below} eigenvalues lie below {c:.6g} but {have} were found "
+                          "(Sylvester inertia); the basis may miss copies of a repeated eigenvalue")
+        kw = np.asarray(keep_w)
+        top = kw.max()
+        vals.append(kw)
+        vecs.append(np.concatenate(keep_U, axis=1))
+        found = top
+        width = max(w[-1] - w[0], 1e-12 * scale)
+        step = 0.45 * width if step is None else 0.45 * max(width, 0.5 * step / 0.45)
     w = np.concatenate(vals)
     U = np.concatenate(vecs, axis=1)
     o = np.argsort(w, kind="stable")[:k]
