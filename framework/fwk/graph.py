@@ -25,18 +25,24 @@ def sparse_apply(M, x):
     return y.reshape(M.shape[0], b, c).transpose(0, 1)
 
 
-def ordered_one_rings(F: np.ndarray, n: int) -> list[list[int]]:
-    """Each vertex's neighbours in the cyclic order of its incident faces (a fan walk), for
-    border vertices starting at a border neighbour; vertices of non-manifold fans fall back to
-    sorted order after the walk."""
-    nxt = {}
-    for f in np.asarray(F):
-        for k in range(3):
-            a, b, c = int(f[k]), int(f[(k + 1) % 3]), int(f[(k + 2) % 3])
-            nxt.setdefault(a, {})[b] = c  # around a: b -> c
-    rings = []
+def ordered_fans(F: np.ndarray, n: int) -> tuple[list[list[int]], np.ndarray]:
+    """Each vertex's one-ring in the cyclic order of its incident faces (a walk around the fan,
+    counter-clockwise for consistently oriented faces) and whether the fan is closed.
+
+    An open fan (border vertex) starts at its border neighbour, so that the walk covers it in
+    one pass; a closed fan starts at its smallest neighbour index. Vertices whose fan is not a
+    single disc (non-manifold) list the walk then the remaining neighbours in index order and
+    count as open. Returns (rings, closed)."""
+    nxt: dict[int, dict[int, int]] = {}
+    for f in np.asarray(F, dtype=np.int64).reshape(-1, 3):
+        a, b, c = int(f[0]), int(f[1]), int(f[2])
+        nxt.setdefault(a, {})[b] = c  # around a: b -> c
+        nxt.setdefault(b, {})[c] = a
+        nxt.setdefault(c, {})[a] = b
+    rings: list[list[int]] = []
+    closed = np.zeros(n, dtype=bool)
     for v in range(n):
-        m = nxt.get(v, {})
+        m = nxt.get(v)
         if not m:
             rings.append([])
             continue
@@ -49,33 +55,77 @@ def ordered_one_rings(F: np.ndarray, n: int) -> list[list[int]]:
             ring.append(cur)
             seen.add(cur)
         rest = sorted((set(m) | targets) - seen)
+        closed[v] = not starts and not rest and m.get(cur) == start
         rings.append(ring + rest)
-    return rings
+    return rings, closed
+
+
+def ordered_one_rings(F: np.ndarray, n: int) -> list[list[int]]:
+    """Each vertex's neighbours in fan order (see ``ordered_fans``)."""
+    return ordered_fans(F, n)[0]
+
+
+def spiral_sequences(F: np.ndarray, n: int, rings: int | None = None, max_len: int | None = None,
+                     first=None, gap: int | None = None) -> list[list[int]]:
+    """Full spiral of every vertex: the vertex, its one-ring in fan order, then the following
+    rings, each continuing the previous one (Bouritsas et al. 2019; Gong et al. 2019).
+
+    Ring k + 1 is built by walking ring k in order; around each of its vertices u the new
+    (not yet visited) neighbours are taken in u's fan order starting just after the last visited
+    one (the first visited -> new transition of the fan), so that on a regular mesh ring k + 1 is
+    one continuous walk in the same rotational direction as ring k.
+
+    rings    stop after this many rings (Neural 3DMM's "step size"); None: no limit
+    max_len  stop once the spiral has at least this many entries (it is not cut here)
+    first    ``first(v, ring) -> neighbour`` chooses where v's one-ring starts (default: the fan's
+             own start); an open fan rotated to start elsewhere wraps across the border gap,
+             where ``gap`` (if given, e.g. -1) is inserted, as Neural 3DMM does.
+    """
+    fans, closed = ordered_fans(F, n)
+    out: list[list[int]] = []
+    for v in range(n):
+        r = fans[v]
+        if first is not None and r:
+            s = r.index(first(v, r))
+            r = r[s:] + ([gap] if gap is not None and s > 0 and not closed[v] else []) + r[:s]
+        seq = [v] + r
+        seen = {v, *r}
+        ring = [w for w in r if w != gap]
+        k = 1
+        while ring and (rings is None or k < rings) and (max_len is None or len(seq) < max_len):
+            new = []
+            for u in ring:
+                fu = fans[u]
+                m = len(fu)
+                if m == 0:
+                    continue
+                vis = [w in seen for w in fu]
+                s = 0
+                for i in range(m):  # first visited -> new transition (cyclic for closed fans)
+                    if not vis[i] and (vis[i - 1] if (i > 0 or closed[u]) else False):
+                        s = i
+                        break
+                for w in fu[s:] + fu[:s]:
+                    if w not in seen:
+                        seen.add(w)
+                        new.append(w)
+            seq += new
+            ring = new
+            k += 1
+        out.append(seq)
+    return out
 
 
 def spirals(F: np.ndarray, n: int, length: int, dilation: int = 1, first=None, pad: int | None = None) -> np.ndarray:
-    """SpiralNet++ spirals (Gong et al. 2019): the vertex, its one-ring in mesh order, then the
-    following rings (each ordered by walking the previous ring), cut to ``length * dilation``
-    and taken every ``dilation``. Where rings run out (small components, borders) the spiral is
-    padded with the centre vertex itself: an explicit, documented choice instead of the
-    reference implementation's silent k-nearest-neighbour fallback. Returns (n, length)."""
-    rings = ordered_one_rings(F, n)
-    if first is not None:  # rotate each cyclic ring to start at the neighbour chosen by first(v, ring)
-        rings = [r[r.index(first(v, r)):] + r[:r.index(first(v, r))] if r else r for v, r in enumerate(rings)]
+    """SpiralNet++ spirals (Gong et al. 2019): ``spiral_sequences`` cut to ``length * dilation``
+    and taken every ``dilation``-th entry. Where rings run out (small components, borders) the
+    spiral is padded with the centre vertex itself (or ``pad``): an explicit, documented choice
+    instead of the reference implementation's silent k-nearest-neighbour fallback, which can
+    reach into another connected component. Returns (n, length) int64."""
     need = length * dilation
+    seqs = spiral_sequences(F, n, max_len=need, first=first)
     out = np.empty((n, length), dtype=np.int64)
-    for v in range(n):
-        sp_, seen = [v], {v}
-        frontier = [v]
-        while len(sp_) < need and frontier:
-            nf = []
-            for u in frontier:
-                for w in rings[u]:
-                    if w not in seen:
-                        seen.add(w)
-                        sp_.append(w)
-                        nf.append(w)
-            frontier = nf
+    for v, sp_ in enumerate(seqs):
         sp_ = (sp_ + [v if pad is None else pad] * need)[:need]
         out[v] = sp_[::dilation][:length]
     return out

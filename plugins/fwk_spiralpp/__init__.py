@@ -1,9 +1,11 @@
 """Conv ``spiral++``: SpiralNet++ (Gong et al. 2019, "SpiralNet++: A Fast and Highly Efficient
 Mesh Convolution Operator"; thesis 3.3).
 
-Each vertex i has a spiral S(i, l): the vertex, its one-ring in mesh order, then the following
-rings, cut to length l (every ``dilation``-th entry of a spiral l x dilation long). Spirals are
-fixed by the template's connectivity and do not depend on a reference vertex. The convolution
+Each vertex i has a spiral S(i, l): the vertex, its one-ring in mesh (fan) order, then the
+following rings, each continuing the previous one in the same rotational direction, cut to
+length l (every ``dilation``-th entry of a spiral l x dilation long; ``fwk.graph.spirals``).
+Spirals are fixed by the template's connectivity and do not depend on a reference vertex (a
+closed one-ring starts at its smallest vertex index, an open one at its border neighbour). The convolution
 concatenates the features along the spiral and applies one shared linear layer:
 
     x'_i = W [x_{S(i,1)} || x_{S(i,2)} || ... || x_{S(i,l)}] + b

@@ -12,6 +12,10 @@ class TestSpiralContract(ConvContract):
     params = {"length": 9, "dilation": 2}
 
 
+class TestSpiralDefaultsContract(ConvContract):
+    component = REG.get("conv", "spiral")  # Neural 3DMM defaults: 2 rings, dilation 2, mean + 2 std
+
+
 class TestFeaStContract(ConvContract):
     component = REG.get("conv", "feast")
     params = {"heads": 4}
@@ -24,32 +28,6 @@ class TestLSAContract(ConvContract):
 class TestLSATinyContract(ConvContract):
     component = REG.get("conv", "lsa")
     params = {"basis": 4}
-
-
-def test_spiral_anchored_and_padded():
-    from fwk.testing.sampler import two_components
-    from fwk_spiral import anchored_spirals
-
-    h = REG.get("sampler", "quadric")(factors=[4]).build(two_components())
-    lv = h.levels[1]
-    S = anchored_spirals(lv, 200, 1)
-    assert (S[:, 0] == np.arange(lv.n_vertices)).all()
-    assert (S == -1).any()  # the small component runs out of rings: -1 padding to the dummy
-    # the one-ring starts at a neighbour closest to the component's front-most vertex
-    from fwk.graph import bfs_distance
-    import scipy.sparse as sp
-
-    e = lv.edges
-    adj = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                        shape=(lv.n_vertices,) * 2).tocsr()
-    from scipy.sparse.csgraph import connected_components
-
-    _, lab = connected_components(adj, directed=False)
-    ref = int(np.argmax(np.where(lab == lab[0], lv.vertices[:, 2], -np.inf)))
-    d = bfs_distance(adj, [ref])
-    v = int(np.flatnonzero(d == 3)[0])
-    ring = set(adj.indices[adj.indptr[v]:adj.indptr[v + 1]])
-    assert d[S[v, 1]] == min(d[list(ring)])
 
 
 def test_lsa_starts_as_a_plain_neighbourhood_linear_layer():
