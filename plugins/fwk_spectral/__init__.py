@@ -18,9 +18,15 @@ its own band and adds the mean once:
 
 so ``assemble(split(P)) == P`` exactly (to round-off). ``mass: false`` uses the un-weighted
 basis (eq. 4.1, M = I). The n x n matrices X_j are never formed: everything is U (U^T (M P)),
-one (n, 3b) block product for a batch. ``assemble_many(bands, ks)`` assembles two bands for many
-cut points k at once (the PBS k sweep, thesis 5.3.3) from cumulative coefficient sums. A
-differentiable torch version for training-time use is ``TorchSpectral``.
+one (n, 3b) block product for a batch. ``assemble_many([low, high], ks)`` assembles two bands
+for many cut points k at once (the PBS k sweep, thesis 5.3.3) from cumulative coefficient sums;
+``eigen_k`` computes a larger basis than the last cut so that such a sweep can reach further.
+``project(P, j)`` is band j's part of P - mean. A differentiable torch version for training-time
+use is ``Spectral.torch()`` (``TorchSpectral``, built on ``fwk.geometry.spectral_torch``).
+
+How the mean enters: every band is a mesh centred on the mean (band_j - mean is the band's
+displacement), so each band can be fed to a representation and a model like any mesh; the
+displacements of all bands sum to P - mean and assembly adds the mean back exactly once.
 """
 from __future__ import annotations
 
@@ -37,25 +43,38 @@ class Spectral:
 
     name = "spectral"
 
-    def __init__(self, k: int | list[int] = 500, mass: bool = True):
+    def __init__(self, k: int | list[int] = 500, mass: bool = True, eigen_k: int | None = None,
+                 slice_size: int = 60):
         cuts = [k] if isinstance(k, int) else list(k)
-        if not cuts or any(c <= 0 for c in cuts) or cuts != sorted(set(cuts)):
-            raise RecipeError(f"k: cut points must be positive and increasing, got {k}")
-        self.cuts, self.mass = cuts, mass
+        if not cuts or any(int(c) != c or c <= 0 for c in cuts) or cuts != sorted(set(cuts)):
+            raise RecipeError(f"k: cut points must be positive increasing integers, got {k}")
+        if eigen_k is not None and eigen_k < cuts[-1]:
+            raise RecipeError(f"eigen_k: {eigen_k} is below the last cut point {cuts[-1]}")
+        self.cuts, self.mass = [int(c) for c in cuts], bool(mass)
+        self.eigen_k, self.slice_size = eigen_k, slice_size
         self.proj: SpectralProjector | None = None
         self.mean = None
+        self.evals = None
 
     @property
     def n_bands(self) -> int:
         return len(self.cuts) + 1
 
     def fit(self, template, mean=None, cache=None) -> None:
+        """Eigenbasis of the mean's geometry (``mean`` (n, 3); default the template's vertices),
+        cached in ``cache`` (default: fwk's content-hash cache)."""
+        from fwk.cache import default_cache
+
         n = template.n_vertices
-        if self.cuts[-1] > n:
-            raise RecipeError(f"k: cut point {self.cuts[-1]} exceeds the template's {n} vertices")
+        K = self.eigen_k or self.cuts[-1]
+        if K > n:
+            raise RecipeError(f"k: cut point {K} exceeds the template's {n} vertices")
         V = template.vertices if mean is None else np.asarray(mean, dtype=np.float64)
+        if V.shape != (n, 3):
+            raise RecipeError(f"mean: expected shape ({n}, 3), got {V.shape}")
         self.mean = V.copy()
-        _, U = eigenbasis(V, template.triangles, self.cuts[-1], weighted=self.mass, cache=cache)
+        self.evals, U = eigenbasis(V, template.triangles, K, weighted=self.mass,
+                                   cache=cache if cache is not None else default_cache(), slice_size=self.slice_size)
         m = mass_matrix(V, template.triangles).diagonal() if self.mass else None
         self.proj = SpectralProjector(U, m)
 
@@ -63,9 +82,14 @@ class Spectral:
         edges = [0, *self.cuts]
         return [(edges[j], edges[j + 1]) for j in range(len(self.cuts))]
 
+    def _check(self):
+        if self.proj is None:
+            raise RuntimeError("spectral assembler used before fit()")
+
     def split(self, P) -> list[np.ndarray]:
-        P = np.asarray(P, dtype=np.float64)
-        D = P - self.mean
+        """Bands of P (b, n, 3) or (n, 3), each centred on the mean: band_j - mean sum to P - mean."""
+        self._check()
+        D = np.asarray(P, dtype=np.float64) - self.mean
         bands, low_sum = [], 0.0
         for lo, hi in self._ranges():
             x = self.proj.project(D, lo, hi)
@@ -75,6 +99,8 @@ class Spectral:
         return bands
 
     def assemble(self, bands) -> np.ndarray:
+        """Eq. 4.15 / 5.10: each band contributes only its own eigen-slice, the mean is added once."""
+        self._check()
         if len(bands) != self.n_bands:
             raise ValueError(f"assemble: {len(bands)} bands given, the assembler has {self.n_bands}")
         out = 0.0
@@ -85,59 +111,90 @@ class Spectral:
         return out + high + self.mean
 
     def project(self, P, band: int) -> np.ndarray:
-        """The part of P - mean in one band (no mean added)."""
-        return self.split(P)[band] - self.mean
+        """The part of P - mean in one band (no mean added): X_j (P - mean), or for the last band
+        (I - sum X_j)(P - mean)."""
+        self._check()
+        if not -self.n_bands <= band < self.n_bands:
+            raise IndexError(f"band {band} out of range for {self.n_bands} bands")
+        band %= self.n_bands
+        D = np.asarray(P, dtype=np.float64) - self.mean
+        if band < len(self.cuts):
+            return self.proj.project(D, *self._ranges()[band])
+        return D - self.proj.project(D, 0, self.cuts[-1])
 
-    def assemble_many(self, low, high, ks) -> np.ndarray:
-        """Two-band assembly for every cut k in ``ks`` (each <= the fitted K): (len(ks), b, n, 3)."""
-        low = np.asarray(low, dtype=np.float64) - self.mean
-        high = np.asarray(high, dtype=np.float64) - self.mean
+    def assemble_many(self, bands, ks) -> np.ndarray:
+        """Two-band assembly ``[low, high]`` for every cut k in ``ks`` (each <= the fitted basis
+        size, ``eigen_k``): (len(ks), b, n, 3), or (len(ks), n, 3) for single meshes. With
+        c = U^T M (low - high), P'(k) = U_k c_k + high, accumulated over the sorted ks, so the
+        whole sweep costs one projection (the PBS k sweep, thesis 5.3.3)."""
+        self._check()
+        low, high = (np.asarray(x, dtype=np.float64) - self.mean for x in bands)
         single = low.ndim == 2
         if single:
             low, high = low[None], high[None]
         b, n = low.shape[:2]
-        c = self.proj.coefficients(low - high)  # (K, 3b)
         U = self.proj.U
+        K = U.shape[1]
+        ks = [int(k) for k in ks]
+        if any(k < 0 or k > K for k in ks):
+            raise ValueError(f"assemble_many: every k must lie in [0, {K}] (the fitted basis), got {ks}")
+        c = self.proj.coefficients(low - high)  # (K, 3b)
         out = np.empty((len(ks), b, n, 3))
-        # P'(k) = U_k c_k + high + mean with c = U^T M (low - high): cumulative in k
-        for i, k in enumerate(ks):
-            k = int(min(max(k, 0), U.shape[1]))
-            corr = (U[:, :k] @ c[:k]).reshape(n, b, 3).transpose(1, 0, 2) if k else 0.0
-            out[i] = high + corr + self.mean
+        acc, prev = np.zeros((n, 3 * b)), 0
+        for i in np.argsort(ks, kind="stable"):
+            k = ks[i]
+            if k > prev:
+                acc += U[:, prev:k] @ c[prev:k]
+                prev = k
+            out[i] = acc.reshape(n, b, 3).transpose(1, 0, 2) + high + self.mean
         return out[:, 0] if single else out
 
+    def torch(self, device="cpu", dtype=None) -> "TorchSpectral":
+        """The differentiable torch version of this fitted assembler."""
+        return TorchSpectral(self, device, dtype)
+
     def state_dict(self) -> dict:
-        return {"cuts": self.cuts, "mass": self.mass, "U": self.proj.U, "m": self.proj.m, "mean": self.mean}
+        self._check()
+        return {"cuts": self.cuts, "mass": self.mass, "eigen_k": self.eigen_k, "U": self.proj.U, "m": self.proj.m,
+                "mean": self.mean, "evals": self.evals}
 
     def load_state_dict(self, d) -> None:
-        self.cuts, self.mass, self.mean = list(d["cuts"]), bool(d["mass"]), np.asarray(d["mean"])
+        self.cuts, self.mass, self.mean = [int(c) for c in d["cuts"]], bool(d["mass"]), np.asarray(d["mean"])
+        self.eigen_k = d.get("eigen_k")
+        self.evals = d.get("evals")
         self.proj = SpectralProjector(np.asarray(d["U"]), None if d["m"] is None else np.asarray(d["m"]))
 
 
 class TorchSpectral:
-    """Differentiable, batched two-band (or multi-band) projection in torch (CPU or GPU)."""
+    """Differentiable, batched band projection and assembly in torch (CPU or GPU), from a fitted
+    ``Spectral``: ``project(P, lo, hi)``, ``split(P)``, ``assemble(bands)`` on (b, n, 3) tensors."""
 
     def __init__(self, assembler: Spectral, device="cpu", dtype=None):
         import torch
 
+        from fwk.geometry.spectral_torch import TorchSpectralProjector
+
         dtype = dtype or torch.float32
-        self.U = torch.as_tensor(assembler.proj.U, dtype=dtype, device=device)
-        self.UtM = torch.as_tensor(assembler.proj.UtM, dtype=dtype, device=device)
+        self.proj = TorchSpectralProjector(assembler.proj.U, assembler.proj.m, dtype=dtype).to(device)
+        self.U, self.UtM = self.proj.U, self.proj.UtM
         self.mean = torch.as_tensor(assembler.mean, dtype=dtype, device=device)
+        self.cuts = list(assembler.cuts)
         self.ranges = assembler._ranges()
 
     def project(self, P, lo, hi):
-        # P (b, n, 3): U[:, lo:hi] @ (UtM[lo:hi] @ P) batched via einsum, no n x n
-        c = self.UtM[lo:hi] @ P  # (b, K, 3) by broadcasting
-        return self.U[:, lo:hi] @ c
+        return self.proj.project(P, lo, hi)
+
+    def split(self, P):
+        D = P - self.mean
+        bands, low_sum = [], 0.0
+        for lo, hi in self.ranges:
+            x = self.proj.project(D, lo, hi)
+            bands.append(x + self.mean)
+            low_sum = low_sum + x
+        return bands + [D - low_sum + self.mean]
 
     def assemble(self, bands):
-        out = 0.0
-        high = bands[-1] - self.mean
-        for (lo, hi), b in zip(self.ranges, bands[:-1]):
-            out = out + self.project(b - self.mean, lo, hi)
-            high = high - self.project(high, lo, hi)
-        return out + high + self.mean
+        return self.proj.assemble(bands, self.cuts, self.mean)
 
 
 @hookimpl

@@ -60,8 +60,8 @@ def test_assemble_many_matches_assemble():
     rng = np.random.default_rng(3)
     lo, hi = V + rng.normal(0, 0.05, V.shape), V + rng.normal(0, 0.05, V.shape)
     # the sphere's eigenvalues repeat (multiplicities 1, 3, 5, ...): cut between multiplets
-    many = a.assemble_many(lo, hi, [0, 16, 64])
-    for i, k in enumerate([16, 64]):
+    many = a.assemble_many([lo, hi], [0, 64, 16])
+    for i, k in enumerate([64, 16]):
         b = Spectral(k=k)
         b.fit(Template(V, a_template_faces()), V)
         assert np.allclose(many[i + 1], b.assemble([lo, hi]), atol=1e-8)

@@ -88,3 +88,27 @@ def check_mesh(V, F) -> dict:
     used = np.zeros(len(V), bool)
     used[np.asarray(F)[ok].ravel()] = True
     return {"degenerate_triangles": int((~ok).sum()), "isolated_vertices": int((~used).sum())}
+
+
+def face_areas(V, F) -> np.ndarray:
+    """(m,) triangle areas; batched: V (b, n, 3) -> (b, m)."""
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    P0, P1, P2 = V[..., F[:, 0], :], V[..., F[:, 1], :], V[..., F[:, 2], :]
+    return 0.5 * np.linalg.norm(np.cross(P1 - P0, P2 - P0), axis=-1)
+
+
+def vertex_normals(V, F) -> np.ndarray:
+    """(n, 3) unit vertex normals, the area-weighted mean of the incident face normals;
+    batched: V (b, n, 3) -> (b, n, 3). A vertex in no (non-degenerate) face gets (0, 0, 0)."""
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    single = V.ndim == 2
+    Vb = V[None] if single else V
+    N = np.cross(Vb[:, F[:, 1]] - Vb[:, F[:, 0]], Vb[:, F[:, 2]] - Vb[:, F[:, 0]])  # 2 x area x normal
+    n, m = Vb.shape[1], len(F)
+    A = sp.csr_matrix((np.ones(3 * m), (F.ravel(), np.repeat(np.arange(m), 3))), shape=(n, m))
+    out = (A @ N.transpose(1, 0, 2).reshape(m, -1)).reshape(n, len(Vb), 3).transpose(1, 0, 2)
+    nrm = np.linalg.norm(out, axis=-1, keepdims=True)
+    out = out / np.where(nrm > 0, nrm, 1.0)
+    return out[0] if single else out

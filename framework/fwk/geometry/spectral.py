@@ -254,9 +254,11 @@ def _connected_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0, backend: 
     return w[o], U[:, o]
 
 
-def eigenbasis(V, F, k: int, weighted: bool = True, cache=None, slice_size: int = 60):
-    """(evals (k,), U (n, k)): the k smallest eigenpairs, M-orthonormal (eq. 4.2), or the
-    un-weighted basis of L alone (eq. 4.1) with U^T U = I. Cached by content hash."""
+def eigenbasis(V, F, k: int, weighted: bool = True, cache=None, slice_size: int = 60, backend: str = "auto"):
+    """(evals (k,), U (n, k)): the k smallest eigenpairs of L u = lambda M u, M-orthonormal
+    (eq. 4.2), or of L u = lambda u with U^T U = I (``weighted=False``, eq. 4.1); signs fixed so
+    that each vector's largest-magnitude entry is positive. ``cache``: a ``fwk.cache.Cache``
+    (keyed by positions, triangles, k and the options). ``backend``: see ``ShiftedFactors``."""
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     k = int(min(k, len(V)))
@@ -264,18 +266,20 @@ def eigenbasis(V, F, k: int, weighted: bool = True, cache=None, slice_size: int 
     def build():
         L = cotangent_laplacian(V, F)
         M = mass_matrix(V, F) if weighted else sp.identity(len(V), format="csc")
-        w, U = generalized_eigs(L, M, k, slice_size)
+        w, U = generalized_eigs(L, M, k, slice_size, backend=backend)
         return w, _fix_signs(U)
 
     if cache is None:
         return build()
-    return cache.get_or_build("eigenbasis", (V, F, k, weighted, slice_size, "v1"), build)
+    return cache.get_or_build("eigenbasis", (V, F, k, weighted, slice_size, "v2"), build)
 
 
 class SpectralProjector:
     """Projection onto eigenvector ranges without an n x n matrix.
 
-    ``project(P, lo, hi)`` = U[:, lo:hi] (U[:, lo:hi]^T (M P)) for P (n, 3) or (b, n, 3)."""
+    ``U`` (n, K) M-orthonormal eigenvectors, ``mass`` the diagonal of M (None: M = I).
+    ``project(P, lo, hi)`` = U[:, lo:hi] (U[:, lo:hi]^T (M P)) for P (n, 3) or (b, n, 3), the
+    batch folded into one (n, 3b) block; ``low(P, k)`` / ``high(P, k)`` the two bands."""
 
     def __init__(self, U: np.ndarray, mass: np.ndarray | None):
         self.U = np.ascontiguousarray(U)
@@ -297,3 +301,11 @@ class SpectralProjector:
         out = U @ (self.UtM[lo:hi] @ cols)
         out = out.reshape(b.shape[1], len(b), 3).transpose(1, 0, 2)
         return out[0] if single else out
+
+    def low(self, P, k: int | None = None):
+        """The first k eigenvectors' part of P (eq. 4.3 / 4.4): U_k U_k^T M P."""
+        return self.project(P, 0, k)
+
+    def high(self, P, k: int | None = None):
+        """P minus its low part: (I - U_k U_k^T M) P."""
+        return np.asarray(P, dtype=np.float64) - self.project(P, 0, k)

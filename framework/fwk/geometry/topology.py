@@ -87,3 +87,41 @@ def connected_components(F: np.ndarray, n_vertices: int | None = None) -> np.nda
     from scipy.sparse.csgraph import connected_components as cc
 
     return cc(one_ring(F, n_vertices), directed=False)[1].astype(np.int64)
+
+
+def edges(F: np.ndarray, n_vertices: int | None = None) -> np.ndarray:
+    """(e, 2) unique undirected edges (i < j), sorted lexicographically."""
+    return edge_topology(F, n_vertices).edges
+
+
+def edge_faces(F: np.ndarray, n_vertices: int | None = None) -> np.ndarray:
+    """(e, 2) the faces on each edge of ``edges(F)`` (lowest face index first): -1 in column 1
+    on a border edge; a non-manifold edge (more than two faces) lists its first two (see
+    ``non_manifold_edges``)."""
+    topo = edge_topology(F, n_vertices)
+    m = len(topo.face_edges)
+    fe = topo.face_edges.T.reshape(-1)              # half-edge h -> edge, h = k * m + f
+    f = np.tile(np.arange(m), 3)
+    order = np.lexsort((f, fe))  # by edge, then by face index
+    starts = np.concatenate([[0], np.cumsum(topo.edge_count)[:-1]])
+    out = np.full((len(topo.edges), 2), -1, dtype=np.int64)
+    out[:, 0] = f[order[starts]]
+    two = topo.edge_count >= 2
+    out[two, 1] = f[order[starts[two] + 1]]
+    return out
+
+
+def border_edges(F: np.ndarray, n_vertices: int | None = None) -> np.ndarray:
+    """(e,) bool mask over ``edges(F)``: edges with exactly one face."""
+    return edge_topology(F, n_vertices).edge_count == 1
+
+
+def interior_edges(F: np.ndarray, n_vertices: int | None = None) -> np.ndarray:
+    """(e,) bool mask over ``edges(F)``: edges with exactly two faces (orientation not checked;
+    ``EdgeTopology.interior`` lists the consistently oriented ones)."""
+    return edge_topology(F, n_vertices).edge_count == 2
+
+
+def non_manifold_edges(F: np.ndarray, n_vertices: int | None = None) -> np.ndarray:
+    """(e,) bool mask over ``edges(F)``: edges with more than two faces."""
+    return edge_topology(F, n_vertices).edge_count > 2
