@@ -36,10 +36,40 @@ def test_lsa_starts_as_a_plain_neighbourhood_linear_layer():
     from fwk.testing.sampler import two_components
 
     h = REG.get("sampler", "quadric")(factors=[4]).build(two_components())
+    for params in ({}, {"basis": 4}):
+        conv = REG.get("conv", "lsa")(3, 5, h, 1, **params)
+        x = torch.randn(2, h.levels[1].n_vertices, 3)
+        ref = conv.layer(x[:, conv.index].reshape(2, -1, conv.k * 3))
+        assert torch.allclose(conv(x), ref, atol=1e-5)  # A_i = I at initialisation
+
+
+def test_lsa_matches_a_per_vertex_loop_and_tiny_weights_vary_per_vertex():
+    import torch
+
+    from fwk.testing.sampler import two_components
+
+    h = REG.get("sampler", "quadric")(factors=[4, 4]).build(two_components())
+    lv = h.levels[1]
     conv = REG.get("conv", "lsa")(3, 5, h, 1)
-    x = torch.randn(2, h.levels[1].n_vertices, 3)
-    ref = conv.layer(x[:, conv.index.reshape(-1)].reshape(2, -1, conv.k * 3))
-    assert torch.allclose(conv(x), ref, atol=1e-6)  # A_i = I at initialisation
+    with torch.no_grad():
+        conv.A.add_(0.3 * torch.randn_like(conv.A))
+    x = torch.randn(2, lv.n_vertices, 3)
+    y = conv(x)
+    idx = conv.index.reshape(lv.n_vertices, conv.k)
+    nb = {i: sorted({int(b) for a, b in lv.edges if a == i} | {int(a) for a, b in lv.edges if b == i}) for i in (0, 5, 17)}
+    for i in nb:
+        assert list(idx[i]) == ([i] + nb[i] + [i] * 9)[:9]  # the vertex, its first 8 adjacency entries, padding
+        Xi = x[1, idx[i]]                                    # (K, c)
+        ref = conv.layer.weight @ (conv.A[i].T @ Xi).reshape(-1) + conv.layer.bias
+        assert torch.allclose(y[1, i], ref, atol=1e-5)
+    tiny = REG.get("conv", "lsa")(3, 5, h, 1, basis=8)
+    assert tiny.tiny and tiny.A is None
+    with torch.no_grad():
+        tiny.bases.add_(0.3 * torch.randn_like(tiny.bases))
+    W = tiny.weights()
+    assert W.shape == (lv.n_vertices, 9, 9) and (W[0] - W[1]).abs().max() > 1e-4
+    small = REG.get("conv", "lsa")(3, 5, h, 2, basis=8)  # at most 128 vertices: a free A_i
+    assert h.levels[2].n_vertices <= 128 and small.A is not None
 
 
 # FeaStNet's feature-steered assignments start near uniform: its loss plateaus for ~40 steps
