@@ -378,7 +378,7 @@ class _Blend:
                 "in_reps": [r.state_dict() for r in self.in_reps], "out_reps": [r.state_dict() for r in self.out_reps],
                 "template_vertices": self.template.vertices, "template_triangles": self.template.triangles}
 
-    def _load_base(self, d: dict) -> None:
+    def _load_base(self, d: dict, ctx=None) -> None:
         from fwk.data import Template
 
         self.expressions = list(d["expressions"])
@@ -390,7 +390,7 @@ class _Blend:
             r.load_state_dict(s)
         for r, s in zip(self.out_reps, d["out_reps"]):
             r.load_state_dict(s)
-        self._make_nets(self.template, self.shape[1])
+        self._make_nets(self.template, self.shape[1], ctx)
         self.nets.load_state_dict(d["nets"])
         self.nets.eval()
 
@@ -416,8 +416,9 @@ class PB(_Blend):
     def state_dict(self) -> dict:
         return {"kind": "pb", **self._base_state()}
 
-    def load_state_dict(self, d: dict) -> None:
-        self._load_base(d)
+    def load_state_dict(self, d: dict, ctx=None) -> None:
+        """Restore; ``ctx`` (optional) lends its cache to the network's graph hierarchy."""
+        self._load_base(d, ctx)
 
 
 class PBS(_Blend):
@@ -492,12 +493,23 @@ class PBS(_Blend):
         Ps, Pd = self.branches(N, expression)
         return self.assemble(Ps, Pd, [k])[0]
 
+    def single(self, b: int) -> PB:
+        """Branch b (0 spatial, 1 differential) as a single end-to-end ``pb`` model sharing
+        this model's fitted representations and networks."""
+        pb = PB(representation=self.branch_specs[b], network=self.network, conditional=self.conditional)
+        pb.expressions, pb.template, pb._net_model = list(self.expressions), self.template, self._net_model
+        pb.shape = (self.shape[0], [self.shape[1][b]])
+        pb.in_reps, pb.out_reps = [self.in_reps[b]], [self.out_reps[b]]
+        pb.nets = nn.ModuleDict({"b0": self.nets[f"b{b}"]})
+        return pb
+
     def ends(self, neutrals, expression: str, target=None) -> dict:
-        """The two single end-to-end PB predictions inside PBS (k = n and the dr network, the
-        latter registered onto ``target`` when given, as the thesis evaluates dr outputs)."""
+        """The two single end-to-end PB predictions inside PBS (k = n, and the dr network
+        registered onto ``target`` when given, as the thesis evaluates dr outputs)."""
         N = self._check(neutrals, expression)
-        return {"pb-euclidean-std": self.branch_predict(N, expression, 0),
-                "pb-dr-norm": self.branch_predict(N, expression, 1, target=target)}
+        names = [f"pb-{getattr(s, 'name', s)}-{getattr(s, 'params', {}).get('scaling', 'std' if b == 0 else 'norm')}"
+                 for b, s in enumerate(self.branch_specs)]
+        return {names[0]: self.single(0).predict(N, expression), names[1]: self.single(1).predict(N, expression, target)}
 
     # ------------------------------------------------------------------ k selection
     def fit(self, data, ctx) -> None:
@@ -558,8 +570,9 @@ class PBS(_Blend):
         return {"kind": "pbs", **self._base_state(), "k": dict(self.k), "sweep": self.sweep,
                 "assembler": None if self.assembler is None else self.assembler.state_dict()}
 
-    def load_state_dict(self, d: dict) -> None:
-        self._load_base(d)
+    def load_state_dict(self, d: dict, ctx=None) -> None:
+        """Restore; ``ctx`` (optional) lends its cache to the network's graph hierarchy."""
+        self._load_base(d, ctx)
         self.k = {str(k): int(v) for k, v in d["k"].items()}
         self.sweep = d.get("sweep", {})
         if d.get("assembler") is not None:

@@ -1,6 +1,14 @@
 """Make sure the blendshape plugins are registered even where their entry points are not
 declared yet (an editable install made before they were added)."""
+import sys
+from pathlib import Path
+
 import fwk.plugins as _plugins
+
+try:
+    import fwk_pb  # noqa: F401
+except ImportError:  # an editable install made before the package existed
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "plugins"))
 
 
 def _ensure():

@@ -1,0 +1,147 @@
+import numpy as np
+import pytest
+
+from fwk.data.preprocess import Preprocessor
+from fwk.protocols import FitData
+from fwk.runs import make_test_context
+
+NET = {"name": "vae", "channels": [8], "latent": 4, "sampler": {"name": "quadric", "factors": [4]}}
+
+
+def _data(n_subjects=10, n_vertices=300):
+    from fwk.plugins import get_registry
+
+    col = get_registry().get("dataset", "synthetic-heads")(n_subjects=n_subjects, n_vertices=n_vertices,
+                                                            shapes=["neutral", "mouth-wide"]).load(None)
+    tr = n_subjects - 3
+    pre = Preprocessor().fit(np.asarray(col.positions[:tr, 0]), np.asarray(col.positions[:tr]))
+    X, _ = pre.transform(np.asarray(col.positions), np.asarray(col.positions[:, 0]))
+    col.positions = X
+    return FitData(col.template.with_vertices(pre.mean_neutral), col.select(np.arange(tr)),
+                   col.select(np.arange(tr, n_subjects)), ["neutral", "mouth-wide"])
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    from fwk_pb import PBS
+
+    data = _data()
+    ctx = make_test_context(tmp_path_factory.mktemp("pbs"), epochs=1, batch_size=4)
+    m = PBS(network=NET, ks=[0, 5, 20, 60, 10_000])
+    m.fit(data, ctx)
+    return m, data
+
+
+def _perfect(m, data):
+    """Replace the networks by the ground truth: branch_features returns encode(GT)."""
+    va = data.val
+    N, G = np.asarray(va.positions[:, 0]), np.asarray(va.positions[:, 1])
+
+    def features(N_, e, b):
+        assert np.allclose(N_, N)
+        return m.out_reps[b].encode(G, N)
+
+    m.branch_features = features
+    return N, G
+
+
+def test_perfect_networks_give_the_ground_truth_for_every_k_exactly(tmp_path):
+    """With two exactly invertible representations (euclidean std and norm), feeding the
+    ground truth through decode and eq. 5.10 returns it for every k."""
+    from fwk_pb import PBS
+
+    data = _data()
+    m = PBS(spatial={"name": "euclidean", "scaling": "std"}, differential={"name": "euclidean", "scaling": "norm"},
+            network=NET, ks=[0, 1, 7, 30, 100, 299, 10_000], k=1)
+    m.fit(data, make_test_context(tmp_path, epochs=1, batch_size=4))
+    N, G = _perfect(m, data)
+    for k in [0, 1, 7, 30, 100, 299, G.shape[1]]:
+        assert np.abs(m.predict(N, "mouth-wide", k=k) - G).max() < 1e-6, k  # float32 features
+
+
+def test_perfect_networks_with_dr_reproduce_the_ground_truth_up_to_the_dr_round_trip(trained):
+    m, data = trained
+    m2 = type(m)(network=NET)
+    m2.load_state_dict(m.state_dict())
+    N, G = _perfect(m2, data)
+    n = G.shape[1]
+    err0 = np.abs(m2.predict(N, "mouth-wide", k=0) - G).max()  # the dr round trip alone
+    size = np.abs(G).max()
+    assert err0 < 5e-3 * size
+    assert np.abs(m2.predict(N, "mouth-wide", k=n) - G).max() < 1e-9
+    for k in [1, 5, 20, 60]:
+        err = np.abs(m2.predict(N, "mouth-wide", k=k) - G).max()
+        assert err <= 2 * err0 + 1e-9, k
+    # the error shrinks as more of the (exact) spatial prediction is taken
+    errs = [np.abs(m2.predict(N, "mouth-wide", k=k) - G).mean() for k in (0, 20, 60)]
+    assert errs[2] <= errs[0]
+
+
+def test_ends_equal_the_single_pb_predictions(trained):
+    m, data = trained
+    N = np.asarray(data.val.positions[:, 0])
+    n = N.shape[1]
+    spatial, diff = m.single(0), m.single(1)
+    Ps = spatial.predict(N, "mouth-wide")
+    assert np.allclose(m.predict(N, "mouth-wide", k=n), Ps, atol=1e-12)
+    assert np.allclose(m.predict(N, "mouth-wide", k=0), diff.predict(N, "mouth-wide", target=Ps), atol=1e-12)
+    ends = m.ends(N, "mouth-wide")
+    assert np.allclose(ends["pb-euclidean-std"], Ps)
+    # in between, eq. 5.10 against a direct evaluation with the explicit basis
+    k = 20
+    Pd = diff.predict(N, "mouth-wide", target=Ps)
+    U, Mdiag = m.assembler.proj.U[:, :k], m.assembler.proj.m
+    X = U @ (U.T * Mdiag[None])
+    expect = np.einsum("ij,bjc->bic", np.eye(n) - X, Pd) + np.einsum("ij,bjc->bic", X, Ps)
+    assert np.allclose(m.predict(N, "mouth-wide", k=k), expect, atol=1e-9)
+
+
+def test_k_is_chosen_on_the_front_and_saved(trained):
+    m, data = trained
+    s = m.sweep["mouth-wide"]
+    assert m.k["mouth-wide"] in s["front_fmpd"]
+    assert len(s["ks"]) == len(s["l1"]) == len(s["dame"]) == len(s["fmpd"])
+    m2 = type(m)(network=NET)
+    m2.load_state_dict(m.state_dict())
+    N = np.asarray(data.val.positions[:, 0])
+    assert m2.k == m.k
+    assert np.allclose(m2.predict(N, "mouth-wide"), m.predict(N, "mouth-wide"), atol=1e-6)
+
+
+def test_thesis_ks_and_knee():
+    from fwk_pb import knee, thesis_ks
+
+    ks = thesis_ks(14921)
+    assert len(ks) == 37 and ks[0] == 0 and ks[-1] == 14921 and 440 in ks and 1000 in ks
+    small = thesis_ks(6000)
+    assert small[0] == 0 and small[-1] == 6000 and small == sorted(set(small))
+    # an L-shaped front: the corner is the knee
+    x = np.array([0.0, 0.1, 0.2, 1.0])
+    y = np.array([1.0, 0.2, 0.1, 0.0])
+    assert knee(x, y) == 1
+    assert knee(x[::-1], y[::-1]) == 2
+
+
+def test_two_step_and_conditional_train_and_reload(tmp_path):
+    from fwk_pb import PB, PBS
+
+    data = _data(8, 250)
+    N = np.asarray(data.val.positions[:, 0])
+    for cls, kw in [(PB, {"mode": "two-step", "representation": "dr"}), (PBS, {"conditional": True, "k": 10})]:
+        m = cls(network=NET, **kw)
+        m.fit(data, make_test_context(tmp_path / cls.name, epochs=1, batch_size=4))
+        P = m.predict(N, "mouth-wide")
+        assert P.shape == N.shape and np.all(np.isfinite(P))
+        m2 = cls(network=NET, **kw)
+        m2.load_state_dict(m.state_dict())
+        assert np.allclose(m2.predict(N, "mouth-wide"), P, atol=1e-6)
+
+
+def test_two_step_freezes_the_neutral_encoder(tmp_path):
+    from fwk_pb import PB
+
+    data = _data(8, 250)
+    m = PB(network=NET, mode="two-step")
+    m.fit(data, make_test_context(tmp_path, epochs=1, batch_size=4))
+    assert all(not p.requires_grad for p in m.nets["b0"].enc.parameters())
+    assert any(p.requires_grad for p in m.nets["b0"].dec.parameters())
