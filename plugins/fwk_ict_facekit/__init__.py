@@ -20,10 +20,13 @@ more can be defined in a recipe (``expressions: {name: {blendshape: weight}}``).
 
 Personalisation (synthetic; ICT-FaceKit's blendshapes belong to the generic face): the
 expression delta D_e = sum_b a_b (B_b - N_0) is personalised for subject s as
-D_{e,s} = (1 + 0.1 k_e . w_s) J_s D_e with k_e ~ N(0, I / 100), where (i) a per-expression random direction k_e in
-identity space changes the amplitude with the identity and (ii) J_s rescales the delta per
-axis by the ratio of the subject's face extent to the generic face's (a wider face makes a
-wider expression). ``personalise: false`` adds D_e unchanged to every neutral.
+D_{e,s}(v) = (1 + 0.1 k_e . w_s) f_{e,s}(v) J_s D_e(v) with k_e ~ N(0, I / 100), where (i) a
+per-expression random direction k_e in identity space changes the amplitude with the
+identity, (ii) f_{e,s}(v) = 1 + 0.2 tanh(sum_r c_{e,s,r} phi_r(v)), c_{e,s} = w_s C_e / 10, is a
+smooth spatial field (Gaussian bumps phi_r at 8 seeded points of the region, a quarter of its
+extent wide) that makes some parts of a face move more than others depending on the identity,
+and (iii) J_s rescales the delta per axis by the ratio of the subject's face extent to the
+generic face's (a wider face makes a wider expression). k_e and C_e are seeded per expression. ``personalise: false`` adds D_e unchanged to every neutral.
 
 Regions: ``face-head`` (default: the first 11,248 vertices and 11,144 quads), ``face``
 (the polygons of material ``M_Face``), ``narrow-face`` (``face`` restricted to ICT's fitting
@@ -31,6 +34,7 @@ vertices), ``full`` (all 26,719 vertices, 56 connected pieces).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tarfile
@@ -100,7 +104,9 @@ class ICTFaceKit:
                 raise DataError(f"dataset.path: {p} has no generic_neutral_mesh.obj (not an ICT-FaceKit FaceXModel folder)")
             return p
         if p.is_file() and p.name.endswith((".tar.xz", ".tar", ".tar.gz")):
-            out = Path(tempfile.gettempdir()) / f"fwk-ict-{abs(hash((str(p.resolve()), p.stat().st_size)))}"
+            st = p.stat()
+            tag = hashlib.sha256(f"{p.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode()).hexdigest()[:16]
+            out = Path(tempfile.gettempdir()) / f"fwk-ict-{tag}"  # stable across processes
             if not (out / "FaceXModel" / ".complete").exists():
                 tmp = Path(tempfile.mkdtemp(dir=out.parent if out.parent.exists() else None))
                 with tarfile.open(p) as tf:
@@ -162,6 +168,23 @@ class ICTFaceKit:
                        units="cm", name=f"ict-facekit-{self.region}", uv_lines=t.uv_lines)
         return verts, sub
 
+    def _personalised(self, D, N0, W, neutrals, ext0, j):
+        """(S, n, 3) the expression delta D personalised per identity (synthetic model, see the
+        module docstring): amplitude a_s = 1 + 0.1 k_e . w_s, a smooth spatial field
+        f_s(v) = 1 + 0.2 tanh(sum_r c_sr phi_r(v)) with c_s = w_s C_e / 10 and phi_r Gaussian
+        bumps (width a quarter of the region's extent) at R = 8 seeded points of the region,
+        and J_s the per-axis ratio of the subject's extent to the generic neutral's."""
+        rng = np.random.default_rng([self.seed, j, 17])
+        k = rng.normal(size=100) / 10.0  # |k| ~ 1
+        amp = 1.0 + 0.1 * (W @ k)  # about 1 +- 0.1 sigma
+        centres = N0[rng.choice(len(N0), 8, replace=False)]
+        width = 0.25 * float(np.linalg.norm(ext0))
+        phi = np.exp(-0.5 * ((N0[None] - centres[:, None]) ** 2).sum(-1) / width ** 2)  # (8, n)
+        C = rng.normal(size=(100, 8))
+        field = 1.0 + 0.2 * np.tanh((W @ C / 10.0) @ phi)  # (S, n)
+        J = (neutrals.max(1) - neutrals.min(1)) / ext0  # (S, 3)
+        return (amp[:, None] * field)[..., None] * D[None] * J[:, None, :]
+
     # ---------------------------------------------------------------------- load
     def load(self, cache=None) -> MeshCollection:
         folder = self._folder()
@@ -186,11 +209,7 @@ class ICTFaceKit:
             for b, a in self.expressions[e].items():
                 D += a * (np.asarray(data[100 + blend.index(b)])[verts] - N0)
             if self.personalise:
-                k = np.random.default_rng([self.seed, j, 17]).normal(size=100) / 10.0  # |k| ~ 1
-                amp = 1.0 + 0.1 * (W @ k)  # about 1 +- 0.1 sigma
-                ext = neutrals.max(1) - neutrals.min(1)
-                J = ext / ext0
-                out[:, j] = neutrals + amp[:, None, None] * D[None] * J[:, None, :]
+                out[:, j] = neutrals + self._personalised(D, N0, W, neutrals, ext0, j)
             else:
                 out[:, j] = neutrals + D
         template.vertices = neutrals[0].copy()

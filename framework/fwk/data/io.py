@@ -16,27 +16,27 @@ from __future__ import annotations
 import hashlib
 import io
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 
-from ..cache import atomic_write_bytes
+from ..cache import atomic_write_bytes, default_cache
 from ..errors import DataError, TopologyError
 from .template import Template
 
 _TOPOLOGY_CACHE: dict[str, Template] = {}
 
 
+_V_LINE = re.compile(rb"(?m)^[ \t]*v[ \t]+([^\r\n]*)")
+_V_LINE_FULL = re.compile(rb"(?m)^[ \t]*v[ \t][^\n]*(\n|$)")
+
+
 def _split_lines(data: bytes):
-    v_lines, face_block = [], []
-    for line in data.splitlines():
-        s = line.lstrip()
-        if s.startswith(b"v "):
-            v_lines.append(s[2:])
-        elif s.startswith(b"vt ") or s.startswith(b"vn ") or s.startswith(b"vp "):
-            face_block.append(s)
-        elif s and not s.startswith(b"#"):
-            face_block.append(s)
+    """(payloads of the ``v`` lines, the other lines: the face block) found at C speed."""
+    v_lines = _V_LINE.findall(data)
+    rest = _V_LINE_FULL.sub(b"", data)
+    face_block = [s for s in (line.strip() for line in rest.splitlines()) if s and not s.startswith(b"#")]
     return v_lines, face_block
 
 
@@ -44,10 +44,13 @@ def _parse_vertices(v_lines, path) -> np.ndarray:
     if not v_lines:
         raise DataError(f"{path}: no vertices (no `v` lines)")
     try:
-        arr = np.loadtxt(io.BytesIO(b"\n".join(v_lines)), dtype=np.float64, usecols=(0, 1, 2), ndmin=2)
+        flat = np.array(b" ".join(v_lines).split(), dtype=np.float64)
+        if flat.size % len(v_lines) == 0 and flat.size // len(v_lines) >= 3:
+            return np.ascontiguousarray(flat.reshape(len(v_lines), -1)[:, :3])
+        # lines of different lengths (some with colours): the first three numbers of each
+        return np.array([[float(x) for x in ln.split()[:3]] for ln in v_lines], dtype=np.float64)
     except ValueError as exc:
         raise DataError(f"{path}: unreadable vertex line ({exc})") from None
-    return arr
 
 
 def _parse_topology(face_block, n_vertices: int, path) -> Template:
@@ -126,10 +129,14 @@ def read_obj(path, units: str = "unit") -> tuple[np.ndarray, Template]:
     key = hashlib.sha256(b"\n".join(face_block) + str(len(V)).encode()).hexdigest()
     topo = _TOPOLOGY_CACHE.get(key)
     if topo is None:
-        try:
-            topo = _parse_topology(face_block, len(V), path)
-        except (ValueError, IndexError) as exc:
-            raise DataError(f"{path}: unreadable face or texture line ({exc})") from None
+        def build():
+            try:
+                return _parse_topology(face_block, len(V), path)
+            except (ValueError, IndexError) as exc:
+                raise DataError(f"{path}: unreadable face or texture line ({exc})") from None
+        # parsed once per topology: in memory, and on disk in the content-hash cache (files
+        # whose face block is byte-identical share it)
+        topo = default_cache().get_or_build("obj-topology", (key, "v1"), build) if len(face_block) > 2000 else build()
         if len(_TOPOLOGY_CACHE) > 64:
             _TOPOLOGY_CACHE.clear()
         _TOPOLOGY_CACHE[key] = topo
