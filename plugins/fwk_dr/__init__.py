@@ -21,10 +21,19 @@ Decoding: T_i = exp(r_i) (I + S_i), then the Poisson-type system (Wu et al. 2018
 
 i.e. L_c p' = b with the template's weighted graph Laplacian L_c, factorised once (SuperLU) with
 one vertex per connected component pinned; all meshes and coordinates are solved as one block.
-DR does not encode position, so the result is placed by ``align``: ``translation`` (default,
-needs no ground truth: the centroid of the reference), or ``rigid`` (Kabsch rotation and
-translation onto ``target``, the thesis's evaluation protocol for DR outputs; onto the
-reference when no target is given).
+The factorisation is kept in memory, keyed by the content hash of the reference geometry and
+topology, so every DR instance on the same template shares it.
+
+DR does not encode position (nor, for the whole mesh, orientation), so a decoded mesh is
+placed by rigid registration (Kabsch, no scaling): with ``target`` given to ``decode`` (the
+ground truth), onto the target, the thesis's evaluation protocol for DR outputs; without one
+(generation), onto the reference. ``align="target"`` makes the target mandatory (an
+evaluation that must never silently fall back to the reference).
+
+``ref="mean"``: the reference is the fitted training mean unless ``encode``/``decode`` get a
+per-sample ``ref`` (b, n, 3) or (n, 3); ``ref="sample"`` requires one (a subject's own neutral
+for expressions, thesis 5.2) and fails clearly without it. The cotangent weights (and the
+factorisation) always come from the fitted mean, so per-sample references cost nothing extra.
 
 Round trip: similarity transforms of the reference come back exactly (to 1e-10, tested);
 a smooth general deformation comes back to within 1e-3 of the mesh size (tested; the
@@ -42,14 +51,30 @@ from fwk.geometry.operators import cotangent_laplacian
 from fwk.hookspecs import hookimpl
 from fwk.scaling import Scaler
 
-ALIGN = ("translation", "rigid")
+ALIGN = ("reference", "target")
+REFS = ("mean", "sample")
+_FACTORS: dict = {}  # content hash of (mean, triangles, weight_floor) -> operators
+
+
+def _cross_into(out, a, b):
+    """out[..., :] = a x b for (..., 3) arrays (np.cross is several times slower on small rows)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
+def _cross(a, b):
+    return _cross_into(np.empty(np.broadcast_shapes(a.shape, b.shape)), a, b)
 
 
 def _cofactor(X):
     c = np.empty_like(X)
-    c[..., 0, :] = np.cross(X[..., 1, :], X[..., 2, :])
-    c[..., 1, :] = np.cross(X[..., 2, :], X[..., 0, :])
-    c[..., 2, :] = np.cross(X[..., 0, :], X[..., 1, :])
+    _cross_into(c[..., 0, :], X[..., 1, :], X[..., 2, :])
+    _cross_into(c[..., 1, :], X[..., 2, :], X[..., 0, :])
+    _cross_into(c[..., 2, :], X[..., 0, :], X[..., 1, :])
     return c
 
 
@@ -88,22 +113,32 @@ class DR:
     name = "dr"
     channels = 9
 
-    def __init__(self, scaling: str = "norm", granularity: str = "vertex", a: float = 1.0,
-                 align: str = "translation", normal_weight: float = 0.1, weight_floor: float = 1e-3,
+    def __init__(self, scaling: str = "norm", granularity: str = "vertex", a: float = 1.0, ref: str = "mean",
+                 align: str = "reference", normal_weight: float = 0.1, weight_floor: float = 1e-3,
                  eps: float = 1e-8):
-        if align not in ALIGN:
-            from fwk.errors import RecipeError
+        from fwk.errors import RecipeError
 
+        if align not in ALIGN:
             raise RecipeError(f"align: expected one of {', '.join(ALIGN)}, got {align!r}")
+        if ref not in REFS:
+            raise RecipeError(f"ref: expected one of {', '.join(REFS)}, got {ref!r}")
         self.scaler = Scaler(scaling, granularity, a, eps)
+        self.ref_mode = ref
         self.align, self.normal_weight, self.weight_floor = align, normal_weight, weight_floor
         self.mean = self.F = None
         self._ops = None
 
     # ------------------------------------------------------------------ operators
     def _setup(self, mean, F):
+        from fwk.cache import content_key
+
+        self._mean_terms = None
         self.mean = np.asarray(mean, dtype=np.float64)
         self.F = np.asarray(F, dtype=np.int64)
+        key = content_key(self.mean, self.F, self.weight_floor)
+        if key in _FACTORS:
+            self._ops = _FACTORS[key]
+            return
         n = len(self.mean)
         L = cotangent_laplacian(self.mean, self.F).tocoo()
         off = L.row < L.col
@@ -129,39 +164,66 @@ class DR:
         vf = sp.csr_matrix((np.ones(3 * m), (self.F.ravel(), np.repeat(np.arange(m), 3))), shape=(n, m))
         deg = np.maximum(np.asarray(inc.sum(1)).ravel(), 1)
         self._ops = {"hi": hi, "hj": hj, "hc": hc, "inc": inc, "lu": lu, "pins": pins, "vf": vf, "deg": deg}
+        if len(_FACTORS) >= 8:
+            _FACTORS.pop(next(iter(_FACTORS)))
+        _FACTORS[key] = self._ops
 
-    def _grad_system(self, ref, P):
-        """Per-vertex (A, B) with T = B A^-1 for refs (b, n, 3) and deformed P (b, n, 3)."""
+    def _ref_terms(self, ref):
+        """What depends on the reference only: its edges e (r, h, 3), normals n0, the one-ring
+        sums den = sum c |e|^2, the guard weight lam and the inverse of
+        A = sum c e e^T + lam n0 n0^T (r, n, 3, 3); r = 1 for the fitted mean (cached)."""
+        if ref is None and getattr(self, "_mean_terms", None) is not None:
+            return self._mean_terms
         o = self._ops
-        b = len(P)
-        e = ref[:, o["hi"]] - ref[:, o["hj"]]          # (b, h, 3)
-        ed = P[:, o["hi"]] - P[:, o["hj"]]
+        R0 = self.mean[None] if ref is None else ref
+        e = R0[:, o["hi"]] - R0[:, o["hj"]]
         c = o["hc"][None, :, None]
         ce = c * e
-        # one sparse product per mesh sums every per-edge quantity onto its vertex
-        G = np.concatenate([(ce[..., :, None] * e[..., None, :]).reshape(b, -1, 9),
-                            (c[..., None] * ed[..., :, None] * e[..., None, :]).reshape(b, -1, 9),
-                            (c * ed * ed).sum(-1, keepdims=True), (ce * e).sum(-1, keepdims=True)], axis=-1)
-        S = np.stack([o["inc"] @ G[s] for s in range(b)])  # (b, n, 20)
-        A = S[..., :9].reshape(b, -1, 3, 3)
-        B = S[..., 9:18].reshape(b, -1, 3, 3)
-        num, den = S[..., 18], S[..., 19]
+        G = np.concatenate([(ce[..., :, None] * e[..., None, :]).reshape(len(R0), -1, 9),
+                            (ce * e).sum(-1, keepdims=True)], axis=-1)
+        S = np.stack([o["inc"] @ G[s] for s in range(len(R0))])  # one sparse sum onto the vertices
+        A = S[..., :9].reshape(len(R0), -1, 3, 3)
+        den = S[..., 9]
         lam = self.normal_weight * den / o["deg"]
-        s = np.sqrt(num / np.maximum(den, 1e-300))
-        n0 = self._normals(ref)
-        n1 = self._normals(P)
+        n0 = self._normals(R0)
         A = A + lam[..., None, None] * n0[..., :, None] * n0[..., None, :]
-        B = B + (lam * s)[..., None, None] * n1[..., :, None] * n0[..., None, :]
-        return A, B
+        terms = {"e": e, "n0": n0, "den": den, "lam": lam, "Ainv": np.linalg.inv(A)}
+        if ref is None:
+            self._mean_terms = terms
+        return terms
+
+    def _gradients_of(self, P, ref):
+        """T (b, n, 3, 3) = B A^-1, the guarded cotangent-weighted least-squares gradients."""
+        o = self._ops
+        b = len(P)
+        t = self._ref_terms(ref)
+        e = t["e"]
+        ed = P[:, o["hi"]] - P[:, o["hj"]]
+        c = o["hc"][None, :, None]
+        G = np.concatenate([(c[..., None] * ed[..., :, None] * e[..., None, :]).reshape(b, -1, 9),
+                            (c * ed * ed).sum(-1, keepdims=True)], axis=-1)
+        S = np.stack([o["inc"] @ G[s] for s in range(b)])  # (b, n, 10)
+        B = S[..., :9].reshape(b, -1, 3, 3)
+        s = np.sqrt(S[..., 9] / np.maximum(t["den"], 1e-300))
+        n1 = self._normals(P)
+        B = B + (t["lam"] * s)[..., None, None] * n1[..., :, None] * t["n0"][..., None, :]
+        return B @ t["Ainv"]
 
     def _normals(self, V):
         F = self.F
-        N = np.cross(V[:, F[:, 1]] - V[:, F[:, 0]], V[:, F[:, 2]] - V[:, F[:, 0]])
+        N = _cross(V[:, F[:, 1]] - V[:, F[:, 0]], V[:, F[:, 2]] - V[:, F[:, 0]])
         out = np.stack([self._ops["vf"] @ N[s] for s in range(len(V))])
         nrm = np.linalg.norm(out, axis=-1, keepdims=True)
         return out / np.where(nrm > 0, nrm, 1.0)
 
     def _refs(self, ref, b):
+        if self._ops is None:
+            raise RuntimeError("dr representation used before fit()")
+        if ref is None and self.ref_mode == "sample":
+            from fwk.errors import RecipeError
+
+            raise RecipeError("ref: this dr representation has ref: sample, so encode/decode need a per-sample "
+                              "reference (e.g. each subject's neutral)")
         if ref is None:
             return np.broadcast_to(self.mean, (b, *self.mean.shape))
         r = np.asarray(ref, dtype=np.float64)
@@ -172,9 +234,11 @@ class DR:
         P = np.asarray(P, dtype=np.float64)
         single = P.ndim == 2
         P = P[None] if single else P
-        R0 = self._refs(ref, len(P))
-        A, B = self._grad_system(R0, P)
-        T = np.linalg.solve(A.transpose(0, 1, 3, 2), B.transpose(0, 1, 3, 2)).transpose(0, 1, 3, 2)  # B A^-1
+        self._refs(ref, len(P))  # checks
+        r = None if ref is None else np.asarray(ref, dtype=np.float64)
+        if r is not None and r.ndim == 2:
+            r = r[None]
+        T = self._gradients_of(P, r)
         Rm, S = polar(T)
         rv = Rotation.from_matrix(Rm.reshape(-1, 3, 3)).as_rotvec().reshape(*Rm.shape[:2], 3)
         iu = np.triu_indices(3)
@@ -204,16 +268,28 @@ class DR:
         rhs[:, o["pins"]] = R0[:, o["pins"]]
         cols = rhs.transpose(1, 0, 2).reshape(rhs.shape[1], -1)
         X = o["lu"].solve(cols).reshape(rhs.shape[1], b, 3).transpose(1, 0, 2)
+        if target is None and self.align == "target":
+            from fwk.errors import RecipeError
+
+            raise RecipeError("align: this dr representation has align: target, so decode needs the ground truth "
+                              "as target")
         goal = R0 if target is None else np.asarray(target, dtype=np.float64).reshape(X.shape)
-        if self.align == "rigid" or target is not None:
-            R, t = kabsch(X, goal)
-            return np.einsum("bij,bnj->bni", R, X) + t[:, None]
-        return X - X.mean(1, keepdims=True) + goal.mean(1, keepdims=True)
+        R, t = kabsch(X, goal)
+        return np.einsum("bij,bnj->bni", R, X) + t[:, None]
 
     # ------------------------------------------------------------------ protocol
     def fit(self, P, ref=None, template=None) -> None:
         P = np.asarray(P, dtype=np.float64)
-        self._setup(P.mean(axis=0) if ref is None or np.asarray(ref).ndim == 3 else ref, template.triangles)
+        if P.ndim != 3 or P.shape[1:] != (template.n_vertices, 3):
+            from fwk.errors import DataError
+
+            raise DataError(f"dr.fit: expected meshes of shape (b, {template.n_vertices}, 3), got {P.shape}")
+        if ref is None and self.ref_mode == "sample":
+            from fwk.errors import RecipeError
+
+            raise RecipeError("ref: this dr representation has ref: sample, so fit needs the per-sample references")
+        r = None if ref is None else np.asarray(ref, dtype=np.float64)
+        self._setup(P.mean(axis=0) if r is None else (r.mean(axis=0) if r.ndim == 3 else r), template.triangles)
         self.scaler.fit(self.raw_features(P, ref))
 
     def encode(self, P, ref=None) -> np.ndarray:
@@ -231,12 +307,14 @@ class DR:
 
     def state_dict(self) -> dict:
         return {"scaler": self.scaler.state_dict(), "mean": self.mean, "F": self.F, "align": self.align,
-                "normal_weight": self.normal_weight, "weight_floor": self.weight_floor}
+                "ref": self.ref_mode, "normal_weight": self.normal_weight, "weight_floor": self.weight_floor}
 
     def load_state_dict(self, d: dict) -> None:
         self.scaler.load_state_dict(d["scaler"])
         self.align, self.normal_weight = str(d["align"]), float(d["normal_weight"])
+        self.ref_mode = str(d.get("ref", "mean"))
         self.weight_floor = float(d["weight_floor"])
+        self._mean_terms = None
         self._setup(np.asarray(d["mean"]), np.asarray(d["F"]))
 
 

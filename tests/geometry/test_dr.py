@@ -19,7 +19,7 @@ class TestDRContract(RepresentationContract):
 
     @pytest.fixture(autouse=True)
     def _params(self, scaling):
-        self.params = {"scaling": scaling, "align": "rigid"}
+        self.params = {"scaling": scaling}
 
     def test_channels(self):
         assert self.component.channels == 9
@@ -41,9 +41,12 @@ def test_similarity_transforms_round_trip_exactly():
     assert np.allclose(F[0, :, :3], Rotation.from_matrix(R).as_rotvec(), atol=1e-10)  # log R everywhere
     assert np.allclose(F[0, :, 3:], [0.7, 0, 0, 0.7, 0, 0.7], atol=1e-10)  # S - I = 0.7 I
     assert np.abs(r.decode(F, target=Q[None])[0] - Q).max() < 1e-10
-    # without ground truth only the position is unknown: the shape comes back up to a translation
+    # without ground truth (generation) the shape comes back rigidly registered to the reference
     X = r.decode(F)[0]
-    assert np.abs((X - X.mean(0)) - (Q - Q.mean(0))).max() < 1e-10
+    from fwk.geometry import kabsch
+
+    Rq, tq = kabsch(Q, V)
+    assert np.abs(X - (Q @ Rq.T + tq)).max() < 1e-10
 
 
 def test_smooth_deformation_within_bound():
@@ -79,3 +82,24 @@ def test_per_sample_reference_and_flat_guard():
     P = refs * [1.0, 1.0, 1.0] + [0, 0, 0.05] * np.sin(3 * refs[..., :1])
     G = r.raw_features(P, refs)
     assert np.abs(r.decode(G, refs, target=P) - P).max() < 1e-2
+
+
+def test_modes_fail_clearly_and_factorisation_is_shared():
+    from fwk.errors import RecipeError
+
+    V, t = sphere(2)
+    r = DR(scaling="none", ref="sample")
+    with pytest.raises(RecipeError, match="ref"):
+        r.fit(V[None], None, t)
+    r.fit(V[None], V[None], t)
+    with pytest.raises(RecipeError, match="per-sample"):
+        r.encode(V[None])
+    F = r.encode(1.1 * V[None], V)
+    assert np.abs(r.decode(F, V, target=1.1 * V[None]) - 1.1 * V).max() < 1e-6  # float32 features
+    e = DR(scaling="none", align="target")
+    e.fit(V[None], None, t)
+    with pytest.raises(RecipeError, match="target"):
+        e.decode(e.encode(V[None]))
+    assert e._ops is r._ops  # one factorisation per reference geometry, in memory
+    with pytest.raises(RecipeError, match="align"):
+        DR(align="sideways")
