@@ -93,11 +93,19 @@ class MLPVAE:
     def __init__(self, latent: int = 64, hidden: list[int] | None = None,
                  representation: Annotated[Spec, Kind("representation")] | None = None,
                  kl_weight: float | None = None, train: dict | None = None):
+        from fwk.engine import TrainConfig
+        from fwk.errors import RecipeError
+
         self.latent = latent
         self.hidden = list(hidden) if hidden else [512, 256]
+        if latent < 1 or any(h < 1 for h in self.hidden):
+            raise RecipeError(f"latent / hidden: sizes must be positive, got latent={latent}, hidden={self.hidden}")
+        if kl_weight is not None and kl_weight < 0:
+            raise RecipeError(f"kl_weight: must be >= 0, got {kl_weight}")
         self.representation_spec = representation
         self.kl_weight = kl_weight
-        self.train_overrides = train or {}
+        self.train_overrides = dict(train or {})
+        TrainConfig().replace(**self.train_overrides)  # unknown settings fail now, naming the key
         self.rep = self.net = None
         self.shape = None
 
@@ -123,24 +131,34 @@ class MLPVAE:
         kl = config.kl_weight if self.kl_weight is None else self.kl_weight
         module = _lightning_module(self.net, self.rep.unscale, self.shape, kl)
         fit(module, F, Fv, ctx, self.name, config)
-        self.net.eval()
+        self.net.cpu().eval()
 
-    @torch.no_grad()
+    def _check(self):
+        if self.net is None:
+            raise RuntimeError("mlp-vae used before fit() or load_state_dict()")
+
     def encode(self, P) -> np.ndarray:
-        mu, _ = self.net.encode(torch.as_tensor(self.rep.encode(P)))
-        return mu.numpy().astype(np.float64)
+        """The posterior mean of q(z | P), (b, latent)."""
+        from fwk.engine import predict_batches
 
-    @torch.no_grad()
+        self._check()
+        self.net.eval()
+        return predict_batches(lambda F: self.net.encode(F)[0], self.rep.encode(P), 256).astype(np.float64)
+
+    def _features(self, z) -> np.ndarray:
+        from fwk.engine import predict_batches
+
+        self._check()
+        self.net.eval()
+        return predict_batches(lambda x: self.net.decode(x, self.shape), np.asarray(z, dtype=np.float32), 256)
+
     def decode(self, z) -> np.ndarray:
-        G = self.net.decode(torch.as_tensor(np.asarray(z), dtype=torch.float32), self.shape)
-        return self.rep.decode(G.numpy())
+        return self.rep.decode(self._features(z))
 
-    @torch.no_grad()
     def reconstruct(self, P) -> np.ndarray:
         """Decode the posterior mean; representations that lose position (dr) are registered
         to the input, the thesis's evaluation protocol for DR outputs (3.3.10)."""
-        G = self.net.decode(torch.as_tensor(self.encode(P), dtype=torch.float32), self.shape)
-        return self.rep.decode(G.numpy(), None, P)
+        return self.rep.decode(self._features(self.encode(P)), None, P)
 
     def sample(self, n: int, seed: int = 0) -> np.ndarray:
         z = np.random.default_rng(seed).standard_normal((n, self.latent))

@@ -5,7 +5,8 @@ flattened to vectors x_i in R^{nc}. With the mean mu and the centred data matrix
 X = [x_1 - mu, ...], the model keeps the top-K right singular vectors W (K x nc) of X and the
 singular values s: encode(x) = W (x - mu), decode(z) = mu + W^T z, sample z ~ N(0, diag(s^2 /
 (m - 1))). The SVD is taken of the small Gram matrix X X^T when there are fewer samples than
-coordinates (always the case for meshes), so it costs O(m^2 nc), not O(m (nc)^2).
+coordinates (always the case for meshes), so it costs O(m^2 nc), not O(m (nc)^2); with more
+samples than ``GRAM_MAX`` a truncated SVD (scipy's ``svds``, ARPACK) computes only the top K.
 """
 from __future__ import annotations
 
@@ -16,6 +17,34 @@ import numpy as np
 from fwk.hookspecs import hookimpl
 from fwk.recipes import Kind, Spec
 
+GRAM_MAX = 4000  # samples up to which the (m x m) Gram matrix is eigendecomposed densely
+
+
+def top_singular(X: np.ndarray, k: int):
+    """Top-k singular values s (descending) and right singular vectors W (k x d) of X (m x d)."""
+    m, d = X.shape
+    if min(m, d) <= GRAM_MAX:
+        if m <= d:
+            evals, evecs = np.linalg.eigh(X @ X.T)
+            order = np.argsort(evals)[::-1][:k]
+            s = np.sqrt(np.clip(evals[order], 0, None))
+            keep = s > (s.max() if len(s) else 0) * 1e-10
+            s, U = s[keep], evecs[:, order][:, keep]
+            return s, (U / s).T @ X
+        evals, evecs = np.linalg.eigh(X.T @ X)
+        order = np.argsort(evals)[::-1][:k]
+        s = np.sqrt(np.clip(evals[order], 0, None))
+        keep = s > (s.max() if len(s) else 0) * 1e-10
+        return s[keep], evecs[:, order][:, keep].T
+    from scipy.sparse.linalg import svds
+
+    k = min(k, min(m, d) - 1)
+    _, s, Wt = svds(X, k=k, random_state=0)
+    order = np.argsort(s)[::-1]
+    s, Wt = s[order], Wt[order]
+    keep = s > (s.max() if len(s) else 0) * 1e-10
+    return s[keep], Wt[keep]
+
 
 class PCA:
     """Linear 3DMM: principal components of the training shapes."""
@@ -25,6 +54,10 @@ class PCA:
 
     def __init__(self, n_components: int = 64,
                  representation: Annotated[Spec, Kind("representation")] | None = None):
+        if not isinstance(n_components, int) or n_components < 1:
+            from fwk.errors import RecipeError
+
+            raise RecipeError(f"n_components: expected a positive integer, got {n_components!r}")
         self.n_components = n_components
         self.representation_spec = representation
         self.rep = None
@@ -41,20 +74,18 @@ class PCA:
 
     def fit(self, data, ctx=None) -> None:
         P = data.stack("train") if hasattr(data, "stack") else np.asarray(data)
+        if len(P) == 0:
+            from fwk.errors import DataError
+
+            raise DataError("pca: the training split holds no shapes")
         self.rep = self._make_rep(ctx)
         self.rep.fit(P, None, getattr(data, "template", None))
         F = self.rep.encode(P).astype(np.float64).reshape(len(P), -1)
         self.mean = F.mean(axis=0)
         X = F - self.mean
         k = int(min(self.n_components, max(len(P) - 1, 1), X.shape[1]))
-        G = X @ X.T
-        evals, evecs = np.linalg.eigh(G)
-        order = np.argsort(evals)[::-1][:k]
-        s = np.sqrt(np.clip(evals[order], 0, None))
-        keep = s > s.max() * 1e-10 if len(s) and s.max() > 0 else np.zeros(len(s), bool)
-        s, U = s[keep], evecs[:, order][:, keep]
-        self.components = (U / s).T @ X  # right singular vectors, (k, nc)
-        self.singular_values = s
+        # right singular vectors (k, nc); components of zero variance are dropped
+        self.singular_values, self.components = top_singular(X, k)
         self.n_train = len(P)
         self._shape = P.shape[1:]
         self._channels = F.shape[1] // P.shape[1]

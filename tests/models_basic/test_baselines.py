@@ -68,6 +68,38 @@ def test_pca_matches_numpy_svd():
     assert np.allclose(full.reconstruct(P), P, atol=1e-6)
 
 
+@pytest.mark.parametrize("m,d,gram_max", [(12, 40, 4000), (40, 12, 4000), (30, 50, 5)])
+def test_top_singular_matches_numpy(m, d, gram_max, monkeypatch):
+    """Gram trick (m < d), covariance (m > d) and the truncated svds path (many samples)."""
+    import fwk_pca
+
+    monkeypatch.setattr(fwk_pca, "GRAM_MAX", gram_max)
+    rng = np.random.default_rng(1)
+    X = rng.normal(size=(m, d)) * np.linspace(3, 0.1, d)
+    k = 6
+    s, W = fwk_pca.top_singular(X, k)
+    _, s0, Vt = np.linalg.svd(X, full_matrices=False)
+    assert s.shape == (k,) and W.shape == (k, d)
+    assert np.allclose(s, s0[:k], rtol=1e-8)
+    assert np.allclose(np.abs(W @ Vt[:k].T), np.eye(k), atol=1e-6)
+
+
+def test_pca_sample_follows_the_training_variance():
+    data = tiny_fit_data(n_subjects=24)
+    m = REG.get("model", "pca")(n_components=5)
+    m.fit(data)
+    z = m.encode(m.sample(4000, seed=0))
+    assert np.allclose(z.std(0), m.singular_values / np.sqrt(m.n_train - 1), rtol=0.05)
+    assert np.allclose(m.encode(m.decode(z[:3])), z[:3], atol=1e-5)
+
+
+def test_pca_rejects_bad_settings():
+    from fwk.errors import RecipeError
+
+    with pytest.raises(RecipeError, match="n_components"):
+        REG.get("model", "pca")(n_components=0)
+
+
 def test_mlp_vae_training_loss_decreases(tmp_path):
     import json
 
