@@ -5,6 +5,8 @@ Each level keeps a subset of the previous level's vertices, chosen by quadric-er
 collapses (Garland & Heckbert 1997) in which an edge (u, v) collapses onto one of its endpoints
 (the one with the lower error v^T (Q_u + Q_v) v, Q the sum of the plane quadrics of the incident
 faces), until each connected component has 1/factor of its vertices (at least ``min_vertices``).
+Border edges add a heavily weighted plane perpendicular to their face (Garland & Heckbert's
+boundary constraint), so open meshes (a face region) keep their outline instead of shrinking.
 A collapse that would break the link condition (more than two common neighbours) is skipped,
 so the coarse mesh stays manifold where the input was.
 
@@ -30,7 +32,10 @@ from fwk.hookspecs import hookimpl
 from fwk.protocols import Hierarchy, Level
 
 
-def _plane_quadrics(V, F):
+def _plane_quadrics(V, F, border_weight: float = 100.0):
+    """Per-vertex sums of the plane quadrics p p^T of the incident faces, plus, for every border
+    edge, ``border_weight`` times the quadric of the plane through the edge perpendicular to its
+    face (Garland & Heckbert 1997, section 6.1), so that borders keep their shape."""
     n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     area = np.linalg.norm(n, axis=1, keepdims=True)
     n = n / np.maximum(area, 1e-300)
@@ -39,6 +44,20 @@ def _plane_quadrics(V, F):
     Q = np.zeros((len(V), 4, 4))
     for k in range(3):
         np.add.at(Q, F[:, k], K)
+    # border edges: directed edges whose twin is missing
+    he = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    fid = np.tile(np.arange(len(F)), 3)
+    key = he[:, 0].astype(np.int64) * len(V) + he[:, 1]
+    twin = he[:, 1].astype(np.int64) * len(V) + he[:, 0]
+    border = ~np.isin(twin, key)
+    if border_weight > 0 and border.any():
+        a, b, f = he[border, 0], he[border, 1], fid[border]
+        m = np.cross(V[b] - V[a], n[f])
+        m = m / np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
+        q = np.hstack([m, -np.einsum("ij,ij->i", m, V[a])[:, None]])
+        Kb = border_weight * q[:, :, None] * q[:, None, :]
+        np.add.at(Q, a, Kb)
+        np.add.at(Q, b, Kb)
     return Q
 
 
@@ -230,8 +249,7 @@ class Quadric:
 
         if cache is None:
             return make()
-        return cache.get_or_build("quadric", (template.vertices, template.triangles, self.factors,
-                                              self.min_vertices, "v1"), make)
+        return cache.get_or_build("quadric", (template.content_hash(), self.factors, self.min_vertices, "v2"), make)
 
 
 def _edges(F):

@@ -2,7 +2,8 @@
 autoencoder (Zhou et al. 2020, "Fully Convolutional Mesh Autoencoder using Efficient
 Spatially Varying Kernels"; thesis 3.3, appendix A).
 
-On each level's graph, per connected component: walk the vertices in breadth-first order from
+On each level's graph (``stride`` and ``radius`` may be lists, one entry per level, the last
+repeating), per connected component: walk the vertices in breadth-first order from
 the component's first vertex; a vertex not yet covered becomes a centre and covers every vertex
 within ``stride - 1`` hops. Centres are therefore at least ``stride`` hops apart and every vertex
 lies within ``stride - 1`` hops of a centre. The next level's vertices are the centres; two
@@ -64,12 +65,21 @@ class Simple:
 
     name = "simple"
 
-    def __init__(self, levels: int = 4, stride: int = 2, radius: int = 2, min_vertices: int = 1):
-        if stride < 2:
-            raise RecipeError(f"stride: at least 2 (a stride of 1 keeps every vertex), got {stride}")
-        if radius < stride - 1:
-            raise RecipeError(f"radius: at least stride - 1 = {stride - 1} so every vertex is pooled, got {radius}")
-        self.n_levels, self.stride, self.radius, self.min_vertices = levels, stride, radius, min_vertices
+    def __init__(self, levels: int = 4, stride: int | list[int] = 2, radius: int | list[int] = 2):
+        if levels < 1:
+            raise RecipeError(f"levels: at least 1, got {levels}")
+        strides = list(stride) if isinstance(stride, (list, tuple)) else [stride]
+        radii = list(radius) if isinstance(radius, (list, tuple)) else [radius]
+        if not strides or not radii:
+            raise RecipeError("stride/radius: give a number or a non-empty list (one entry per level)")
+        self.strides = [strides[min(i, len(strides) - 1)] for i in range(levels)]
+        self.radii = [radii[min(i, len(radii) - 1)] for i in range(levels)]
+        for i, (st, r) in enumerate(zip(self.strides, self.radii)):
+            if st < 2:
+                raise RecipeError(f"stride: at least 2 (a stride of 1 keeps every vertex), got {st} at level {i}")
+            if r < st - 1:
+                raise RecipeError(f"radius: at least stride - 1 = {st - 1} so every vertex is pooled, got {r} at level {i}")
+        self.n_levels = levels
 
     def build(self, template, cache=None) -> Hierarchy:
         def make():
@@ -78,16 +88,16 @@ class Simple:
             V = np.asarray(template.vertices, dtype=np.float64)
             levels = [Level(n, np.asarray(template.edges), np.asarray(template.triangles), V)]
             downs, ups = [], []
-            for _ in range(self.n_levels):
-                C = centres_bfs(A, self.stride)
-                P = _within(A, self.radius)[C]  # (n_c, n): pool neighbourhoods
+            for stride, radius in zip(self.strides, self.radii):
+                C = centres_bfs(A, stride)
+                conv = _within(A, radius)
+                P = conv[C]  # (n_c, n): pool neighbourhoods
                 D = _mean_op(P)
                 U = _mean_op(P.T)
-                reach = _within(A, 2 * self.stride - 1)[C][:, C].tocoo()
+                reach = _within(A, 2 * stride - 1)[C][:, C].tocoo()
                 keep = reach.row < reach.col
                 E = np.stack([reach.row[keep], reach.col[keep]], 1)
                 lv = levels[-1]
-                conv = _within(A, self.radius)
                 lv.extra["conv_nbrs"], lv.extra["conv_mask"] = _padded(conv, first=np.arange(A.shape[0]))
                 lv.extra["unpool_nbrs"], lv.extra["unpool_mask"] = _padded(P.T.tocsr())
                 nxt = Level(len(C), E, None, V[C])
@@ -98,13 +108,12 @@ class Simple:
                 levels.append(nxt)
                 A, V = _adj(E, len(C)), V[C]
             last = levels[-1]
-            last.extra["conv_nbrs"], last.extra["conv_mask"] = _padded(_within(A, self.radius), first=np.arange(A.shape[0]))
+            last.extra["conv_nbrs"], last.extra["conv_mask"] = _padded(_within(A, self.radii[-1]), first=np.arange(A.shape[0]))
             return Hierarchy(levels, downs, ups)
 
         if cache is None:
             return make()
-        return cache.get_or_build("simple", (template.vertices, template.triangles, self.n_levels, self.stride,
-                                             self.radius, "v1"), make)
+        return cache.get_or_build("simple", (template.content_hash(), self.n_levels, self.strides, self.radii, "v2"), make)
 
 
 @hookimpl

@@ -36,3 +36,22 @@ def test_neighbourhoods_match_operators():
         assert (idx[:, 0] == nxt.extra["centres"]).all()
         assert lv.extra["conv_nbrs"].shape[0] == lv.n_vertices and (lv.extra["conv_nbrs"][:, 0] == np.arange(lv.n_vertices)).all()
         assert lv.extra["unpool_mask"].any(1).all()
+
+
+def test_per_level_strides_and_radii():
+    import pytest
+
+    from fwk.errors import RecipeError
+
+    t = two_components()
+    h = Simple(levels=2, stride=[3, 2], radius=[2, 1]).build(t)
+    from fwk_simple import _adj, _within
+
+    A0 = _adj(t.edges, t.n_vertices)
+    C = h.levels[1].extra["centres"]
+    assert _within(A0, 2)[C][:, C].nnz == len(C)  # stride 3: centres at least 3 hops apart
+    assert h.levels[0].extra["conv_mask"].sum(1).max() == _within(A0, 2).getnnz(1).max()
+    A1 = _adj(h.levels[1].edges, h.levels[1].n_vertices)
+    assert h.levels[1].extra["conv_mask"].sum(1).max() == _within(A1, 1).getnnz(1).max()
+    with pytest.raises(RecipeError):
+        Simple(levels=2, stride=[3], radius=1)

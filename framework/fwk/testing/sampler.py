@@ -55,3 +55,28 @@ class SamplerContract:
             assert np.all(labels[Uc.row] == coarse_label[Uc.col])
             labels = coarse_label
         assert set(labels) == {0, 1}  # both components survive to the coarsest level
+
+    def test_levels_are_well_formed(self):
+        _, h = self.build()
+        for lv in h.levels:
+            e = np.asarray(lv.edges)
+            assert e.ndim == 2 and e.shape[1] == 2 and (e[:, 0] < e[:, 1]).all() and e.max() < lv.n_vertices
+            assert len(np.unique(e, axis=0)) == len(e)
+            if lv.faces is not None:
+                assert np.asarray(lv.faces).max() < lv.n_vertices
+            if lv.vertices is not None:
+                assert np.asarray(lv.vertices).shape == (lv.n_vertices, 3)
+        for D in h.down:  # every coarse vertex draws on the fine level with non-negative weights
+            assert D.data.min() >= 0 and (np.diff(sp.csr_matrix(D).indptr) > 0).all()
+
+    def test_cached_build_equals_a_fresh_one(self, tmp_path):
+        from fwk.cache import Cache
+
+        t = two_components()
+        a = self.component(**self.params).build(t, Cache(tmp_path))
+        b = self.component(**self.params).build(t, Cache(tmp_path))
+        c = self.component(**self.params).build(t)
+        for x in (b, c):
+            assert [lv.n_vertices for lv in x.levels] == [lv.n_vertices for lv in a.levels]
+            for D1, D2 in zip(a.down + a.up, x.down + x.up):
+                assert (abs(D1 - D2) > 1e-12).nnz == 0
