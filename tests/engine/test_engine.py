@@ -181,6 +181,8 @@ def test_checkpoints_and_tensorboard(tmp_path):
     ea.Reload()
     assert len(ea.Scalars("train_loss")) == 5 and len(ea.Scalars("val_loss")) == 5
     assert ea.Scalars("train_loss")[-1].value < ea.Scalars("train_loss")[0].value
+    lr = [e.value for e in ea.Scalars("lr-Adam")]  # the learning rate of each epoch
+    assert np.allclose(lr, [1e-2 * 0.9**e for e in range(5)], rtol=1e-5)
 
 
 def test_lightning_stays_quiet(tmp_path, capfd):

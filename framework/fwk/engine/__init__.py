@@ -238,7 +238,7 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     ``ctx.resume`` old checkpoints of this name are discarded and training starts afresh.
     """
     import lightning.pytorch as pl
-    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
     from lightning.pytorch.loggers import TensorBoardLogger
 
     _quiet_lightning()
@@ -283,7 +283,7 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
                 # bit-exact on CPU; on GPUs some scatter kernels have no deterministic variant
                 deterministic=True if on_cpu else "warn",
                 logger=TensorBoardLogger(str(tbdir), name="", version=""),
-                callbacks=[checkpoint, *_callbacks()], enable_progress_bar=show_bar, enable_model_summary=False,
+                callbacks=[checkpoint, LearningRateMonitor("epoch"), *_callbacks()], enable_progress_bar=show_bar, enable_model_summary=False,
                 log_every_n_steps=config.log_every_n_steps, num_sanity_val_steps=0, default_root_dir=str(ckdir),
                 use_distributed_sampler=False,
             )
