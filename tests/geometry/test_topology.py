@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from fwk.geometry import connected_components, edge_topology, one_ring
 
@@ -47,3 +48,28 @@ def test_one_ring_and_components():
     labels = connected_components(two, 19)
     assert len(set(labels[:9])) == 1 and len(set(labels[9:18])) == 1 and labels[0] != labels[9]
     assert labels[18] not in labels[:18]  # the isolated vertex
+
+
+def test_kabsch_recovers_a_known_rigid_motion_weighted_and_batched():
+    from scipy.spatial.transform import Rotation
+
+    from fwk.geometry import kabsch
+
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(50, 3))
+    R = Rotation.from_euler("zyx", [0.7, -1.1, 0.3]).as_matrix()
+    B = A @ R.T + [1.0, -2.0, 0.5]
+    R2, t2 = kabsch(A, B)
+    assert np.allclose(R2, R, atol=1e-12) and np.allclose(t2, [1.0, -2.0, 0.5], atol=1e-12)
+    # outliers with zero weight do not matter
+    Bn = B.copy()
+    Bn[:5] += 10.0
+    w = np.ones(50)
+    w[:5] = 0.0
+    R3, t3 = kabsch(A, Bn, w)
+    assert np.allclose(R3, R, atol=1e-12)
+    # a mirrored target still gives a proper rotation (det +1)
+    Rm, _ = kabsch(A, A * [1, 1, -1])
+    assert np.linalg.det(Rm) == pytest.approx(1.0)
+    Rb, tb = kabsch(np.stack([A, A]), np.stack([B, A]))
+    assert np.allclose(Rb[0], R, atol=1e-12) and np.allclose(Rb[1], np.eye(3), atol=1e-12)
