@@ -7,7 +7,7 @@ channels [c_0 = |f|, c_1, ..., c_L]:
     encoder:  for i in 0..L-1:  x <- D_i ELU(conv_i(x))          (level i -> i+1)
               z = Linear(flatten(x))                             (ae)   or  mu, log sigma^2 (vae)
     decoder:  x = Linear(z) reshaped to (n_L, c_L)
-              for i in L-1..0:  x <- ELU(conv'_i(U_i x))           (level i+1 -> i)
+              for i in L-1..0:  x <- ELU(conv'_i(U_i x))           (level i+1 -> i; c_{i+2} -> c_{i+1})
               out = conv_out(x)                                   (level 0, c_0 channels, no activation)
 
 Each conv is built by the recipe's ``conv`` component at its level (``Cls(c_in, c_out, hierarchy,
@@ -21,6 +21,10 @@ thesis's vcconv VAE: ``conv: vcconv``, ``sampler: {name: simple, levels: 5}``, c
 [|f|, 32, 64, 128, 128, 8], residual rate 0.5): each encoder level is a strided convolution
 (mode ``down``) with a residual path, each decoder level a transposed one (mode ``up``); no
 separate pooling. The last level's features (flattened) meet the latent through linear layers.
+``latent_vertices: n`` (implies ``fully_convolutional``) makes the latent itself a graph level as in
+the thesis (8 latent vertices x 8 features = 64): the sampler supplies levels 0..L-1 and the last
+strided convolution maps onto a level of exactly n vertices (farthest-point centres, see
+``fwk_autoencoder.latent``); z is the flattened (n, c_L) map, ``latent`` = n c_L, no linear layer.
 
 Composable API for other models (Deep Spectral Meshes, personalised blendshapes):
 ``m.build_encoder(template, in_channels, ctx)`` returns a module (b, n, c_in) -> (mu, logvar)
@@ -78,7 +82,9 @@ class Decoder(nn.Module):
         self.n_last, self.c_last = hierarchy.levels[L].n_vertices, channels[-1]
         self.fc = nn.Linear(latent_in, self.n_last * self.c_last)
         self.unpools = nn.ModuleList(_Sparse(hierarchy.up[i]) for i in reversed(range(L)))
-        self.convs = nn.ModuleList(conv.build(channels[i + 1], channels[i] if i else channels[1], hierarchy, i)
+        # mirror of the encoder as in the reference implementations: after up-sampling to level i the
+        # conv maps c_{i+2} -> c_{i+1} (c_L -> c_L at the coarsest level), then a last conv to the output
+        self.convs = nn.ModuleList(conv.build(channels[min(i + 2, L)], channels[i + 1], hierarchy, i)
                                    for i in reversed(range(L)))
         self.out = conv.build(channels[1], out_channels, hierarchy, 0)
         self.act = act()
@@ -189,7 +195,12 @@ class AE:
                  channels: list[int] | None = None, latent: int = 64, activation: str = "elu",
                  representation: Annotated[Spec, Kind("representation")] | None = None,
                  kl_weight: float | None = None, train: dict | None = None,
-                 fully_convolutional: bool = False, residual_rate: float = 0.5):
+                 fully_convolutional: bool = False, residual_rate: float = 0.5,
+                 latent_vertices: int | None = None):
+        if latent_vertices is not None and latent_vertices < 1:
+            from fwk.errors import RecipeError
+
+            raise RecipeError(f"latent_vertices: at least 1 latent vertex, got {latent_vertices}")
         if activation not in ACTIVATIONS:
             from fwk.errors import RecipeError
             from fwk.registry import did_you_mean
@@ -201,17 +212,31 @@ class AE:
         self.representation_spec, self.kl_weight, self.train_overrides = representation, kl_weight, train or {}
         self.rep = self.net = self.hierarchy = None
         self.shape = None
-        self.fully_convolutional, self.residual_rate = fully_convolutional, residual_rate
+        self.fully_convolutional, self.residual_rate = fully_convolutional or bool(latent_vertices), residual_rate
+        self.latent_vertices = latent_vertices
+        if latent_vertices:  # z is the flattened (latent_vertices, c_L) map of the last strided convolution
+            self.latent = latent_vertices * self.channels[-1]
 
     # ---- composable parts
     def _hierarchy(self, template, ctx=None):
         if self.hierarchy is None:
-            self.hierarchy = self.sampler.build().build(template, getattr(ctx, "cache", None))
+            h = self.sampler.build().build(template, getattr(ctx, "cache", None))
+            if self.latent_vertices:
+                from .latent import with_latent_level
+
+                h = with_latent_level(h, len(self.channels), self.latent_vertices,
+                                      radius=int(self.sampler.params.get("radius", 2)))
+            self.hierarchy = h
         return self.hierarchy
 
     def build_encoder(self, template, in_channels: int, ctx=None) -> nn.Module:
         h = self._hierarchy(template, ctx)
         ch = [in_channels, *self.channels][: len(h.levels)]
+        if self.latent_vertices:
+            from .latent import LatentConvEncoder
+
+            return LatentConvEncoder(self.conv, h, ch, self.variational, ACTIVATIONS[self.activation],
+                                     self.residual_rate)
         if self.fully_convolutional:
             return ConvEncoder(self.conv, h, ch, self.latent, self.variational, ACTIVATIONS[self.activation],
                                self.residual_rate)
@@ -220,6 +245,11 @@ class AE:
     def build_decoder(self, template, out_channels: int, ctx=None, latent_in: int | None = None) -> nn.Module:
         h = self._hierarchy(template, ctx)
         ch = [out_channels, *self.channels][: len(h.levels)]
+        if self.latent_vertices:
+            from .latent import LatentConvDecoder
+
+            return LatentConvDecoder(self.conv, h, ch, latent_in or self.latent, out_channels,
+                                     ACTIVATIONS[self.activation], self.residual_rate)
         if self.fully_convolutional:
             return ConvDecoder(self.conv, h, ch, latent_in or self.latent, out_channels, ACTIVATIONS[self.activation],
                                self.residual_rate)
