@@ -82,16 +82,20 @@ def simplify(V: np.ndarray, F: np.ndarray, factor: float, min_vertices: int = 4)
 
     def cost(u, v):
         q = Q[u] + Q[v]
-        cu = Vh[u] @ q @ Vh[u]
-        cv = Vh[v] @ q @ Vh[v]
+        cu = float(Vh[u] @ q @ Vh[u])
+        cv = float(Vh[v] @ q @ Vh[v])
         return (cu, u, v) if cu <= cv else (cv, v, u)  # (error, keep, remove)
 
-    heap = []
-    for u in range(n):
-        for v in nbr[u]:
-            if u < v:
-                c, keep, rem = cost(u, v)
-                heapq.heappush(heap, (c, keep, rem, version[keep], version[rem]))
+    # initial costs of every edge, vectorised; then one heapify
+    E = _edges(np.asarray(F, dtype=np.int64)).reshape(-1, 2)
+    q = Q[E[:, 0]] + Q[E[:, 1]]
+    cu = np.einsum("ei,eij,ej->e", Vh[E[:, 0]], q, Vh[E[:, 0]])
+    cv = np.einsum("ei,eij,ej->e", Vh[E[:, 1]], q, Vh[E[:, 1]])
+    first = cu <= cv
+    keep0 = np.where(first, E[:, 0], E[:, 1])
+    rem0 = np.where(first, E[:, 1], E[:, 0])
+    heap = list(zip(np.where(first, cu, cv).tolist(), keep0.tolist(), rem0.tolist(), [0] * len(E), [0] * len(E)))
+    heapq.heapify(heap)
     while heap:
         c, keep, rem, vk, vr = heapq.heappop(heap)
         if not (alive[keep] and alive[rem]) or version[keep] != vk or version[rem] != vr:
