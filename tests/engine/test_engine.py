@@ -93,6 +93,8 @@ def test_train_config_replace():
     assert d.epochs == 3 and c.epochs == 10
     with pytest.raises(RecipeError, match="train.epoch.*epochs"):
         c.replace(epoch=3)
+    with pytest.raises(RecipeError, match="train.lr_decay"):
+        c.replace(lr_decay=1.5)
 
 
 def test_epoch_sampler_is_a_function_of_seed_and_epoch():

@@ -11,7 +11,11 @@
 * CUDA when available (``accelerator: auto``); several devices and DDP are settings
   (``devices``, ``strategy``), not a rewrite;
 * modules with several optimisers (Deep Spectral Meshes: one Adam per band) use Lightning's
-  manual optimisation and ``make_optimizer`` per parameter group.
+  manual optimisation and return one ``make_optimizer(...)`` per parameter group from
+  ``configure_optimizers``; the engine steps their per-epoch schedulers (unless the module did);
+* ``ctx.resume``: continue from ``last.ckpt`` (or the newest readable epoch checkpoint), or load
+  a finished training without repeating it; without it a name's old checkpoints are discarded.
+  A name identifies one network within a (scoped) run context.
 """
 from __future__ import annotations
 
@@ -29,7 +33,8 @@ import torch
 
 @dataclass
 class TrainConfig:
-    """Training settings from the recipe's ``train:`` section (thesis 3.4 defaults)."""
+    """Training settings from the recipe's ``train:`` section (thesis 3.4 and 4.5: Adam with
+    betas 0.9 / 0.999, lr decay 1 % per epoch, batch 16, KL weight 1e-6)."""
 
     epochs: int = 10
     batch_size: int = 16
@@ -44,6 +49,16 @@ class TrainConfig:
     num_workers: int = 0
     log_every_n_steps: int = 10
     weight_decay: float = 0.0
+
+    def __post_init__(self):
+        checks = [("epochs", self.epochs >= 1), ("batch_size", self.batch_size >= 1), ("lr", self.lr > 0),
+                  ("lr_decay", 0 < self.lr_decay <= 1), ("kl_weight", self.kl_weight >= 0),
+                  ("keep_checkpoints", self.keep_checkpoints >= 1), ("num_workers", self.num_workers >= 0)]
+        for key, ok in checks:
+            if not ok:
+                from ..errors import RecipeError
+
+                raise RecipeError(f"train.{key}: invalid value {getattr(self, key)!r}")
 
     def replace(self, **overrides) -> "TrainConfig":
         bad = [k for k in overrides if k not in {f.name for f in dataclasses.fields(self)}]
@@ -62,7 +77,8 @@ def seed_everything(seed: int) -> None:
 
 
 def make_optimizer(params, config: TrainConfig):
-    """Adam(lr, betas 0.9/0.999) with ExponentialLR(gamma = lr_decay) stepped once per epoch."""
+    """Adam(lr, betas 0.9/0.999) with ExponentialLR(gamma = lr_decay) stepped once per epoch, as
+    the dict ``configure_optimizers`` returns (a list of them for several optimisers)."""
     opt = torch.optim.Adam(params, lr=config.lr, betas=(0.9, 0.999), weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=config.lr_decay)
     return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
