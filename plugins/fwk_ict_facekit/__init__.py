@@ -182,7 +182,7 @@ class ICTFaceKit:
         phi = np.exp(-0.5 * ((N0[None] - centres[:, None]) ** 2).sum(-1) / width ** 2)  # (8, n)
         C = rng.normal(size=(100, 8))
         field = 1.0 + 0.2 * np.tanh((W @ C / 10.0) @ phi)  # (S, n)
-        J = (neutrals.max(1) - neutrals.min(1)) / ext0  # (S, 3)
+        J = self._extent / ext0  # (S, 3)
         return (amp[:, None] * field)[..., None] * D[None] * J[:, None, :]
 
     # ---------------------------------------------------------------------- load
@@ -200,10 +200,11 @@ class ICTFaceKit:
         modes = np.asarray(data[:100])[:, verts] - N0
         rng = np.random.default_rng(self.seed)
         W = rng.normal(0.0, self.sigma, (self.n_subjects, 100))
-        neutrals = N0 + np.einsum("sm,mnk->snk", W, modes)
+        neutrals = N0 + (W @ modes.reshape(100, -1)).reshape(self.n_subjects, len(verts), 3)  # BLAS, not einsum
         out = np.empty((self.n_subjects, len(self.shapes), len(verts), 3))
         out[:, 0] = neutrals
         ext0 = N0.max(0) - N0.min(0)
+        self._extent = neutrals.max(1) - neutrals.min(1)
         for j, e in enumerate(self.shapes[1:], start=1):
             D = np.zeros_like(N0)
             for b, a in self.expressions[e].items():

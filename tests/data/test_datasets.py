@@ -81,6 +81,9 @@ def test_mesh_folder(tmp_path):
     write_obj(tmp_path / "Tester_b" / "pose_smile.obj", V, bad)
     with pytest.raises(TopologyError, match=r"Tester_b/pose_smile\.obj: a different face list"):
         MF(root=str(tmp_path), pattern="Tester_{subject}/pose_{shape}.obj").load()
+    write_obj(tmp_path / "Tester_b" / "pose_smile.obj", np.vstack([V, V[:1]]), Template(np.vstack([V, V[:1]]), t.triangles))
+    with pytest.raises(TopologyError, match=r"Tester_b/pose_smile\.obj: 5 vertices, expected 4"):
+        MF(root=str(tmp_path), pattern="Tester_{subject}/pose_{shape}.obj").load()
     with pytest.raises(DataError, match="no file"):
         MF(root=str(tmp_path), pattern="{subject}/x_{shape}.ply").load()
 
@@ -93,19 +96,31 @@ class TestICTContract(DatasetContract):
     component = REG.get("dataset", "ict-facekit")
     params = {"path": str(ICT), "n_subjects": 4}
 
+    def make_cache(self, tmp_path):  # the parsed files are shared; sampling still runs per load
+        return _ict_cache()
+
+
+def _ict_cache():
+    import tempfile
+    from pathlib import Path
+
+    from fwk.cache import Cache
+
+    return Cache(Path(tempfile.gettempdir()) / "fwk-test-ict-cache")
+
 
 @pytest.mark.skipif(ICT is None, reason=ICT_SKIP_REASON)
 def test_ict_regions_and_personalisation(tmp_path):
     from fwk.cache import Cache
 
     ICTD = REG.get("dataset", "ict-facekit")
-    col = ICTD(path=str(ICT), n_subjects=5).load(Cache(tmp_path))
+    col = ICTD(path=str(ICT), n_subjects=5).load(_ict_cache())
     assert col.template.n_vertices == 11248 and col.template.n_polygons == 11144
     assert (np.diff(col.template.poly_offsets) == 4).all()
     P = np.asarray(col.positions)
     D = P[:, 1] - P[:, 0]
     assert not np.allclose(D[0], D[1])
-    plain = ICTD(path=str(ICT), n_subjects=5, personalise=False).load(Cache(tmp_path))
+    plain = ICTD(path=str(ICT), n_subjects=5, personalise=False).load(_ict_cache())
     Dp = np.asarray(plain.positions)[:, 1] - np.asarray(plain.positions)[:, 0]
     assert np.allclose(Dp[0], Dp[1])
     with pytest.raises(DataError, match="does not exist"):

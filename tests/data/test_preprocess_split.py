@@ -62,3 +62,21 @@ def test_split_seeded_by_subject():
     assert (len(a["train"]), len(a["val"]), len(a["test"])) == (34, 2, 4)
     small = split_subjects(["a", "b", "c"], SplitConfig(), seed=0)
     assert all(len(v) == 1 for v in small.values())
+
+
+def test_kabsch_matches_a_naive_reference():
+    """Against a brute-force search over proper rotations near the answer and scipy's solver,
+    on a configuration where the plain SVD solution is a reflection."""
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(12, 3))
+    B = A * [1, 1, -1] + rng.normal(0, 0.05, A.shape)  # mirrored: det(V U^T) = -1 without the fix
+    R, t = kabsch(A, B)
+    cost = lambda Q: ((A - A.mean(0)) @ Q.T - (B - B.mean(0))) ** 2
+    ref, _ = Rotation.align_vectors(B - B.mean(0), A - A.mean(0))
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    assert cost(R).sum() == pytest.approx(cost(ref.as_matrix()).sum(), rel=1e-9)
+    for Q in Rotation.random(2000, random_state=0).as_matrix():
+        assert cost(R).sum() <= cost(Q).sum() + 1e-12
+    # batched equals one by one
+    Rb, tb = kabsch(np.stack([A, B]), np.stack([B, A]))
+    assert np.allclose(Rb[0], R) and np.allclose(Rb[1], kabsch(B, A)[0])

@@ -5,13 +5,19 @@ import numpy as np
 
 
 class DatasetContract:
+    """Subclass with ``component`` (the dataset class) and ``params`` (a small instance)."""
+
     component: type = None
     params: dict = {}
 
-    def load(self, tmp_path):
+    def make_cache(self, tmp_path):
+        """The cache a load uses (override to share parsed raw files between tests)."""
         from fwk.cache import Cache
 
-        return self.component(**self.params).load(Cache(tmp_path / "cache"))
+        return Cache(tmp_path / "cache")
+
+    def load(self, tmp_path):
+        return self.component(**self.params).load(self.make_cache(tmp_path))
 
     def test_collection_is_consistent(self, tmp_path):
         col = self.load(tmp_path)
@@ -23,6 +29,14 @@ class DatasetContract:
         assert t.triangles.min() >= 0 and t.triangles.max() < t.n_vertices
         assert len(set(map(str, col.subjects))) == S
         assert t.poly_offsets[-1] == len(t.poly_vertices)
+        assert np.asarray(col.positions).dtype == np.float64 and t.triangles.dtype == np.int64
+        assert col.present.shape == (S, E) and col.present[:, 0].all()  # every subject has a neutral
+        tri = t.triangles
+        assert (tri[:, 0] != tri[:, 1]).all() and (tri[:, 1] != tri[:, 2]).all() and (tri[:, 0] != tri[:, 2]).all()
+        for name, ix in t.regions.items():
+            ix = np.asarray(ix)
+            assert ix.size and ix.min() >= 0 and ix.max() < t.n_vertices, name
+        assert all(0 <= int(i) < t.n_vertices for i in t.landmarks.values())
 
     def test_deterministic(self, tmp_path):
         a = self.load(tmp_path)
