@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fwk.plugins import get_registry  # noqa: E402
 from fwk.recipes import make_spec  # noqa: E402
 
-CONVS = {"spiral": {"name": "spiral", "length": 9}, "spiral++": {"name": "spiral++", "length": 9},
+CONVS = {"spiral": {"name": "spiral"}, "spiral++": {"name": "spiral++", "length": 9},
          "feast": {"name": "feast", "heads": 8}, "lsa": {"name": "lsa"}}
 
 
@@ -53,7 +53,7 @@ def main():
         for name, conv in {**CONVS, "vcconv": None}.items():
             if conv is None:  # the thesis's fully convolutional vcconv VAE (section 3.4)
                 spec = {"name": "vae", "conv": {"name": "vcconv", "weight_num": 35}, "channels": [32, 64, 128, 128, 8],
-                        "latent": 64, "sampler": {"name": "simple", "levels": 5}, "fully_convolutional": True,
+                        "latent_vertices": 8, "sampler": {"name": "simple", "levels": 4},
                         "residual_rate": 0.5}
             else:
                 spec = {"name": "ae", "conv": conv, "channels": [16, 32, 64, 128], "latent": 64,
