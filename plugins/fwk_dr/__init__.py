@@ -35,6 +35,9 @@ per-sample ``ref`` (b, n, 3) or (n, 3); ``ref="sample"`` requires one (a subject
 for expressions, thesis 5.2) and fails clearly without it. The cotangent weights (and the
 factorisation) always come from the fitted mean, so per-sample references cost nothing extra.
 
+Guards (never NaN): a flat one-ring is held by the normal term; an isolated vertex (no edge) gets
+T = I and is pinned to the reference when decoding.
+
 Round trip: similarity transforms of the reference come back exactly (to 1e-10, tested);
 a smooth general deformation comes back to within 1e-3 of the mesh size (tested; the
 least-squares gradients of a non-affine deformation are not integrable exactly).
@@ -187,7 +190,10 @@ class DR:
         lam = self.normal_weight * den / o["deg"]
         n0 = self._normals(R0)
         A = A + lam[..., None, None] * n0[..., :, None] * n0[..., None, :]
-        terms = {"e": e, "n0": n0, "den": den, "lam": lam, "Ainv": np.linalg.inv(A)}
+        # guard: a vertex with no (non-degenerate) edge has no gradient: T = I there
+        iso = ~(den > 1e-300 * max(float(np.abs(den).max(initial=0.0)), 1e-300))
+        A[iso] = np.eye(3)
+        terms = {"e": e, "n0": n0, "den": den, "lam": lam, "Ainv": np.linalg.inv(A), "iso": iso}
         if ref is None:
             self._mean_terms = terms
         return terms
@@ -207,6 +213,7 @@ class DR:
         s = np.sqrt(S[..., 9] / np.maximum(t["den"], 1e-300))
         n1 = self._normals(P)
         B = B + (t["lam"] * s)[..., None, None] * n1[..., :, None] * t["n0"][..., None, :]
+        B[np.broadcast_to(t["iso"], B.shape[:2])] = np.eye(3)
         return B @ t["Ainv"]
 
     def _normals(self, V):
