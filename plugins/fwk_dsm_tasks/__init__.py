@@ -1,0 +1,486 @@
+"""Tasks ``interpolate`` and ``edit``: what Deep Spectral Meshes is for (thesis 4.7.2, 4.7.3).
+
+Where the models come from (both tasks):
+
+* ``run: PATH`` names a finished ``reconstruct`` run (its ``models/<label>.pt``, ``split.json``
+  and ``stats/preprocess.npz``; reopened with ``fwk.runs.load_run``; the dataset is rebuilt from
+  that run's recipe to get the topology with the user's polygons and UVs);
+* otherwise the task trains inline: the recipe's ``dataset``, ``split``, ``preprocess``,
+  ``models``, ``metrics``, ``renders`` and ``train`` form a ``reconstruct`` recipe that runs as a
+  sub-run in ``<run>/reconstruct/`` (its own report, metrics and saved models; a later recipe
+  can point ``run:`` at it). ``fwk run --resume`` reuses a finished sub-run.
+
+``interpolate`` (4.7.2): two subjects of the test split (``subjects``) are encoded by each dsm
+model, Z_1 = [Z_1l | Z_1h], Z_2 likewise, and decoded on a grid (eq. 4.16)
+
+    Z_{alpha,beta} = [(1 - beta) Z_1l + beta Z_2l | (1 - alpha) Z_1h + alpha Z_2h]
+
+(alpha: the high band, i.e. the last band; beta: every other band), next to plain vertex-space
+interpolation P_delta = P_1 + delta (P_2 - P_1) (eq. 4.17) for delta in ``alphas``. One picture
+per dsm model (rows beta, columns alpha, last row the vertex-space interpolation with the two
+subjects); every mesh is saved as OBJ under ``interpolation/`` in the dataset's units with its
+own polygons and UVs (the preprocessing's scale undone; the meshes sit in the registered frame of
+the mean head).
+
+``edit`` (4.7.3): for one test subject, latent entries (``directions``: indices within a
+band's slice of Z) are moved by ``amounts`` (in units of the prior's standard deviation) in one
+band at a time and decoded; the picture shows, per band, every dsm model's edits side by side
+with the same edits of each single-band comparison model's latent (``compare``: ``vae``/``ae``
+labels of the run), each mesh coloured by its displacement from the unedited decode. Beyond the
+thesis, disentanglement: for an edit of band b, the share of the output change inside band b,
+
+    share_b = ||X_b D||_M^2 / ||D||_M^2,   D = decode(Z + a e_{b,d}) - decode(Z)
+
+(X_b the band-b spectral projector of the dsm model's assembler, M the mass matrix; the bands
+are M-orthogonal, so the shares of all bands sum to 1), averaged over up to ``max_subjects``
+test subjects, the directions and the non-zero amounts. A single-band model's edits are
+measured with the same projectors: its per-band shares say where a latent edit lands when
+nothing separates the bands. Reported in a table and in ``metrics.json`` (``disentanglement``).
+
+Each task can chain the other on the same models: ``interpolate: {...}`` inside an ``edit``
+recipe (or ``edit: {...}`` inside ``interpolate``), so one run gives both pictures.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import yaml
+
+from fwk.data.preprocess import PreprocessConfig, Preprocessor, Transforms
+from fwk.data.split import SplitConfig
+from fwk.errors import DataError, FwkError, RecipeError
+from fwk.hookspecs import hookimpl
+from fwk.recipes import Kind, Spec
+
+INLINE_KEYS = ("dataset", "split", "preprocess", "shapes", "models", "metrics", "renders")
+COMPARE_NAMES = ("vae", "ae", "mlp-vae", "pca")
+
+
+def _registry():
+    from fwk.plugins import get_registry
+
+    return get_registry()
+
+
+# ---------------------------------------------------------------------------------------- models
+
+class Env:
+    """A trained reconstruct run reopened: models, template (user's polygons), preprocessing,
+    the subjects of each split in the evaluation space, and the run's metrics."""
+
+    def __init__(self, run_dir: Path, models: dict, template, pre: Preprocessor, splits: dict, metrics: dict):
+        self.run_dir, self.models, self.template, self.pre = run_dir, models, template, pre
+        self.splits, self.metrics = splits, metrics
+
+    def to_input_units(self, X) -> np.ndarray:
+        """Evaluation space -> the dataset's units in the mean head's frame (scale undone)."""
+        X = np.asarray(X, dtype=np.float64)
+        T = Transforms(np.broadcast_to(np.eye(3), (len(X), 3, 3)).copy(), np.zeros((len(X), 3)), self.pre.scale)
+        return self.pre.inverse(X, T)
+
+    def write_obj(self, path, X) -> Path:
+        from fwk.data.io import write_obj
+
+        return write_obj(path, self.to_input_units(np.asarray(X)[None])[0], self.template)
+
+
+def load_models(run_dir, ctx=None, registry=None) -> Env:
+    """Reopen a finished reconstruct run (``fwk.runs.load_run``) with its trained models."""
+    import torch
+
+    from fwk.runs import load_run
+
+    run_dir = Path(run_dir)
+    loaded = load_run(run_dir, registry)
+    task = loaded.resolved.task
+    if task.name != "reconstruct":
+        raise FwkError(f"run: {run_dir} is a {task.name} run; interpolate/edit need a reconstruct run")
+    params = task.params
+    for p in (run_dir / "split.json", run_dir / "stats" / "preprocess.npz"):
+        if not p.exists():
+            raise FwkError(f"run: {p} is missing; is {run_dir} a finished reconstruct run?")
+    models = {}
+    for label, spec in (params.get("models") or {}).items():
+        state = run_dir / "models" / f"{label}.pt"
+        if not state.exists():
+            raise FwkError(f"run: {state} is missing; is {run_dir} a finished reconstruct run?")
+        m = spec.build()
+        d = torch.load(state, weights_only=False)
+        try:
+            m.load_state_dict(d, ctx=loaded.ctx)
+        except TypeError:
+            m.load_state_dict(d)
+        models[label] = m
+    with np.load(run_dir / "stats" / "preprocess.npz") as z:
+        pre = Preprocessor.from_state({k: z[k] for k in z.files})
+    cache = ctx.cache if ctx is not None else loaded.ctx.cache
+    col = params["dataset"].build().load(cache)
+    split = json.loads((run_dir / "split.json").read_text())
+    index = {s: i for i, s in enumerate(col.subjects)}
+    j = col.shape_index("neutral")
+    splits = {}
+    for name, subs in split.items():
+        idx = np.array([index[s] for s in subs], dtype=np.int64)
+        if len(idx) == 0:
+            splits[name] = np.zeros((0, col.template.n_vertices, 3))
+            continue
+        N = np.asarray(col.positions[idx, j])
+        splits[name], _ = pre.transform(N, N)
+    return Env(run_dir, models, col.template.with_vertices(pre.mean_neutral), pre, splits, loaded.metrics)
+
+
+def train_inline(ctx, recipe: dict) -> Path:
+    """Run the recipe's training keys as a reconstruct sub-run in ``<run>/reconstruct/``."""
+    from fwk.recipes import resolve
+    from fwk.runs import RunContext, run_task
+
+    sub = ctx.run_dir / "reconstruct"
+    if (sub / "metrics.json").exists() and all((sub / "models" / f"{k}.pt").exists() for k in recipe.get("models", {})):
+        ctx.log(f"reconstruct sub-run {sub} finished before: its models are reused")
+        return sub
+    data = {"task": "reconstruct", "name": f"{recipe.get('name', 'run')}-reconstruct", "seed": ctx.seed,
+            **({"train": recipe["train"]} if recipe.get("train") else {}),
+            **{k: recipe[k] for k in INLINE_KEYS if k in recipe}}
+    if ctx.source:
+        data["source"] = ctx.source
+    r = resolve(data, ctx.registry)
+    sub.mkdir(parents=True, exist_ok=True)
+    (sub / "recipe.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    child = RunContext(sub, ctx.registry, ctx.cache, r.seed, recipe=r.data, train=r.train, device=ctx.device,
+                       quiet=ctx.quiet, resume=ctx.resume, log_file=ctx.log_file)
+    child.source = ctx.source
+    ctx.log(f"training inline: reconstruct sub-run in {sub}")
+    run_task(r, child)
+    return sub
+
+
+def _resolve_run(path: str, ctx) -> Path:
+    p = Path(path).expanduser()
+    if not p.is_absolute() and not p.exists() and getattr(ctx, "source", None):
+        q = Path(ctx.source).parent / p
+        if q.exists():
+            p = q
+    if not (p / "recipe.yaml").exists():
+        raise FwkError(f"run: {path} is not a run directory (no recipe.yaml)")
+    return p
+
+
+def is_dsm(m) -> bool:
+    return getattr(m, "name", "") == "dsm" or (hasattr(m, "latent_slice") and hasattr(m, "assembler"))
+
+
+def _pick(env: Env, labels, want_dsm: bool, what: str) -> list[str]:
+    if labels:
+        for l in labels:
+            if l not in env.models:
+                raise RecipeError(f"{what}: {l!r} is not a model of {env.run_dir} (models: {', '.join(env.models)})")
+        return list(labels)
+    if want_dsm:
+        return [l for l, m in env.models.items() if is_dsm(m)]
+    return [l for l, m in env.models.items() if not is_dsm(m) and getattr(m, "name", "") in COMPARE_NAMES
+            and hasattr(m, "encode") and hasattr(m, "decode")]
+
+
+def _renders(ctx, rows, template, path, cell=(240, 270)):
+    try:
+        from fwk.evaluation.render import render_grid
+
+        return render_grid(rows, template, path, view="front", cell_size=cell)
+    except Exception as exc:  # no OpenGL at all: keep the numbers, say so
+        ctx.log(f"warning: render {Path(path).name} skipped ({type(exc).__name__}: {exc})")
+        return None
+
+
+# ------------------------------------------------------------------------------------ studies
+
+def _interp(ctx, env: Env, p: "Interpolate") -> tuple[dict, dict, list]:
+    P = env.splits.get(p.subjects_from)
+    if P is None or len(P) == 0:
+        raise DataError(f"subjects_from: the {p.subjects_from} split has no subjects")
+    i1, i2 = p.subjects
+    if max(i1, i2) >= len(P):
+        raise RecipeError(f"subjects: {p.subjects} out of range for the {len(P)} subjects of {p.subjects_from}")
+    P1, P2 = P[i1], P[i2]
+    labels = _pick(env, p.dsm, True, "dsm")
+    if not labels:
+        raise RecipeError(f"the run {env.run_dir} has no dsm model to interpolate with")
+    figures, results = {}, {"subjects": [int(i1), int(i2)], "split": p.subjects_from, "alphas": p.alphas,
+                            "betas": p.betas, "models": {}}
+    vertex = [P1 + d * (P2 - P1) for d in p.alphas]  # eq. 4.17
+    if p.write_obj:
+        for d, V in zip(p.alphas, vertex):
+            env.write_obj(ctx.path("interpolation", "vertex", f"delta{d:g}.obj"), V)
+    for label in labels:
+        m = env.models[label]
+        Z = m.encode(np.stack([P1, P2]))
+        hi = m.latent_slice(m.band_names[-1])
+        lo = np.ones(Z.shape[1], bool)
+        lo[hi] = False
+        grid = []
+        for b in p.betas:
+            for a in p.alphas:
+                z = Z[0].copy()
+                z[lo] = (1 - b) * Z[0, lo] + b * Z[1, lo]   # eq. 4.16, low band(s)
+                z[hi] = (1 - a) * Z[0, hi] + a * Z[1, hi]   # high band
+                grid.append(z)
+        out = m.decode(np.stack(grid)).reshape(len(p.betas), len(p.alphas), -1, 3)
+        # how far each grid mesh is from the two ends, to make "the grid spans new shapes" a number
+        results["models"][label] = {"gamma": getattr(m, "gamma", None),
+                                    "spread_l1": float(np.abs(out - out.mean((0, 1))).mean())}
+        if p.write_obj:
+            for bi, b in enumerate(p.betas):
+                for ai, a in enumerate(p.alphas):
+                    env.write_obj(ctx.path("interpolation", label, f"alpha{a:g}_beta{b:g}.obj"), out[bi, ai])
+        rows = [[{"V": out[bi, ai], "label": f"a={a:g} b={b:g}"} for ai, a in enumerate(p.alphas)]
+                for bi, b in enumerate(p.betas)]
+        rows.append([{"V": V, "label": f"vertex d={d:g}", "color": "#b8c7d9"} for d, V in zip(p.alphas, vertex)])
+        f = _renders(ctx, rows, env.template, ctx.path("figures", f"interpolation_{label}.png"))
+        if f is not None:
+            g = getattr(m, "gamma", None)
+            figures[f"interpolation, {label} (gamma {g}): rows beta (low band), columns alpha (high band); "
+                    "last row: vertex-space interpolation (eq. 4.17)"] = f
+    notes = [f"interpolation between {p.subjects_from} subjects {i1} and {i2}; meshes under interpolation/ "
+             f"(OBJ, dataset units)"]
+    return results, figures, notes
+
+
+def _energy(D, m):
+    w = np.ones(D.shape[-2]) if m is None else np.asarray(m).reshape(-1)
+    return np.einsum("...ni,...ni,n->...", D, D, w)
+
+
+def band_shares(assembler, D) -> np.ndarray:
+    """(..., n, 3) differences -> (..., bands) share of the M-weighted energy in each band."""
+    mass = getattr(getattr(assembler, "proj", None), "m", None)
+    D = np.asarray(D, dtype=np.float64)
+    flat = D.reshape(-1, *D.shape[-2:])
+    parts = np.stack([_energy(assembler.project(flat + assembler.mean, j), mass)
+                      for j in range(assembler.n_bands)], -1)
+    total = np.maximum(_energy(flat, mass), 1e-300)
+    return (parts / total[:, None]).reshape(*D.shape[:-2], assembler.n_bands)
+
+
+def _edit(ctx, env: Env, p: "Edit") -> tuple[dict, dict, list]:
+    P = env.splits.get("test")
+    if P is None or len(P) == 0:
+        raise DataError("edit: the test split has no subjects")
+    if p.subject >= len(P):
+        raise RecipeError(f"subject: {p.subject} out of range for the {len(P)} test subjects")
+    dsm_labels = _pick(env, p.dsm, True, "dsm")
+    if not dsm_labels:
+        raise RecipeError(f"the run {env.run_dir} has no dsm model to edit")
+    cmp_labels = _pick(env, p.compare, False, "compare")
+    ref = env.models[dsm_labels[0]]
+    bands = p.bands or list(ref.band_names)
+    amounts = [float(a) for a in p.amounts]
+    nz = [a for a in amounts if a != 0.0]
+    S = P[: max(p.max_subjects, p.subject + 1)]
+    results = {"directions": p.directions, "amounts": amounts, "n_subjects": int(len(S)), "dsm": {}, "compare": {}}
+    figures = {}
+
+    def edited(z0, sl, zeros):
+        """z0 (s, d) -> (s, dirs, amounts, d) with entry sl.start + dir moved by amount."""
+        Z = np.repeat(np.repeat(z0[:, None, None], len(p.directions), 1), len(zeros), 2).copy()
+        for di, d in enumerate(p.directions):
+            if sl.start + d >= sl.stop:
+                raise RecipeError(f"directions: entry {d} is outside a band of {sl.stop - sl.start} latent entries")
+            Z[:, di, :, sl.start + d] += np.asarray(zeros)
+        return Z
+
+    decoded = {}
+    for label in dsm_labels:
+        m = env.models[label]
+        z0 = m.encode(S)
+        base = m.decode(z0)
+        results["dsm"][label] = {"gamma": getattr(m, "gamma", None)}
+        for b in bands:
+            Z = edited(z0, m.latent_slice(b), amounts)
+            out = m.decode(Z.reshape(-1, Z.shape[-1])).reshape(*Z.shape[:3], -1, 3)
+            D = out - base[:, None, None]
+            keep = [i for i, a in enumerate(amounts) if a != 0.0]
+            sh = band_shares(m.assembler, D[:, :, keep])  # (s, dirs, amounts, bands)
+            mean = sh.reshape(-1, sh.shape[-1]).mean(0)
+            results["dsm"][label][b] = {"own_share": float(mean[m.band_names.index(b)]),
+                                        "shares": {n: float(x) for n, x in zip(m.band_names, mean)}}
+            decoded[(label, b)] = (out[p.subject, 0], base[p.subject])
+    for label in cmp_labels:
+        m = env.models[label]
+        z0 = np.asarray(m.encode(S))
+        base = np.asarray(m.decode(z0))
+        sl = slice(0, z0.shape[1])
+        Z = edited(z0, sl, amounts)
+        out = np.asarray(m.decode(Z.reshape(-1, Z.shape[-1]))).reshape(*Z.shape[:3], -1, 3)
+        D = out - base[:, None, None]
+        keep = [i for i, a in enumerate(amounts) if a != 0.0]
+        sh = band_shares(ref.assembler, D[:, :, keep])
+        mean = sh.reshape(-1, sh.shape[-1]).mean(0)
+        results["compare"][label] = {"shares": {n: float(x) for n, x in zip(ref.band_names, mean)}}
+        decoded[(label, None)] = (out[p.subject, 0], base[p.subject])
+    # pictures: per band, rows = each dsm model editing that band, then each comparison model
+    for b in bands:
+        rows_src = [(f"{l} {b}", decoded[(l, b)]) for l in dsm_labels]
+        rows_src += [(f"{l}", decoded[(l, None)]) for l in cmp_labels]
+        mags = [np.linalg.norm(out - base[None], axis=-1) for _, (out, base) in rows_src]
+        clim = (0.0, float(max(np.percentile(x, 99) for x in mags)) or 1e-12)
+        rows = []
+        for (name, (out, _)), mag in zip(rows_src, mags):
+            rows.append([{"V": out[ai], "scalars": mag[ai], "clim": clim, "cmap": "magma", "bar": "|change|",
+                          "show_bar": ai == len(amounts) - 1, "label": f"{name}: {a:+g}" if ai == 0 else f"{a:+g}"}
+                         for ai, a in enumerate(amounts)])
+        f = _renders(ctx, rows, env.template, ctx.path("figures", f"edit_{b}.png"))
+        if f is not None:
+            figures[f"edit of the {b} band, entry {p.directions[0]} by {amounts} (rows: dsm models, then the "
+                    f"single-band models' latent), coloured by the change"] = f
+    # the table
+    cols = ["model", "edited", *[f"share in {n}" for n in ref.band_names]]
+    tab = []
+    for l in dsm_labels:
+        for b in bands:
+            r = results["dsm"][l][b]
+            tab.append([f"{l} (gamma {results['dsm'][l]['gamma']})", b,
+                        *[f"{r['shares'][n]:.3f}" for n in ref.band_names]])
+    for l in cmp_labels:
+        tab.append([l, "latent", *[f"{results['compare'][l]['shares'][n]:.3f}" for n in ref.band_names]])
+    from fwk.evaluation.report import markdown_table
+
+    text = ("Share of the M-weighted energy of the output change that falls in each spectral band "
+            f"(the band projectors of {dsm_labels[0]}), averaged over {len(S)} test subjects, "
+            f"directions {p.directions} and amounts {nz}. For a dsm edit of band b, the share in b is its "
+            "disentanglement (1 = the edit stays in its band).\n\n" + markdown_table(tab, cols))
+    return results, figures, [("Disentanglement of latent edits", text)]
+
+
+# ------------------------------------------------------------------------------------- tasks
+
+class _Study:
+    """Shared: where the models come from (``run`` or inline training)."""
+
+    def _init_source(self, run, dataset, models, split, preprocess, shapes, metrics, renders):
+        if run and models:
+            raise RecipeError("run: give either `run` (a finished reconstruct run) or `models` to train inline, not both")
+        self.run_path = run
+        self.inline = bool(models)
+
+    def env(self, ctx) -> Env:
+        if not self.run_path and not self.inline:
+            raise RecipeError("run: give `run` (a finished reconstruct run directory) or `models` to train inline")
+        if self.run_path:
+            run_dir = _resolve_run(self.run_path, ctx)
+        else:
+            run_dir = train_inline(ctx, dict(ctx.recipe))
+        ctx.log(f"models from {run_dir}")
+        return load_models(run_dir, ctx, ctx.registry)
+
+    def _report(self, ctx, env, title, results, figures, notes, sections):
+        from fwk.evaluation import write_report
+
+        res = dict(results)
+        if env.metrics.get("models"):
+            res["models"] = env.metrics["models"]
+            res["dataset"] = env.metrics.get("dataset", {})
+        notes = [f"models: {env.run_dir}" + (" (trained inline by this run)" if not self.run_path else ""),
+                 f"train epochs: {ctx.train.epochs} (recipe `train.epochs`)" if not self.run_path else "", *notes]
+        write_report(ctx, title, res, figures, notes=[n for n in notes if n], sections=sections)
+
+
+def _validate_chain(cls, d, key):
+    from fwk.recipes import validate_params
+
+    if d is None:
+        return None
+    bad = [k for k in d if k in ("run", *INLINE_KEYS, "edit", "interpolate")]
+    if bad:
+        raise RecipeError(f"{key}.{bad[0]}: a chained study uses this run's models; give only its study settings")
+    return cls(**validate_params(cls, d, key, _registry(), label=cls.name))
+
+
+class Interpolate(_Study):
+    """Interpolate low and high frequencies of two subjects separately (eqs. 4.16-4.17)."""
+
+    name = "interpolate"
+
+    def __init__(self, run: str | None = None, dataset: Annotated[Spec, Kind("dataset")] = "synthetic-heads",
+                 models: Annotated[dict[str, Spec], Kind("model")] | None = None, split: SplitConfig | None = None,
+                 preprocess: PreprocessConfig | None = None, shapes: list[str] | None = None,
+                 metrics: Annotated[list[Spec], Kind("metric")] | None = None, renders: int = 2,
+                 dsm: list[str] | None = None, subjects: list[int] | None = None, subjects_from: str = "test",
+                 alphas: list[float] | None = None, betas: list[float] | None = None, write_obj: bool = True,
+                 edit: dict | None = None):
+        self._init_source(run, dataset, models, split, preprocess, shapes, metrics, renders)
+        self.dsm = dsm
+        self.subjects = list(subjects) if subjects is not None else [0, 1]
+        if len(self.subjects) != 2:
+            raise RecipeError(f"subjects: give two subject indices, got {self.subjects}")
+        if subjects_from not in ("train", "val", "test"):
+            raise RecipeError(f"subjects_from: one of train, val, test, got {subjects_from!r}")
+        self.subjects_from = subjects_from
+        self.alphas = [float(a) for a in (alphas if alphas is not None else [0, 0.25, 0.5, 0.75, 1])]
+        self.betas = [float(b) for b in (betas if betas is not None else [0, 0.25, 0.5, 0.75, 1])]
+        self.write_obj = write_obj
+        self.edit = _validate_chain(Edit, edit, "edit")
+
+    def run_study(self, ctx, env):
+        results, figures, notes = _interp(ctx, env, self)
+        sections = []
+        out = {"interpolation": results}
+        if self.edit is not None:
+            r2, f2, s2 = _edit(ctx, env, self.edit)
+            out["disentanglement"] = r2
+            figures.update(f2)
+            sections += s2
+        return out, figures, notes, sections
+
+    def run(self, ctx):
+        env = self.env(ctx)
+        out, figures, notes, sections = self.run_study(ctx, env)
+        self._report(ctx, env, f"Interpolation: {ctx.recipe.get('name', 'run')}", out, figures, notes, sections)
+
+
+class Edit(_Study):
+    """Edit one spectral band's latent entries, next to editing a single-band VAE; disentanglement."""
+
+    name = "edit"
+
+    def __init__(self, run: str | None = None, dataset: Annotated[Spec, Kind("dataset")] = "synthetic-heads",
+                 models: Annotated[dict[str, Spec], Kind("model")] | None = None, split: SplitConfig | None = None,
+                 preprocess: PreprocessConfig | None = None, shapes: list[str] | None = None,
+                 metrics: Annotated[list[Spec], Kind("metric")] | None = None, renders: int = 2,
+                 dsm: list[str] | None = None, compare: list[str] | None = None, bands: list[str] | None = None,
+                 directions: list[int] | None = None, amounts: list[float] | None = None, subject: int = 0,
+                 max_subjects: int = 20, interpolate: dict | None = None):
+        self._init_source(run, dataset, models, split, preprocess, shapes, metrics, renders)
+        self.dsm, self.compare, self.bands = dsm, compare, bands
+        self.directions = [int(d) for d in (directions if directions is not None else [0, 1, 2])]
+        self.amounts = [float(a) for a in (amounts if amounts is not None else [-3, -1.5, 0, 1.5, 3])]
+        if not self.directions or any(d < 0 for d in self.directions):
+            raise RecipeError(f"directions: non-negative latent entry indices, got {self.directions}")
+        if not any(a != 0 for a in self.amounts):
+            raise RecipeError("amounts: give at least one non-zero amount")
+        if max_subjects < 1:
+            raise RecipeError(f"max_subjects: at least 1, got {max_subjects}")
+        self.subject, self.max_subjects = int(subject), int(max_subjects)
+        self.interpolate = _validate_chain(Interpolate, interpolate, "interpolate")
+
+    def run_study(self, ctx, env):
+        r, figures, sections = _edit(ctx, env, self)
+        out, notes = {"disentanglement": r}, []
+        if self.interpolate is not None:
+            r2, f2, n2 = _interp(ctx, env, self.interpolate)
+            out["interpolation"] = r2
+            figures.update(f2)
+            notes += n2
+        return out, figures, notes, sections
+
+    def run(self, ctx):
+        env = self.env(ctx)
+        out, figures, notes, sections = self.run_study(ctx, env)
+        self._report(ctx, env, f"Multi-frequency editing: {ctx.recipe.get('name', 'run')}", out, figures, notes,
+                     sections)
+
+
+@hookimpl
+def fwk_register_tasks():
+    return [Interpolate, Edit]
