@@ -103,12 +103,13 @@ class Spectral:
         self._check()
         if len(bands) != self.n_bands:
             raise ValueError(f"assemble: {len(bands)} bands given, the assembler has {self.n_bands}")
-        out = 0.0
-        high = np.asarray(bands[-1], dtype=np.float64) - self.mean
+        # sum_j X_j (b_j - mean) + (I - sum_j X_j)(b_B - mean) + mean = sum_j X_j (b_j - b_B) + b_B:
+        # one pass over the basis (each slice applied once) for the whole batch
+        last = np.asarray(bands[-1], dtype=np.float64)
+        out = last.copy()
         for (lo, hi), b in zip(self._ranges(), bands[:-1]):
-            out = out + self.proj.project(np.asarray(b, dtype=np.float64) - self.mean, lo, hi)
-            high = high - self.proj.project(high, lo, hi)
-        return out + high + self.mean
+            out += self.proj.project(np.asarray(b, dtype=np.float64) - last, lo, hi)
+        return out
 
     def project(self, P, band: int) -> np.ndarray:
         """The part of P - mean in one band (no mean added): X_j (P - mean), or for the last band

@@ -7,12 +7,15 @@ signs (the largest-magnitude entry of each vector is positive).
 Speed: scipy's ``eigsh(L, k, M, sigma)`` for k = 500 spends most of its time re-orthogonalising
 a 1,001-vector Krylov basis (memory bound). fwk slices the spectrum instead (DESIGN.md,
 reference notes): shift-invert Lanczos runs for about ``slice_size`` eigenpairs each, around
-shifts that walk up the spectrum; each run factorises L - sigma M once (SuperLU). The nearest
-``slice_size`` eigenvalues to a shift sigma fill an interval [sigma - d, sigma + d]; a slice is
-accepted only when that interval reaches back to the last eigenvalue already found (so nothing
-is skipped), otherwise the step shrinks and the slice is redone. Eigenvectors of the overlap
-cluster are merged by M-orthogonal projection, so repeated eigenvalues split across two slices
-are kept once. Memory O(n k).
+shifts that walk up the spectrum; each run factorises L - sigma M once (``ShiftedFactors``:
+CHOLMOD's LDL^T when scikit-sparse is installed, else SuperLU). The nearest ``slice_size``
+eigenvalues to a shift sigma fill an interval [sigma - d, sigma + d]; a slice is accepted only
+when that interval reaches back to the last eigenvalue already found (so nothing is skipped),
+otherwise the step shrinks and the slice is redone. Eigenvectors of a cluster split across two
+slices are merged by a rank-revealing Rayleigh-Ritz step. With CHOLMOD, every accepted slice is
+checked by Sylvester's law of inertia (the count of negative pivots of L - cM is the number of
+eigenvalues below c); copies of a repeated eigenvalue that single-vector Lanczos missed are
+then found by a further run with everything found so far deflated. Memory O(n k).
 
 Projection never forms the n x n matrix X = U U^T M: ``SpectralProjector.project(P)`` applies
 U (U^T (M P)) to all meshes and coordinates at once as one (n, 3b) block.

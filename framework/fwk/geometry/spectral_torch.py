@@ -46,11 +46,11 @@ class TorchSpectralProjector(torch.nn.Module):
     def assemble(self, bands, cuts, mean):
         """Eq. 4.15 / 5.10: band j (j < B) keeps its part in U[:, k_{j-1}:k_j], the last band
         everything above the last cut; ``mean`` (n, 3) is removed from each band and added once."""
+        # = sum_j X_j (b_j - b_B) + b_B: each eigen-slice applied once (mean cancels; kept in
+        # the signature so callers state which mean the bands are centred on)
         edges = [0, *cuts]
-        high = bands[-1] - mean
-        out = 0.0
+        last = bands[-1]
+        out = last
         for j, b in enumerate(bands[:-1]):
-            lo, hi = edges[j], edges[j + 1]
-            out = out + self.project(b - mean, lo, hi)
-            high = high - self.project(high, lo, hi)
-        return out + high + mean
+            out = out + self.project(b - last, edges[j], edges[j + 1])
+        return out
