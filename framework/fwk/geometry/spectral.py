@@ -28,6 +28,9 @@ from scipy.sparse.linalg import eigsh, splu, LinearOperator
 
 from .operators import cotangent_laplacian, mass_matrix
 
+ARPACK_TOL = 1e-12   # relative accuracy of the Ritz values of each slice
+NCV_FACTOR = 1.5     # Lanczos basis size per slice: NCV_FACTOR x nev + 1 (1.5 measured faster than 2 here)
+
 
 def _fix_signs(U: np.ndarray) -> np.ndarray:
     idx = np.argmax(np.abs(U), axis=0)
@@ -100,8 +103,8 @@ def _slice(fac: ShiftedFactors, sigma, nev, v0, deflate=None):
         v0 = v0 - B @ (MB.T @ v0)
     op = LinearOperator(L.shape, matvec=solve, dtype=np.float64)
     nev = min(nev, L.shape[0] - 2 - (0 if deflate is None else deflate.shape[1]))
-    w, U = eigsh(L, k=nev, M=M, sigma=sigma, OPinv=op, which="LM", v0=v0, ncv=min(L.shape[0], 2 * nev + 1),
-                 tol=1e-12)
+    w, U = eigsh(L, k=nev, M=M, sigma=sigma, OPinv=op, which="LM", v0=v0,
+                 ncv=min(L.shape[0], int(NCV_FACTOR * nev) + 1), tol=ARPACK_TOL)
     o = np.argsort(w)
     return w[o], U[:, o], below
 
