@@ -30,10 +30,12 @@ def _pair(pred, target):
 class _Pointwise:
     """Shared shape of the point-wise metrics: a per-vertex value, averaged over vertices."""
 
-    units = "input"
-    power = 1
-    display_scale = 1e-3
+    units = "input"         # the positions' own units (squared for l2)
+    power = 1               # in input units: value / scale**power (positions were multiplied by scale)
+    display_scale = 1e-3    # tables show the value divided by this (thesis: L1 x1e-3)
+    scale_label = "×1e-3"
     rigid_invariant = False
+    scale_invariant = False
 
     @staticmethod
     def per_vertex(diff: np.ndarray) -> np.ndarray:  # (b, n, 3) -> (b, n)
@@ -62,6 +64,7 @@ class L2(_Pointwise):
     units = "input^2"
     power = 2
     display_scale = 1e-5
+    scale_label = "×1e-5"
 
     @staticmethod
     def per_vertex(diff):
