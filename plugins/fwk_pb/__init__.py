@@ -39,8 +39,8 @@ assembled at every k of a sweep (default: the thesis's 37 values {0, 10, ..., 10
 deduplicated) and scored with L1 and with the perceptual DAME and FMPD; the Pareto front of
 (L1, ``knee_metric``) is found and k is chosen at its knee: both objectives are normalised to
 [0, 1] over the front, and the knee is the front point farthest below the chord joining the
-front's two ends (the "maximum distance to the chord" rule; a front of one or two points
-takes the point with the smallest normalised sum). The sweep, the fronts and the choice are
+front's two ends (the "maximum distance to the chord" rule); a front of two points has no
+bend, so it takes the point with the smallest x / min x + y / min y (relative excess). The sweep, the fronts and the choice are
 kept in the state and saved with the run; ``predict`` and ``fwk apply`` use the chosen k.
 
 Beyond the thesis (its future work, ``conditional: true``): one network pair for all
@@ -74,10 +74,8 @@ def knee(x, y) -> int:
     """Index (into x, y) of the knee of a Pareto front given by points (x, y), both minimised:
     normalise both to [0, 1], take the point farthest below the chord joining the two ends."""
     x, y = np.asarray(x, float), np.asarray(y, float)
-    if len(x) <= 2:
-        xn = (x - x.min()) / (np.ptp(x) or 1.0)
-        yn = (y - y.min()) / (np.ptp(y) or 1.0)
-        return int(np.argmin(xn + yn))
+    if len(x) <= 2:  # no curve to bend: the smallest relative excess over the best of each objective
+        return int(np.argmin(x / max(x.min(), 1e-300) + y / max(y.min(), 1e-300)))
     order = np.argsort(x)
     xs, ys = x[order], y[order]
     xn = (xs - xs[0]) / ((xs[-1] - xs[0]) or 1.0)
@@ -482,7 +480,11 @@ class PBS(_Blend):
             elif k >= n:
                 out[i] = Ps
         if inner:
-            out[inner] = self.assembler.assemble_many(Ps, Pd, [ks[i] for i in inner])
+            kin = [ks[i] for i in inner]
+            try:
+                out[inner] = self.assembler.assemble_many([Ps, Pd], kin)
+            except TypeError:  # older signature assemble_many(low, high, ks)
+                out[inner] = self.assembler.assemble_many(Ps, Pd, kin)
         return out
 
     def predict(self, neutrals, expression: str, target=None, k: int | None = None) -> np.ndarray:
