@@ -1,15 +1,31 @@
-"""Evaluation: metrics over splits, summaries, reports (``report.md``, ``metrics.json``) and
+"""Evaluation: metrics over batches, summaries, reports (``report.md``, ``metrics.json``) and
 pictures (renders with error maps, L1/DAME scatter with the Pareto front).
 
-metrics.json schema (every evaluating task)::
+API (tasks call these)::
 
-    {"models": {label: {split: {metric: {"mean", "median", "max", "std", "units",
-                                         "mean_input", "units_input"}}}},
-     "dataset": {...}, "timing": {label: {...}}, "notes": [...], "figures": {...}}
+    evaluate(pred, target, template, metrics) -> {name: {"scores": (b,), "maps": (b, n)}}
+    evaluate_summary(pred, target, template, metrics, scale=1.0) -> {name: summary}
+    summarise(scores) -> {"mean", "median", "max", "std", "n"}
+    pareto_front(points (k, 2)) -> indices of the non-dominated points (both minimised)
+    markdown_table(rows, columns, units=None) -> str
+    write_report(ctx, title, results, figures=None, notes=None, sections=None) -> report.md path
+    render.render_mesh / render.render_grid, plots.scatter_pareto / plots.line_plot
 
-Numbers are in the evaluation space (registered, scaled into [-1, 1]: the thesis's space);
-``*_input`` repeat them in the dataset's units (l1, euclidean divided by the scale s, l2 by
-s^2; DAME and FMPD are scale-invariant).
+metrics.json schema (every evaluating task writes it; ``fwk report`` reads it)::
+
+    {"models": {label: {split: {metric: {
+         "mean", "median", "max", "std", "n",       # per-mesh scores summarised, evaluation space
+         "units",                                   # "input", "input^2", "rad", "1"
+         "mean_input", "median_input", "max_input", "std_input",   # the same in dataset units
+         "units_input"}}}},                         # e.g. "cm", "cm^2", "rad", "1"
+     "dataset": {"name", "units", ...},             # optional, shown at the top of report.md
+     "timing": {label: {name: seconds}},            # optional
+     "figures": {caption: path relative to the run directory},
+     "notes": [str, ...]}                           # tasks may add more top-level keys
+
+The evaluation space is the registered data scaled by s into [-1, 1] (the thesis's space);
+input-unit values divide l1 and euclidean by s and l2 by s^2; DAME and FMPD are
+scale-invariant, so their input-unit values equal the evaluation-space ones.
 """
 from .core import evaluate, evaluate_summary, pareto_front, summarise  # noqa: F401
 from .report import markdown_table, reconstruction_figures, write_report  # noqa: F401

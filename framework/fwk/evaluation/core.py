@@ -5,15 +5,42 @@ import numpy as np
 
 
 def evaluate(pred, target, template, metrics) -> dict:
-    """{metric name: {"scores": (b,), "maps": (b, n)}} for every metric object."""
+    """{metric name: {"scores": (b,), "maps": (b, n)}} for every metric object (float64).
+
+    ``pred`` and ``target`` are (b, n, 3) (or (n, 3): one mesh) on the template's topology;
+    ``metrics`` are metric instances (``ctx.build("metric", name)`` or the registry's classes).
+    """
+    pred = np.asarray(pred, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    if pred.ndim == 2:
+        pred, target = pred[None], target[None]
+    if pred.shape != target.shape or pred.ndim != 3 or pred.shape[-1] != 3:
+        raise ValueError(f"prediction {pred.shape} and target {target.shape}: expected two (b, n, 3) arrays")
+    if template is not None and pred.shape[1] != template.n_vertices:
+        raise ValueError(f"meshes have {pred.shape[1]} vertices, the template {template.n_vertices}")
     out = {}
-    for m in metrics:
-        scores, maps = m(np.asarray(pred, dtype=np.float64), np.asarray(target, dtype=np.float64), template)
+    for m in _instances(metrics):
+        scores, maps = m(pred, target, template)
         out[m.name] = {"scores": np.asarray(scores, dtype=np.float64), "maps": np.asarray(maps, dtype=np.float64)}
     return out
 
 
+def _instances(metrics) -> list:
+    """Metric instances from instances, classes or registered names."""
+    out = []
+    for m in metrics:
+        if isinstance(m, str):
+            from ..plugins import get_registry
+
+            m = get_registry().get("metric", m)
+        if isinstance(m, type):
+            m = m()
+        out.append(m)
+    return out
+
+
 def summarise(scores) -> dict:
+    """mean, median, max, std (population) and n of per-mesh scores; NaN (n = 0) when empty."""
     s = np.asarray(scores, dtype=np.float64)
     if s.size == 0:
         return {"mean": float("nan"), "median": float("nan"), "max": float("nan"), "std": float("nan"), "n": 0}
@@ -22,18 +49,26 @@ def summarise(scores) -> dict:
 
 
 def evaluate_summary(pred, target, template, metrics, scale: float = 1.0) -> dict:
-    """Summaries per metric in the evaluation space and in input units (positions / scale)."""
+    """Summaries per metric in the evaluation space and in input units.
+
+    The evaluation space is ``scale`` x the input (preprocessing's uniform scale), so a metric
+    of ``power`` p (1: l1, euclidean; 2: l2; 0: the scale-invariant DAME, FMPD) is divided by
+    ``scale**p`` to give ``mean_input``, ``median_input``, ``max_input``, ``std_input``;
+    ``units_input`` names them with the template's units (``cm``, ``cm^2``, ``rad``, ``1``).
+    """
+    metrics = _instances(metrics)
     res = evaluate(pred, target, template, metrics)
+    in_units = getattr(template, "units", None) or "input"
     out = {}
     for m in metrics:
         summ = summarise(res[m.name]["scores"])
         power = getattr(m, "power", 0)
-        summ["units"] = getattr(m, "units", "")
-        if power:
-            f = 1.0 / scale ** power
-            summ["mean_input"] = summ["mean"] * f
-            summ["median_input"] = summ["median"] * f
-            summ["max_input"] = summ["max"] * f
+        units = getattr(m, "units", "")
+        summ["units"] = units
+        f = 1.0 / float(scale) ** power
+        for k in ("mean", "median", "max", "std"):
+            summ[f"{k}_input"] = summ[k] * f
+        summ["units_input"] = units.replace("input", in_units)
         out[m.name] = summ
     return out
 

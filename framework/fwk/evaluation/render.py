@@ -63,6 +63,20 @@ def _cells(cells) -> list[list[dict]]:
     return out
 
 
+def _bars(cells: list[list[dict]]) -> None:
+    """Where ``show_bar`` is not given: one colour bar per row and per (title, limits) group,
+    under the group's last cell; titles made unique per row (pyvista keeps one bar per title)."""
+    for i, row in enumerate(cells):
+        last = {}
+        for j, c in enumerate(row):
+            if c.get("scalars") is not None and "show_bar" not in c:
+                last[(c.get("bar", ""), tuple(c["clim"]) if c.get("clim") is not None else None)] = j
+        for j, c in enumerate(row):
+            if c.get("scalars") is not None and "show_bar" not in c:
+                c["show_bar"] = j in last.values()
+            c["bar_title"] = (c.get("bar") or " ") + " " * (i * len(row) + j)
+
+
 def _shared_clims(cells: list[list[dict]]) -> None:
     groups: dict = {}
     for row in cells:
@@ -111,6 +125,7 @@ def render_grid(cells: list[list], template, path, view: str | float | list = "f
     """
     cells = _cells(cells)
     _shared_clims(cells)
+    _bars(cells)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     for row in cells:
@@ -160,7 +175,7 @@ def _render_pyvista(cells, template, path, cell_size, cmap, titles, scale) -> Pa
                                 smooth_shading=True, show_scalar_bar=False)
                     if cell.get("show_bar", True):
                         # two labels (the limits): a middle label would sit under the title
-                        pl.add_scalar_bar(title=cell.get("bar") or " ", n_labels=2, vertical=False, width=0.7,
+                        pl.add_scalar_bar(title=cell["bar_title"], n_labels=2, vertical=False, width=0.7,
                                           height=0.06, position_x=0.15, position_y=0.03, color="black",
                                           title_font_size=11, label_font_size=10, fmt="%.3g")
                 if titles and cell.get("label"):

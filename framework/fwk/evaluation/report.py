@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -19,8 +20,16 @@ def _fmt(x, scale=1.0) -> str:
     return f"{v:.4g}"
 
 
-def markdown_table(rows: list[list], columns: list[str]) -> str:
-    head = "| " + " | ".join(columns) + " |"
+def markdown_table(rows: list[list], columns: list[str], units=None) -> str:
+    """A GitHub markdown table. ``units``: None, a list aligned with ``columns`` or a dict
+    column -> unit; a unit is shown in the header as ``name (unit)`` (empty units are skipped)."""
+    if units is not None:
+        if isinstance(units, dict):
+            units = [units.get(c, "") for c in columns]
+        if len(units) != len(columns):
+            raise ValueError(f"{len(units)} units for {len(columns)} columns")
+        columns = [f"{c} ({u})" if u else str(c) for c, u in zip(columns, units)]
+    head = "| " + " | ".join(str(c) for c in columns) + " |"
     sep = "| " + " | ".join("---" for _ in columns) + " |"
     body = ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
     return "\n".join([head, sep, *body])
@@ -46,28 +55,64 @@ def metric_columns(results: dict) -> list[str]:
 DISPLAY = {"l1": 1e-3, "l2": 1e-5, "euclidean": 1e-3, "dame": 1e-2, "fmpd": 1e-2}
 
 
+def _units_of(results: dict, metric: str, key: str = "units") -> str:
+    for per_split in results.get("models", {}).values():
+        for per_metric in per_split.values():
+            u = per_metric.get(metric, {}).get(key)
+            if u:
+                return u
+    return ""
+
+
+def _eval_unit(metric: str, units: str) -> str:
+    """Header unit in the evaluation space: the thesis's display factor, and the unit unless it
+    is the positions' own (the evaluation space has none: it is scaled into [-1, 1])."""
+    f = _scale_label(DISPLAY.get(metric, 1.0)).strip()
+    u = "" if (not units or "input" in units or units == "1") else units
+    return " ".join(x for x in (u, f) if x)
+
+
 def results_tables(results: dict, units: str = "") -> str:
-    """One table per split: rows = models, columns = metrics (mean, thesis display scale),
-    then one table of the same means in the dataset's units where defined."""
+    """One table per split: rows = models, columns = metrics (mean over meshes, divided by the
+    thesis's display factor in the header), then one table of the means in the dataset's units
+    (rows = model and split) where the task recorded them."""
     out = []
     metrics = metric_columns(results)
     models = list(results.get("models", {}))
-    for split in SPLIT_ORDER:
-        if not any(split in results["models"][m] for m in models):
-            continue
-        cols = ["model"] + [f"{m}{_scale_label(DISPLAY.get(m, 1.0))}" for m in metrics]
+    for split in _splits(results):
+        cols = ["model"] + metrics
+        cu = [""] + [_eval_unit(m, _units_of(results, m)) for m in metrics]
         rows = []
         for label in models:
             r = results["models"][label].get(split, {})
+            if not r:
+                continue
             rows.append([label] + [_fmt(r.get(m, {}).get("mean"), DISPLAY.get(m, 1.0)) for m in metrics])
-        out.append(f"### {split} (mean over meshes, evaluation space)\n\n" + markdown_table(rows, cols))
-    inp = [m for m in metrics if any("mean_input" in results["models"][l].get("test", {}).get(m, {}) for l in models)]
-    if inp and units:
-        cols = ["model"] + [f"{m} ({units}{'^2' if m == 'l2' else ''})" for m in inp]
-        rows = [[label] + [_fmt(results["models"][label].get("test", {}).get(m, {}).get("mean_input")) for m in inp]
-                for label in models]
-        out.append(f"### test, in the dataset's units ({units})\n\n" + markdown_table(rows, cols))
+        out.append(f"### {split}: mean over meshes, evaluation space\n\n" + markdown_table(rows, cols, cu))
+    inp = [m for m in metrics if any("mean_input" in r.get(m, {}) for l in models
+                                     for r in results["models"][l].values())]
+    if inp:
+        cols = ["model", "split"] + inp
+        cu = ["", ""] + [_units_of(results, m, "units_input")
+                         or (units + ("^2" if m == "l2" else "") if units else "") for m in inp]
+        rows = []
+        for label in models:
+            for split in _splits(results):
+                r = results["models"][label].get(split)
+                if r:
+                    rows.append([label, split] + [_fmt(r.get(m, {}).get("mean_input")) for m in inp])
+        out.append("### mean over meshes, in the dataset's units\n\n" + markdown_table(rows, cols, cu))
     return "\n\n".join(out)
+
+
+def _splits(results: dict) -> list[str]:
+    seen = []
+    for per in results.get("models", {}).values():
+        for s in per:
+            if s not in seen:
+                seen.append(s)
+    order = {s: i for i, s in enumerate(SPLIT_ORDER)}
+    return sorted(seen, key=lambda s: (order.get(s, len(order)), seen.index(s)))
 
 
 def write_report(ctx, title: str, results: dict, figures: dict | None = None, notes: list[str] | None = None,
@@ -75,7 +120,7 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
     """Write ``metrics.json`` (``results`` plus figure paths and notes) and ``report.md``."""
     figures = figures or {}
     results = dict(results)
-    results["figures"] = {k: str(v) for k, v in figures.items()}
+    results["figures"] = {k: _relative(v, ctx.run_dir) for k, v in figures.items()}
     results["notes"] = list(notes or [])
     ctx.write_json("metrics.json", results)
     units = results.get("dataset", {}).get("units", "")
@@ -101,9 +146,18 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
     if figures:
         parts.append("\n## Figures\n")
         for name, p in figures.items():
-            rel = Path(p).relative_to(ctx.run_dir) if Path(p).is_absolute() and ctx.run_dir in Path(p).parents else p
+            rel = _relative(p, ctx.run_dir)
             parts.append(f"### {name}\n\n![{name}]({rel})\n")
     return ctx.write_text("report.md", "\n".join(parts) + "\n")
+
+
+def _relative(p, run_dir) -> str:
+    """A figure path as report.md (in run_dir) must link it."""
+    p, run_dir = Path(p), Path(run_dir)
+    try:
+        return Path(p).resolve().relative_to(run_dir.resolve()).as_posix()
+    except ValueError:
+        return p.as_posix() if not p.is_absolute() else os.path.relpath(p, run_dir)
 
 
 def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metrics, n_rows: int = 2,
