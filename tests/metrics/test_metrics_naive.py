@@ -181,3 +181,113 @@ def test_more_noise_scores_higher_on_average(name):
         P = np.stack([V + rng.normal(0, sigma, V.shape) for _ in range(4)])
         means.append(m(P, np.stack([V] * 4), t)[0].mean())
     assert means[0] < means[1] < means[2]
+
+
+def naive_fmpd(P, T, F):
+    """Score and per-vertex map from the loop roughness above (steps 3-5 in plain Python)."""
+    from fwk_fmpd import EPS, EXP
+
+    R1, a1 = naive_fmpd_roughness(T, F)
+    R2, a2 = naive_fmpd_roughness(P, F)
+    rb1, rb2 = (R1 * a1).sum() / a1.sum(), (R2 * a2).sum() / a2.sum()
+    lo = min(rb1, rb2)
+    rmax, tt = max(0.2, 5 * lo), max(lo, EPS)
+    thr = tt ** EXP - EPS ** EXP
+
+    def mod(r):
+        x = min(max(r, EPS), rmax) ** EXP - EPS ** EXP
+        return (x - thr) * 0.5 + thr if x > thr else x
+
+    M1 = np.array([mod(r) for r in R1])
+    M2 = np.array([mod(r) for r in R2])
+    g1, g2 = (M1 * a1).sum() / a1.sum(), (M2 * a2).sum() / a2.sum()
+    return min(1.0, 8 * abs(g1 - g2)), 8 * np.abs(M1 - M2)
+
+
+def test_fmpd_naive_open_mesh_and_map():
+    """Border vertices use c = pi; the per-vertex map matches the loops too."""
+    V, t = small_mesh()
+    P = V + np.random.default_rng(6).normal(0, 0.01, V.shape)
+    ref_s, ref_m = naive_fmpd(P, V, t.triangles)
+    s, m = REG.get("metric", "fmpd")()(P[None], V[None], t)
+    assert s[0] == pytest.approx(ref_s, rel=1e-10)
+    assert np.allclose(m[0], ref_m, rtol=1e-9, atol=1e-12)
+
+
+def test_fmpd_batch_of_two_targets():
+    V, t = icosphere(1)
+    rng = np.random.default_rng(7)
+    T = np.stack([V, V * [1.0, 1.2, 0.9]])
+    P = T + rng.normal(0, 0.02, T.shape)
+    s, _ = REG.get("metric", "fmpd")()(P, T, t)
+    for i in range(2):
+        assert s[i] == pytest.approx(naive_fmpd(P[i], T[i], t.triangles)[0], rel=1e-10)
+
+
+def test_dame_ignores_non_manifold_and_flipped_edges():
+    """An edge with three faces, and one whose two faces disagree in orientation, are skipped;
+    moving only the vertex that creates them changes nothing that the naive loop would count."""
+    V, t = icosphere(1)
+    F = t.triangles.copy()
+    F[0] = F[0][::-1]  # flip one face: its three edges become inconsistently oriented
+    e = F[5][:2]
+    extra = np.vstack([V, V[e].mean(0) + 0.3 * V[e].mean(0)])
+    F = np.vstack([F, [e[0], e[1], len(V)]])  # a third face on one edge: non-manifold
+    tt = Template(extra, F)
+    P = extra + np.random.default_rng(8).normal(0, 0.02, extra.shape)
+    s, vm = REG.get("metric", "dame")()(P[None], extra[None], tt)
+    ref_s, ref_vm = naive_dame(P, extra, F)
+    assert s[0] == pytest.approx(ref_s, rel=1e-10)
+    assert np.allclose(vm[0], ref_vm, atol=1e-12)
+    assert vm[0][len(V)] == 0  # the extra vertex has no interior manifold edge
+
+
+def test_dame_visibility_none_is_the_plain_edge_mean():
+    V, t = icosphere(1)
+    P = V + np.random.default_rng(9).normal(0, 0.02, V.shape)
+    s, vm = REG.get("metric", "dame")(visibility="none")(P[None], V[None], t)
+    # with equal weights the score is the mean over edges of the masked error; a vertex's map
+    # value is the mean over its edges, so the degree-weighted mean of the map equals the score
+    import fwk_dame
+
+    ang, _ = fwk_dame.oriented_dihedral(V, t)
+    deg = np.bincount(t.edges.ravel(), minlength=len(V))
+    assert (vm[0] * deg).sum() / deg.sum() == pytest.approx(s[0], rel=1e-10)
+    assert ang.shape[1] == len(t.edges)  # a closed sphere: every edge is interior
+
+
+def test_wrap_range():
+    from fwk_dame import wrap
+
+    x = np.array([-np.pi, np.pi, 3 * np.pi, 0.5, -0.5 - 2 * np.pi, 7.0])
+    w = wrap(x)
+    assert np.all(w > -np.pi) and np.all(w <= np.pi)
+    assert np.allclose(np.cos(w), np.cos(x)) and np.allclose(np.sin(w), np.sin(x))
+    assert w[0] == pytest.approx(np.pi) and w[1] == pytest.approx(np.pi)
+
+
+def test_topology_structures_are_reused():
+    import fwk_dame
+    import fwk_fmpd
+
+    V, t = icosphere(2)
+    t2 = Template(V.copy(), t.triangles.copy())  # another object with the same topology
+    assert fwk_dame._prep(t) is fwk_dame._prep(t2)
+    assert fwk_fmpd._prep(t) is fwk_fmpd._prep(t2)
+
+
+@pytest.mark.parametrize("name", ["dame", "fmpd"])
+def test_invariant_on_a_head_sized_mesh(name):
+    """Rigid motion and uniform scale on a finer, irregular mesh (float64 round-off only)."""
+    from scipy.spatial.transform import Rotation
+
+    V, t = icosphere(3)
+    V = V * [1.0, 1.3, 0.9]
+    rng = np.random.default_rng(10)
+    P = V + rng.normal(0, 0.01, V.shape)
+    R = Rotation.from_rotvec([0.4, -1.2, 2.0]).as_matrix()
+    m = REG.get("metric", name)()
+    s1, m1 = m(P[None], V[None], t)
+    s2, m2 = m((0.01 * P @ R.T - 5)[None], (0.01 * V @ R.T - 5)[None], t)
+    assert s2[0] == pytest.approx(s1[0], rel=1e-7)
+    assert np.allclose(m1, m2, rtol=1e-6, atol=1e-9)

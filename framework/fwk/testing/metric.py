@@ -1,4 +1,18 @@
-"""MetricContract: what every metric plugin must satisfy."""
+"""MetricContract: what every metric plugin must satisfy.
+
+Subclass it in a test module and set ``component`` (the metric class) and optionally
+``params`` (constructor arguments)::
+
+    class TestMyMetric(MetricContract):
+        component = MyMetric
+
+Checked: ``name``/``units`` declared; scores (b,) and per-vertex maps (b, n), float64 and
+finite; identical meshes score 0 everywhere; a batch equals its meshes one at a time;
+(n, 3) inputs act as a batch of one; a metric declaring ``rigid_invariant = True`` gives the
+same scores after a rigid motion of both meshes, one declaring ``scale_invariant = True`` after
+a uniform scaling, and one declaring ``power = p`` scales as s**p; a metric whose
+score is a non-negative distance grows with the size of a perturbation on average.
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -29,6 +43,7 @@ class MetricContract:
         m = self.make()
         assert isinstance(m.name, str) and m.name
         assert isinstance(getattr(m, "units", None), str)
+        assert (m.__doc__ or "").strip(), "the class docstring is the `fwk list` summary"
 
     def test_shapes_and_identity(self):
         V, t = small_mesh()
@@ -37,9 +52,29 @@ class MetricContract:
         T = np.stack([V] * 3)
         s, m = self.make()(P, T, t)
         assert s.shape == (3,) and m.shape == (3, len(V))
+        assert s.dtype == np.float64 and m.dtype == np.float64
         assert np.all(np.isfinite(s)) and np.all(np.isfinite(m))
+        assert np.all(s > 0), "a perturbed mesh must not score 0"
         s0, m0 = self.make()(T, T, t)
-        assert np.allclose(s0, 0) and np.allclose(m0, 0)
+        assert s0.shape == (3,) and m0.shape == (3, len(V))
+        assert np.allclose(s0, 0, atol=1e-12) and np.allclose(m0, 0, atol=1e-12)
+
+    def test_single_mesh_is_a_batch_of_one(self):
+        V, t = small_mesh()
+        P = V + np.random.default_rng(3).normal(0, 0.01, V.shape)
+        s1, m1 = self.make()(P, V, t)
+        s2, m2 = self.make()(P[None], V[None], t)
+        assert np.asarray(s1).shape == (1,) and np.asarray(m1).shape == (1, len(V))
+        assert np.allclose(s1, s2) and np.allclose(m1, m2)
+
+    def test_larger_perturbation_scores_higher(self):
+        V, t = small_mesh()
+        rng = np.random.default_rng(4)
+        noise = rng.normal(0, 1, (6,) + V.shape)
+        m = self.make()
+        lo = m(V + 0.002 * noise, np.stack([V] * 6), t)[0].mean()
+        hi = m(V + 0.02 * noise, np.stack([V] * 6), t)[0].mean()
+        assert hi > lo
 
     def test_batch_equals_single(self):
         V, t = small_mesh()
@@ -61,6 +96,19 @@ class MetricContract:
         rng = np.random.default_rng(2)
         P = V + rng.normal(0, 0.01, V.shape)
         R = Rotation.from_euler("xyz", [0.3, -0.5, 1.1]).as_matrix()
+        s1, m1 = m(P[None], V[None], t)
+        s2, m2 = m((P @ R.T + 3.0)[None], (V @ R.T + 3.0)[None], t)
+        assert np.allclose(s1, s2, rtol=1e-8, atol=1e-12) and np.allclose(m1, m2, rtol=1e-7, atol=1e-10)
+
+    def test_uniform_scale(self):
+        """scale_invariant: same scores after scaling both meshes; otherwise, with a declared
+        ``power`` p, the scores scale as s**p."""
+        m = self.make()
+        V, t = small_mesh()
+        P = V + np.random.default_rng(5).normal(0, 0.01, V.shape)
         s1, _ = m(P[None], V[None], t)
-        s2, _ = m((2.5 * P @ R.T + 3.0)[None], (2.5 * V @ R.T + 3.0)[None], t)
-        assert np.allclose(s1, s2, rtol=1e-8, atol=1e-12)
+        s2, _ = m((2.5 * P)[None], (2.5 * V)[None], t)
+        if getattr(m, "scale_invariant", False):
+            assert np.allclose(s1, s2, rtol=1e-8, atol=1e-12)
+        elif getattr(m, "power", None):
+            assert np.allclose(s2, s1 * 2.5 ** m.power, rtol=1e-10)
