@@ -21,7 +21,8 @@ With ``residual_rate`` r the block adds a residual path (Zhou et al.'s up/down r
 y = sqrt(1 - r) conv(x) + sqrt(r) res(x), where res averages the input over the same support
 with learned non-negative weights normalised to sum to one (|w_ij| / sum_j |w_ij|; the identity
 when the vertex count is unchanged) followed by a linear channel map when c_in != c_out.
-Neighbourhoods are padded to a fixed size with a mask; everything is gathers and einsums.
+Neighbourhoods are padded to a fixed size with a mask; everything is one gather and two matrix
+products (batched over output vertices, then over vertices and samples).
 """
 from __future__ import annotations
 
@@ -85,14 +86,15 @@ class VCConv(nn.Module):
             self.res_w = nn.Parameter(torch.ones(self.n_out, K)) if mode != "same" else None
             self.res_lin = nn.Linear(in_channels, out_channels, bias=False) if in_channels != out_channels else None
 
-    def _gather(self, x):
-        b, n, c = x.shape
-        return x[:, self.index.reshape(-1)].reshape(b, self.n_out, self.K, c) * self.mask[None, :, :, None]
-
     def forward(self, x):
-        X = self._gather(x)
-        T = torch.einsum("nkm,bnkc->bnmc", self.coef, X)
-        y = torch.einsum("bnmc,mco->bno", T, self.basis) + self.bias
+        b, _, c = x.shape
+        n, K, M = self.n_out, self.K, self.coef.shape[2]
+        # vertex-major gather (n, K, b c): one batched (M x K) @ (K x b c) product per output vertex,
+        # then one (b n, M c) @ (M c, c_out) product; padded neighbours get zero coefficients
+        X = x.transpose(0, 1)[self.index.reshape(-1)].reshape(n, K, b * c)
+        A = self.coef * self.mask[:, :, None]
+        T = torch.bmm(A.transpose(1, 2), X).reshape(n, M, b, c).permute(2, 0, 1, 3).reshape(b * n, M * c)
+        y = (T @ self.basis.reshape(M * c, -1)).reshape(b, n, -1) + self.bias
         if self.r is None:
             return y
         if self.res_w is None:
@@ -100,7 +102,7 @@ class VCConv(nn.Module):
         else:
             w = self.res_w.abs() * self.mask
             w = w / w.sum(1, keepdim=True).clamp_min(1e-12)
-            res = torch.einsum("nk,bnkc->bnc", w, X)
+            res = torch.bmm(w[:, None, :], X).reshape(n, b, c).transpose(0, 1)
         if self.res_lin is not None:
             res = self.res_lin(res)
         return math.sqrt(1 - self.r) * y + math.sqrt(self.r) * res
