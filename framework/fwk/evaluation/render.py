@@ -236,7 +236,7 @@ def _render_matplotlib(cells, template, path, cell_size, cmap_name, titles, scal
                 if cell.get("show_bar", True):
                     sm = matplotlib.cm.ScalarMappable(norm=norm, cmap=cm)
                     cb = fig.colorbar(sm, ax=ax, orientation="horizontal", fraction=0.05, pad=0.02)
-                    cb.set_label(cell.get("bar") or "")
+                    cb.ax.set_title(cell.get("bar") or "", fontsize=8)
             order = np.argsort(z[F].mean(1))
             order = order[visible[order]]
             pc = PolyCollection(tri[order], facecolors=np.clip(base[order] * shade[order, None], 0, 1),
