@@ -153,7 +153,7 @@ class Blendshapes:
             for row_label, per_e in rows.items():
                 for e, P in per_e.items():
                     preds[e][row_label] = P
-            if getattr(model, "sweep", None):
+            if hasattr(model, "sweep") and isinstance(getattr(model, "k", None), dict):
                 results["pbs"][label] = {"k": dict(model.k), "sweep": model.sweep}
         # metrics
         row_labels = list(dict.fromkeys(r for e in expressions for r in preds[e]))
@@ -227,8 +227,36 @@ class Blendshapes:
         return rows
 
     # ------------------------------------------------------------------ tables
+    def _summary(self, results, expressions, rows) -> str:
+        """Plain sentences: does each PBS beat DT and its single PBs on L1 and on DAME?"""
+        lines = []
+        pbs = [r for r in rows if r in results["pbs"]]
+        dts = [r for r in rows if r.startswith("dt")]
+        for e in expressions:
+            r = results["blendshapes"][e]
+            for p in pbs:
+                if p not in r:
+                    continue
+                others = [x for x in dts if x in r] + [x for x in rows if x.startswith(p + ":") and x in r]
+                for m in ("l1", "dame"):
+                    if m not in r[p]:
+                        continue
+                    v = r[p][m]["mean"]
+                    better = [x for x in others if v < r[x][m]["mean"]]
+                    worse = [x for x in others if v >= r[x][m]["mean"]]
+                    parts = []
+                    if better:
+                        parts.append("beats " + ", ".join(f"{x} ({(1 - v / r[x][m]['mean']) * 100:.0f}% lower)" for x in better))
+                    if worse:
+                        parts.append("does not beat " + ", ".join(f"{x} ({(v / r[x][m]['mean'] - 1) * 100:.0f}% higher)" for x in worse))
+                    lines.append(f"- {e}, {LABEL[m]}: `{p}` (k = {results['pbs'][p]['k'].get(e, 'n')}) " + "; ".join(parts) + ".")
+        return "\n".join(lines)
+
     def _tables(self, results, expressions, rows, metric_names) -> list:
         sections = []
+        summary = self._summary(results, expressions, rows)
+        if summary:
+            sections.append(("Summary: PBS against DT and the single PBs (test)", summary))
         cols = ["expression", "metric", *rows]
         body = []
         for e in expressions:
@@ -349,8 +377,9 @@ class Blendshapes:
             for key in ("l1", "dame"):
                 if key not in by:
                     continue
-                vals = np.concatenate([maps[r][key]["maps"].ravel() for r in labels])
-                clim = (0.0, float(np.percentile(vals, 99)) or 1e-12)
+                # shared limits: the median over methods of their 99th percentiles, so one poor
+                # method saturates instead of washing out everyone else's map
+                clim = (0.0, float(np.median([np.percentile(maps[r][key]["maps"], 99) for r in labels])) or 1e-12)
                 rows = []
                 for i in range(n):
                     row = [{"V": N[i], "label": f"neutral {i}"}, {"V": G[i], "label": "ground truth"}]

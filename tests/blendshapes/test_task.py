@@ -1,0 +1,72 @@
+"""Task blendshapes end to end on a tiny template: tables, PBS sweep, figures, saved models, and
+`fwk apply` with the trained PBS writing every expression."""
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from fwk.testing.task import TaskContract
+
+NET = {"name": "vae", "channels": [8], "latent": 4, "sampler": {"name": "quadric", "factors": [4]}}
+PARAMS = {"dataset": {"name": "synthetic-heads", "n_vertices": 300, "n_subjects": 12,
+                      "shapes": ["neutral", "mouth-wide", "face-compression"]},
+          "split": {"ratios": [0.6, 0.2, 0.2]},
+          "models": {"dt": {"name": "dt"}, "pbs": {"name": "pbs", "network": NET, "ks": [0, 10, 40, 10000]}},
+          "metrics": ["l1", "l2", "dame", "fmpd"], "renders": 0}
+
+
+def _blendshapes():
+    from fwk.plugins import get_registry
+
+    return get_registry().get("task", "blendshapes")
+
+
+class TestBlendshapesContract(TaskContract):
+    component = property(lambda self: _blendshapes())
+    params = PARAMS
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    from fwk.runs import execute
+
+    tmp = tmp_path_factory.mktemp("bs")
+    recipe = {"name": "bs-test", "task": "blendshapes", "seed": 0, "train": {"epochs": 1, "batch_size": 4},
+              **PARAMS, "renders": 1}
+    (tmp / "r.yaml").write_text(yaml.safe_dump(recipe))
+    return execute(str(tmp / "r.yaml"), runs_dir=str(tmp / "runs"), quiet=True)
+
+
+def test_report_has_the_thesis_tables_and_figures(run):
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["apply_model"] == "pbs"
+    for e in ("mouth-wide", "face-compression"):
+        rows = m["blendshapes"][e]
+        assert {"dt", "pbs", "pbs:pb-euclidean-std", "pbs:pb-dr-norm"} <= set(rows)
+        assert all(np.isfinite(rows[r]["l1"]["mean"]) for r in rows)
+        s = m["pbs"]["pbs"]["sweep"][e]
+        assert s["ks"] == [0, 10, 40, m["dataset"]["n_vertices"]] and s["chosen"] in s["ks"]  # k capped at n
+        assert (run / "figures" / f"pbs_k_pbs_{e}_fmpd.png").exists()
+        assert (run / "figures" / f"methods_{e}_dame.png").exists()
+    report = (run / "report.md").read_text()
+    assert "layout of thesis table 5.2" in report and "Pareto-optimal k" in report and "Summary" in report
+    assert (run / "models" / "pbs.pt").exists() and (run / "stats" / "preprocess.npz").exists()
+
+
+def test_apply_with_the_trained_pbs(run, tmp_path):
+    from fwk.apply import Applier, apply
+    from fwk.data.io import read_obj, write_obj
+    from fwk.plugins import get_registry
+
+    col = get_registry().get("dataset", "synthetic-heads")(n_vertices=300, n_subjects=14).load(None)
+    V = np.asarray(col.positions[13, 0])  # a head the run never saw
+    write_obj(tmp_path / "me.obj", V, col.template)
+    files = apply(run, tmp_path / "me.obj", tmp_path / "out", log=lambda *_: None)
+    assert sorted(f.name for f in files) == ["face-compression.obj", "mouth-wide.obj"]
+    app = Applier(run)
+    assert app.label == "pbs" and app.model.k == json.loads((run / "metrics.json").read_text())["pbs"]["pbs"]["k"]
+    P, _ = read_obj(tmp_path / "out" / "mouth-wide.obj")
+    assert np.allclose(P, app.predict([V])[0]["mouth-wide"], atol=1e-6)
+    # the prediction is in the user's units and place: close to the neutral, not to the mean
+    assert np.abs(P - V).mean() < 0.2 * np.abs(V - V.mean(0)).mean()
