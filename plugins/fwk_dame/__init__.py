@@ -50,6 +50,10 @@ from fwk.hookspecs import hookimpl
 MASK_SCALE = 0.1
 
 
+#: pairs evaluated per vectorised pass
+CHUNK = 2
+
+
 @dataclass
 class _Prep:
     """Per-topology structures (built once, cached)."""
@@ -167,6 +171,14 @@ class DAME:
             pred, target = pred[None], target[None]
         if pred.shape != target.shape:
             raise ValueError(f"prediction {pred.shape} and target {target.shape} differ in shape")
+        # a few pairs at a time: the intermediates of large batches fall out of cache (measured:
+        # 4 ms per 11k pair one by one, 8-9 ms per pair in one batch of 16)
+        parts = [self._chunk(pred[i:i + CHUNK], target[i:i + CHUNK], template) for i in range(0, len(pred), CHUNK)]
+        if not parts:
+            return np.zeros(0), np.zeros((0, pred.shape[1]))
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+    def _chunk(self, pred, target, template):
         p = _prep(template)
         b = len(target)
         phi, area = _dihedral(_soa(np.concatenate([target, pred])), p)

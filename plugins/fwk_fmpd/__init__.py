@@ -45,6 +45,10 @@ SLOPE = 0.5
 GAIN = 8.0
 
 
+#: pairs evaluated per vectorised pass
+CHUNK = 2
+
+
 @dataclass
 class _Prep:
     F: np.ndarray            # (3, m)
@@ -153,6 +157,14 @@ class FMPD:
             pred, target = pred[None], target[None]
         if pred.shape != target.shape:
             raise ValueError(f"prediction {pred.shape} and target {target.shape} differ in shape")
+        # a few pairs at a time: the intermediates of large batches fall out of cache (measured:
+        # 4 ms per 11k pair one by one, 8-9 ms per pair in one batch of 16)
+        parts = [self._chunk(pred[i:i + CHUNK], target[i:i + CHUNK], template) for i in range(0, len(pred), CHUNK)]
+        if not parts:
+            return np.zeros(0), np.zeros((0, pred.shape[1]))
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+    def _chunk(self, pred, target, template):
         b = len(target)
         X = np.ascontiguousarray(np.concatenate([target, pred]).transpose(0, 2, 1))
         R, a = _roughness(X, _prep(template))
