@@ -26,10 +26,27 @@ def test_eval_folders_and_maps(tmp_path, capsys):
     for d, off in (("pred", 0.02), ("gt", 0.0)):
         for name in ("x/one.obj", "two.obj"):
             write_obj(tmp_path / d / name, V + off, t)
+    write_obj(tmp_path / "gt" / "only_here.obj", V, t)
     assert main(["eval", str(tmp_path / "pred"), str(tmp_path / "gt"), "--maps", str(tmp_path / "maps")]) == 0
-    out = capsys.readouterr().out
-    assert "2 mesh pair(s)" in out and "dame" in out
-    assert len(list((tmp_path / "maps").glob("*.npz"))) == 2
+    cap = capsys.readouterr()
+    assert "2 mesh pair(s)" in cap.out and "dame" in cap.out
+    assert "only_here.obj" in cap.err and "skipped" in cap.err
+    maps = sorted((tmp_path / "maps").glob("*.npz"))
+    assert [p.name for p in maps] == ["two.obj.npz", "x__one.obj.npz"]
+    z = np.load(maps[0])
+    assert set(z.files) == {"l1", "l2", "euclidean", "dame", "fmpd"} and z["l1"].shape == (len(V),)
+    assert np.allclose(z["l1"], 0.02)
+
+
+def test_eval_same_count_different_faces(tmp_path, capsys):
+    V, t = small_mesh()
+    write_obj(tmp_path / "a.obj", V, t)
+    F = t.triangles.copy()
+    F[3] = F[3][[1, 2, 0]][::-1]  # same vertices, opposite orientation
+    write_obj(tmp_path / "b.obj", V, Template(V, F))
+    assert main(["eval", str(tmp_path / "a.obj"), str(tmp_path / "b.obj")]) == 2
+    err = capsys.readouterr().err
+    assert "a.obj" in err and "b.obj" in err and "triangle 3" in err
 
 
 def test_eval_errors_name_files(tmp_path, capsys):

@@ -13,42 +13,60 @@ DEFAULT = ["l1", "l2", "euclidean", "dame", "fmpd"]
 SUFFIXES = (".obj", ".ply")
 
 
-def _pairs(a: Path, b: Path) -> list[tuple[Path, Path]]:
+def _pairs(a: Path, b: Path) -> tuple[list[tuple[Path, Path]], list[Path]]:
+    """Pairs of files, and the files (of either folder) without a partner."""
     for p in (a, b):
         if not p.exists():
             raise DataError(f"{p}: no such file or folder")
     if a.is_file() and b.is_file():
-        return [(a, b)]
+        return [(a, b)], []
     if a.is_dir() and b.is_dir():
         rel_a = {p.relative_to(a) for p in a.rglob("*") if p.suffix.lower() in SUFFIXES}
         rel_b = {p.relative_to(b) for p in b.rglob("*") if p.suffix.lower() in SUFFIXES}
         common = sorted(rel_a & rel_b)
         if not common:
             raise DataError(f"{a} and {b}: no mesh files with the same relative path")
-        return [(a / r, b / r) for r in common]
+        lonely = [a / r for r in sorted(rel_a - rel_b)] + [b / r for r in sorted(rel_b - rel_a)]
+        return [(a / r, b / r) for r in common], lonely
     raise DataError(f"{a} and {b}: give two mesh files or two folders")
 
 
+def _same_topology(pa, ta, pb, tb) -> None:
+    """TopologyError naming both files and what differs."""
+    if ta.n_vertices != tb.n_vertices:
+        raise TopologyError(f"{pa} ({ta.n_vertices} vertices) and {pb} ({tb.n_vertices} vertices) "
+                            "do not share a topology")
+    if ta.triangles.shape != tb.triangles.shape:
+        raise TopologyError(f"{pa} ({len(ta.triangles)} triangles) and {pb} ({len(tb.triangles)} triangles) "
+                            "do not share a topology")
+    diff = np.flatnonzero((ta.triangles != tb.triangles).any(1))
+    if len(diff):
+        raise TopologyError(f"{pa} and {pb} have the same vertex count but different faces "
+                            f"(first difference at triangle {int(diff[0])})")
+
+
 def compare_paths(a, b, metrics: list[str] | None = None, maps_dir=None, registry=None) -> dict:
-    from ..data.io import check_topology, read_mesh
+    """Metrics of ``a`` (prediction) against ``b`` (reference): two mesh files, or two folders
+    whose OBJ/PLY files are paired by relative path (all with one topology). Returns
+    ``{"metrics": {name: {mean, median, max}}, "units": {name: units}, "pairs": count}``;
+    ``maps_dir`` receives one .npz of per-vertex maps per pair. User errors raise FwkError
+    subclasses naming the files."""
+    from ..data.io import read_mesh
     from ..plugins import get_registry
 
     registry = registry or get_registry()
     ms = [registry.get("metric", m, key_path="--metrics")() for m in (metrics or DEFAULT)]
-    pairs = _pairs(Path(a), Path(b))
+    pairs, lonely = _pairs(Path(a), Path(b))
     template = None
     P, T = [], []
     for pa, pb in pairs:
         Va, ta = read_mesh(pa)
         Vb, tb = read_mesh(pb)
-        try:
-            check_topology(tb, ta, pa)
-        except TopologyError as exc:
-            raise TopologyError(f"{pa} and {pb} do not share a topology ({str(exc).split(': ', 1)[1]})") from None
+        _same_topology(pa, ta, pb, tb)
         if template is None:
-            template = tb
+            template, first = tb, pb
         else:
-            check_topology(template, tb, pb)
+            _same_topology(first, template, pb, tb)
         for V, p in ((Va, pa), (Vb, pb)):
             if not np.all(np.isfinite(V)):
                 raise DataError(f"{p}: vertex positions contain NaN or infinite values")
@@ -63,7 +81,8 @@ def compare_paths(a, b, metrics: list[str] | None = None, maps_dir=None, registr
         for i, (pa, _) in enumerate(pairs):
             name = str(pa.relative_to(a) if Path(a).is_dir() else pa.name).replace("/", "__")
             np.savez(d / f"{name}.npz", **{m.name: res[m.name]["maps"][i] for m in ms})
-    return {"metrics": out, "units": {m.name: m.units for m in ms}, "pairs": len(pairs)}
+    return {"metrics": out, "units": {m.name: m.units for m in ms}, "pairs": len(pairs),
+            "unmatched": [str(p) for p in lonely]}
 
 
 def add_eval_parser(sub):
@@ -78,6 +97,12 @@ def add_eval_parser(sub):
 
 def run_eval(args) -> int:
     r = compare_paths(args.a, args.b, args.metrics, args.maps)
+    if r["unmatched"]:
+        import sys
+
+        more = f" and {len(r['unmatched']) - 3} more" if len(r["unmatched"]) > 3 else ""
+        print(f"warning: {len(r['unmatched'])} file(s) without a partner in the other folder were skipped: "
+              f"{', '.join(r['unmatched'][:3])}{more}", file=sys.stderr)
     if args.json:
         print(json.dumps(r["metrics"]))
         return 0
