@@ -45,17 +45,19 @@ def combine(runs: list[Path], out: Path) -> Path:
     from .report import scatter_figure, write_report
 
     merged = {"models": {}, "runs": {}}
+    groups = {}
     for r in runs:
         m = _load(r)
         for label, per in m.get("models", {}).items():
             key = label if len(runs) == 1 else f"{r.name}:{label}"
             merged["models"][key] = per
+            groups[key] = r.name
         merged["runs"][r.name] = str(r)
         merged.setdefault("dataset", m.get("dataset", {}))
     ctx = _Dir(out)
     figures = {}
     for y in ("dame", "fmpd"):
-        f = scatter_figure(ctx, merged, "test", "l1", y)
+        f = scatter_figure(ctx, merged, "test", "l1", y, groups=groups if len(runs) > 1 else None)
         if f is not None:
             figures[f"L1 against {y.upper()} (test), Pareto front dashed"] = f
     title = "Comparison of " + ", ".join(r.name for r in runs)

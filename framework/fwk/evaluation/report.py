@@ -198,7 +198,10 @@ def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metri
     return figures
 
 
-def scatter_figure(ctx, results: dict, split: str = "test", x: str = "l1", y: str = "dame", name: str | None = None):
+def scatter_figure(ctx, results: dict, split: str = "test", x: str = "l1", y: str = "dame", name: str | None = None,
+                   groups: dict | None = None):
+    """Scatter of the models' mean ``x`` against mean ``y`` on ``split`` with the Pareto front;
+    None when no model has both."""
     pts = {}
     for label, per in results.get("models", {}).items():
         r = per.get(split, {})
@@ -206,5 +209,10 @@ def scatter_figure(ctx, results: dict, split: str = "test", x: str = "l1", y: st
             pts[label] = (r[x]["mean"], r[y]["mean"])
     if not pts:
         return None
-    return scatter_pareto(pts, ctx.path("figures", name or f"{split}_{x}_{y}_scatter.png"), f"{x.upper()} ({split})",
-                          f"{y.upper()} ({split})", title=f"{x.upper()} against {y.upper()}, {split} split")
+    def label(m):
+        u = _eval_unit(m, _units_of(results, m)).replace(_scale_label(DISPLAY.get(m, 1.0)).strip(), "").strip()
+        return f"{m.upper()} ({split}{', ' + u if u else ''})"
+
+    groups = {k: g for k, g in (groups or {}).items() if k in pts} or None
+    return scatter_pareto(pts, ctx.path("figures", name or f"{split}_{x}_{y}_scatter.png"), label(x), label(y),
+                          title=f"{x.upper()} against {y.upper()}, {split} split", groups=groups)
