@@ -7,8 +7,7 @@ Subclass it in a test module and set ``component`` (the metric class) and option
         component = MyMetric
 
 Checked: ``name``/``units`` declared; scores (b,) and per-vertex maps (b, n), float64 and
-finite; identical meshes score 0 everywhere; a batch equals its meshes one at a time;
-(n, 3) inputs act as a batch of one; a metric declaring ``rigid_invariant = True`` gives the
+finite; identical meshes score 0 everywhere; a batch equals its meshes one at a time; a metric declaring ``rigid_invariant = True`` gives the
 same scores after a rigid motion of both meshes, one declaring ``scale_invariant = True`` after
 a uniform scaling, and one declaring ``power = p`` scales as s**p; a metric whose
 score is a non-negative distance grows with the size of a perturbation on average.
@@ -58,14 +57,6 @@ class MetricContract:
         s0, m0 = self.make()(T, T, t)
         assert s0.shape == (3,) and m0.shape == (3, len(V))
         assert np.allclose(s0, 0, atol=1e-12) and np.allclose(m0, 0, atol=1e-12)
-
-    def test_single_mesh_is_a_batch_of_one(self):
-        V, t = small_mesh()
-        P = V + np.random.default_rng(3).normal(0, 0.01, V.shape)
-        s1, m1 = self.make()(P, V, t)
-        s2, m2 = self.make()(P[None], V[None], t)
-        assert np.asarray(s1).shape == (1,) and np.asarray(m1).shape == (1, len(V))
-        assert np.allclose(s1, s2) and np.allclose(m1, m2)
 
     def test_larger_perturbation_scores_higher(self):
         V, t = small_mesh()
