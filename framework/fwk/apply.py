@@ -118,6 +118,7 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
 
     t0 = time.perf_counter()
     app = Applier(run_dir, model, registry)
+    t_load = time.perf_counter() - t0
     neutral, out = Path(neutral), Path(out)
     files = _inputs(neutral)
     meshes = []
@@ -150,7 +151,7 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
         shutil.rmtree(tmp, ignore_errors=True)
     n = len(meshes)
     log(f"fwk apply: {n} neutral(s) x {len(preds[0]) if preds else 0} expression(s) with model {app.label} -> {out} "
-        f"(load {t0 and (t1 - t0):.2f} s incl. checks, predict {(t2 - t1) / max(n, 1):.2f} s per neutral, "
+        f"(loading the run {t_load:.2f} s, predicting {(t2 - t1) / max(n, 1):.2f} s per neutral, "
         f"total {time.perf_counter() - t0:.2f} s)")
     return written
 
