@@ -250,8 +250,9 @@ class _Blend:
         self.nets = nets
         self._latent_dim = latent
 
-    def _latent(self, b, X, sample: bool):
-        """(codes, kl): codes per expression (list) or one shared code."""
+    def _latent(self, b, X, sample: bool, only: int | None = None):
+        """(codes, kl): codes per expression (list; with ``only``, just that expression's code
+        is computed, the others are None) or one shared code."""
         net = self.nets[f"b{b}"]
         if self.conditional or self.mode == "two-step":
             mu, logvar = net.enc(X)
@@ -260,7 +261,10 @@ class _Blend:
             z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if (sample and logvar is not None) else mu
             return [z] * len(self.expressions), _kl(mu, logvar)
         zs, kl = [], 0.0
-        for enc in net.enc:
+        for i, enc in enumerate(net.enc):
+            if only is not None and i != only:
+                zs.append(None)
+                continue
             mu, logvar = enc(X)
             zs.append(mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if (sample and logvar is not None) else mu)
             kl = kl + _kl(mu, logvar)
@@ -363,7 +367,7 @@ class _Blend:
         """Network output F'_expr (b, n, c) of branch b for neutrals N in the evaluation space."""
         e = self.expressions.index(expression)
         X = torch.as_tensor(self.in_reps[b].encode(N))
-        zs, _ = self._latent(b, X, sample=False)
+        zs, _ = self._latent(b, X, sample=False, only=e)
         return self._decode(b, e, zs).numpy()
 
     def branch_predict(self, N, expression: str, b: int, target=None) -> np.ndarray:
