@@ -21,11 +21,12 @@ def _naive(conv, x, idx, mask):
 
 @pytest.mark.parametrize("mode,c_in,c_out", [("down", 3, 12), ("down", 12, 2), ("up", 12, 3), ("up", 2, 12)])
 @pytest.mark.parametrize("residual", [None, 0.5])
-def test_vcconv_matches_the_naive_sum(mode, c_in, c_out, residual):
+@pytest.mark.parametrize("order", ["sum", "kernel", "auto"])
+def test_vcconv_matches_the_naive_sum(mode, c_in, c_out, residual, order):
     h = REG.get("sampler", "simple")(levels=2).build(two_components())
     VC = REG.get("conv", "vcconv")
     torch.manual_seed(0)
-    conv = VC(c_in, c_out, h, 0, weight_num=5, mode=mode, residual_rate=residual)
+    conv = VC(c_in, c_out, h, 0, weight_num=5, mode=mode, residual_rate=residual, order=order)
     with torch.no_grad():
         conv.bias.normal_()
         if residual is not None:
@@ -42,3 +43,21 @@ def test_vcconv_matches_the_naive_sum(mode, c_in, c_out, residual):
             res = conv.res_lin(res)
         expect = 0.5 ** 0.5 * expect + 0.5 ** 0.5 * res
     assert torch.allclose(conv(x), expect, atol=1e-4)
+
+
+def test_vcconv_orders_agree_in_value_and_gradient():
+    h = REG.get("sampler", "simple")(levels=2).build(two_components())
+    VC = REG.get("conv", "vcconv")
+    torch.manual_seed(1)
+    conv = VC(6, 4, h, 0, weight_num=7, mode="up", residual_rate=0.5)
+    x = torch.randn(3, conv.n_in, 6)
+    grads = []
+    for order in ("sum", "kernel"):
+        conv.order = order
+        conv.zero_grad()
+        y = conv(x)
+        (y ** 2).sum().backward()
+        grads.append((y.detach(), [p.grad.clone() for p in conv.parameters()]))
+    assert torch.allclose(grads[0][0], grads[1][0], atol=1e-5)
+    for a, b in zip(grads[0][1], grads[1][1]):
+        assert torch.allclose(a, b, atol=1e-4, rtol=1e-4)
