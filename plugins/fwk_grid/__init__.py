@@ -8,6 +8,10 @@ mappings merged key by key as ``extends:`` does). Each member runs as a sub-run 
 ``metrics.json`` exists is finished and is not run again, so a killed grid resumes where it
 stopped (``fwk run --resume``). The grid's report has one row per configuration and model with
 L1, L2, DAME and FMPD on train and test, and the L1/DAME scatter with its Pareto front.
+
+``sweep: models.dsm.k`` (a dotted key of the members' recipes, numeric in each) names the value a
+study varies: the report then also plots every metric against it, one line per split (the k
+study of thesis figure 4.11), and the scatter labels each point with its value.
 """
 from __future__ import annotations
 
@@ -28,13 +32,29 @@ class Grid:
     name = "grid"
 
     def __init__(self, recipes: list[str] | None = None, base: str | None = None,
-                 configs: dict[str, dict] | None = None, splits: list[str] | None = None):
+                 configs: dict[str, dict] | None = None, splits: list[str] | None = None,
+                 sweep: str | None = None):
         if not recipes and not configs:
             raise RecipeError("recipes: a grid needs `recipes` or `base` with `configs`")
         if configs and not base:
             raise RecipeError("base: `configs` are merged onto a `base` recipe; give its path")
         self.recipes, self.base, self.configs = recipes or [], base, configs or {}
         self.splits = splits or ["train", "test"]
+        self.sweep = sweep
+
+    def sweep_values(self, members: dict[str, dict]) -> dict[str, float]:
+        """The value of ``sweep`` in each member's recipe (a RecipeError naming the member if absent)."""
+        out = {}
+        for name, data in members.items():
+            v = data
+            for part in self.sweep.split("."):
+                if not isinstance(v, dict) or part not in v:
+                    raise RecipeError(f"sweep: grid member {name} has no key {self.sweep!r}")
+                v = v[part]
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise RecipeError(f"sweep: {self.sweep} of grid member {name} is {v!r}, not a number")
+            out[name] = float(v)
+        return out
 
     def members(self, ctx) -> dict[str, dict]:
         from fwk.recipes import deep_merge, load_recipe
@@ -58,6 +78,7 @@ class Grid:
         from fwk.runs import RunContext, run_task
 
         members = self.members(ctx)
+        xs = self.sweep_values(members) if self.sweep else None
         resolved = {}
         for name, data in members.items():  # validate every member before running any
             try:
@@ -97,8 +118,36 @@ class Grid:
             f = scatter_figure(ctx, results, "test", "l1", y)
             if f is not None:
                 figures[f"L1 against {y.upper()} (test), Pareto front dashed"] = f
+        if xs:
+            f = self._sweep_figures(ctx, results, xs)
+            figures.update(f)
         write_report(ctx, f"Grid: {ctx.recipe.get('name', 'grid')} ({len(rows)} configurations)", results, figures,
                      sections=[("All configurations", markdown_table(rows, cols))])
+
+    def _sweep_figures(self, ctx, results: dict, xs: dict[str, float]) -> dict:
+        """Each metric against the swept value, one line per split and model (figure 4.11)."""
+        from fwk.evaluation.plots import line_plot
+        from fwk.evaluation.report import DISPLAY, _scale_label
+
+        key = self.sweep.rsplit(".", 1)[-1]
+        figures = {}
+        for m in COLUMNS:
+            series = {}
+            for label, per in results["models"].items():
+                member, _, model = label.partition("/")
+                for s in self.splits:
+                    v = per.get(s, {}).get(m, {}).get("mean")
+                    if v is not None and member in xs:
+                        name = f"{s}" + (f" {model}" if model else "")
+                        series.setdefault(name, []).append((xs[member], v / DISPLAY[m]))
+            if not series:
+                continue
+            series = {n: tuple(map(list, zip(*sorted(p)))) for n, p in series.items()}
+            path = line_plot(series, ctx.path("figures", f"sweep_{key}_{m}.png"), key,
+                             f"{m.upper()}{_scale_label(DISPLAY[m])}", title=f"{m.upper()} against {key}",
+                             logx=True)
+            figures[f"{m.upper()} against {key} (figure 4.11)"] = path
+        return figures
 
 
 @hookimpl

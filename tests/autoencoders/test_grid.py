@@ -35,3 +35,33 @@ def test_smoke_grid_recipe_validates():
 
     r = resolve(load_recipe(REPO / "recipes/smoke/grid.yaml"), get_registry())
     assert len(r.task.params["configs"]) == 20
+
+
+def test_grid_sweep_plots_every_metric_against_the_swept_value(tmp_path, monkeypatch):
+    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
+    grid = tmp_path / "g.yaml"
+    grid.write_text(f"task: grid\nbase: {REPO / 'recipes/smoke/grid_base.yaml'}\nsweep: models.ae.latent\n"
+                    "configs:\n  z4: {models: {ae: {conv: spiral++, latent: 4}}}\n"
+                    "  z8: {models: {ae: {conv: spiral++, latent: 8}}}\n")
+    runs = tmp_path / "runs"
+    assert main(["--quiet", "run", str(grid), "--runs-dir", str(runs)]) == 0
+    (d,) = list(runs.iterdir())
+    report = (d / "report.md").read_text()
+    for m in ("l1", "l2", "dame", "fmpd"):
+        assert (d / "figures" / f"sweep_latent_{m}.png").stat().st_size > 1000
+        assert f"{m.upper()} against latent" in report
+
+
+def test_grid_sweep_names_a_member_without_the_key(tmp_path):
+    import pytest
+
+    from fwk.errors import RecipeError
+    from fwk.plugins import get_registry
+
+    Grid = get_registry().get("task", "grid")
+    g = Grid(base="b.yaml", configs={"a": {}}, sweep="models.dsm.k")
+    with pytest.raises(RecipeError, match="grid member a has no key 'models.dsm.k'"):
+        g.sweep_values({"a": {"models": {"ae": {"latent": 4}}}})
+    with pytest.raises(RecipeError, match="not a number"):
+        g.sweep_values({"a": {"models": {"dsm": {"k": "big"}}}})
+    assert g.sweep_values({"a": {"models": {"dsm": {"k": 50}}}}) == {"a": 50.0}

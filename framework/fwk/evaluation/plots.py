@@ -59,13 +59,16 @@ def scatter_pareto(points: dict, path, xlabel: str, ylabel: str, title: str | No
     return _finish(fig, ax, path, xlabel, ylabel, title)
 
 
-def line_plot(series: dict, path, xlabel: str, ylabel: str, title: str | None = None, logy: bool = False) -> Path:
-    """``series``: name -> (x values, y values)."""
+def line_plot(series: dict, path, xlabel: str, ylabel: str, title: str | None = None, logy: bool = False,
+              logx: bool = False) -> Path:
+    """``series``: name -> (x values, y values); ``logx`` is ignored when an x value is <= 0."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=120)
     for name, (x, y) in series.items():
         ax.plot(x, y, marker="o", ms=3, label=name)
     if logy:
         ax.set_yscale("log")
+    if logx and all(v > 0 for x, _ in series.values() for v in x):
+        ax.set_xscale("log")
     ax.legend(fontsize=8)
     return _finish(fig, ax, path, xlabel, ylabel, title)
