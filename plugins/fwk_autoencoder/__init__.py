@@ -140,47 +140,10 @@ class ConvDecoder(nn.Module):
         return x
 
 
-def kl_divergence(mu, logvar):
-    return -0.5 * torch.mean(torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=1))
-
-
 class _Net(nn.Module):
     def __init__(self, enc, dec):
         super().__init__()
         self.enc, self.dec = enc, dec
-
-
-def _module(net, unscale, kl_weight, variational):
-    import lightning.pytorch as pl
-
-    from fwk.engine import make_optimizer
-
-    class Module(pl.LightningModule):
-        def __init__(self):
-            super().__init__()
-            self.net = net
-
-        def _loss(self, batch, stage):
-            (F,) = batch
-            mu, logvar = self.net.enc(F)
-            z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if (variational and self.training) else mu
-            G = self.net.dec(z)
-            rec = torch.mean(torch.abs(unscale(G) - unscale(F)))
-            loss = rec + (kl_weight * kl_divergence(mu, logvar) if variational else 0.0)
-            self.log(f"{stage}_loss", loss, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(F))
-            self.log(f"{stage}_l1", rec, on_epoch=True, on_step=False, batch_size=len(F))
-            return loss
-
-        def training_step(self, batch, _):
-            return self._loss(batch, "train")
-
-        def validation_step(self, batch, _):
-            return self._loss(batch, "val")
-
-        def configure_optimizers(self):
-            return make_optimizer(self.parameters(), self.train_config)
-
-    return Module()
 
 
 class AE:
@@ -264,7 +227,7 @@ class AE:
         return self.representation_spec.build()
 
     def fit(self, data, ctx) -> None:
-        from fwk.engine import fit, seed_everything
+        from fwk.engine import autoencoder_module, fit, seed_everything
 
         P, V = data.stack("train"), data.stack("val")
         self.rep = self._make_rep()
@@ -278,7 +241,8 @@ class AE:
         self.net = _Net(self.build_encoder(data.template, c, ctx), self.build_decoder(data.template, c, ctx))
         config = ctx.train.replace(**self.train_overrides)
         kl = config.kl_weight if self.kl_weight is None else self.kl_weight
-        fit(_module(self.net, self.rep.unscale, kl, self.variational), F, Fv, ctx, self.name, config)
+        module = autoencoder_module(self.net, lambda net, F: net.enc(F), lambda net, z: net.dec(z), self.rep.unscale, kl)
+        fit(module, F, Fv, ctx, self.name, config)
         self.net.eval()
 
     @torch.no_grad()

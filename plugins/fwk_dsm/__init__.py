@@ -63,6 +63,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from fwk.engine import kl_divergence
 from fwk.errors import RecipeError
 from fwk.hookspecs import hookimpl
 from fwk.recipes import Kind, Spec
@@ -80,12 +81,6 @@ def _spec(kind: str, value, path: str, registry=None):
     from fwk.recipes import make_spec
 
     return make_spec(kind, value, path, registry or _registry())
-
-
-def _kl(mu, logvar):
-    if logvar is None:
-        return mu.new_zeros(())
-    return -0.5 * torch.mean(torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=1))
 
 
 def conditioning_mask(batch: int, n_bands: int, gamma: float, mode: str = "band", latents=None,
@@ -165,7 +160,7 @@ def band_losses(net: DSMNet, feats, unscales, kl_weight: float):
     for G, F, un, mu, lv in zip(outs, feats, unscales, mus, logvars):
         l1 = torch.mean(torch.abs(un(G) - un(F)))
         l1s.append(l1)
-        losses.append(l1 + kl_weight * _kl(mu, lv))
+        losses.append(l1 + kl_weight * kl_divergence(mu, lv))
     return losses, l1s
 
 

@@ -21,10 +21,6 @@ from fwk.hookspecs import hookimpl
 from fwk.recipes import Kind, Spec
 
 
-def kl_divergence(mu, logvar):
-    return -0.5 * torch.mean(torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=1))
-
-
 def _mlp(sizes, last_act=False):
     layers = []
     for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
@@ -48,40 +44,6 @@ class _Net(torch.nn.Module):
 
     def decode(self, z, shape):
         return self.dec(z).reshape(len(z), *shape)
-
-
-def _lightning_module(net, unscale, shape, kl_weight):
-    import lightning.pytorch as pl
-
-    from fwk.engine import make_optimizer
-
-    class Module(pl.LightningModule):
-        def __init__(self):
-            super().__init__()
-            self.net = net
-
-        def _loss(self, batch, stage):
-            (F,) = batch
-            mu, logvar = self.net.encode(F)
-            z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if self.training else mu
-            G = self.net.decode(z, shape)
-            rec = torch.mean(torch.abs(unscale(G) - unscale(F)))
-            kl = kl_divergence(mu, logvar)
-            loss = rec + kl_weight * kl
-            self.log(f"{stage}_loss", loss, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(F))
-            self.log(f"{stage}_l1", rec, on_epoch=True, on_step=False, batch_size=len(F))
-            return loss
-
-        def training_step(self, batch, _):
-            return self._loss(batch, "train")
-
-        def validation_step(self, batch, _):
-            return self._loss(batch, "val")
-
-        def configure_optimizers(self):
-            return make_optimizer(self.parameters(), self.train_config)
-
-    return Module()
 
 
 class MLPVAE:
@@ -117,7 +79,7 @@ class MLPVAE:
         return self.representation_spec.build()
 
     def fit(self, data, ctx) -> None:
-        from fwk.engine import fit, seed_everything
+        from fwk.engine import autoencoder_module, fit, seed_everything
 
         P, V = data.stack("train"), data.stack("val")
         self.rep = self._make_rep()
@@ -129,7 +91,9 @@ class MLPVAE:
         self.net = _Net(int(np.prod(self.shape)), self.hidden, self.latent)
         config = ctx.train.replace(**self.train_overrides)
         kl = config.kl_weight if self.kl_weight is None else self.kl_weight
-        module = _lightning_module(self.net, self.rep.unscale, self.shape, kl)
+        shape = self.shape
+        module = autoencoder_module(self.net, lambda net, F: net.encode(F), lambda net, z: net.decode(z, shape),
+                                    self.rep.unscale, kl)
         fit(module, F, Fv, ctx, self.name, config)
         self.net.cpu().eval()
 

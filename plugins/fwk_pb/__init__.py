@@ -55,6 +55,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from fwk.engine import autoencoder_module, kl_divergence, reparameterize
 from fwk.errors import DataError, RecipeError
 from fwk.hookspecs import hookimpl
 from fwk.recipes import Kind, Spec
@@ -114,12 +115,6 @@ class _Net(nn.Module):
         self.enc, self.dec = enc, dec
 
 
-def _kl(mu, logvar):
-    if logvar is None:
-        return mu.new_zeros(())
-    return -0.5 * torch.mean(torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=1))
-
-
 def _joint_module(owner, kl_weight: float, stage_name: str):
     """One LightningModule training every network of ``owner`` together (sum of the losses;
     separate parameters, so each net gets exactly its own loss's gradient)."""
@@ -163,38 +158,6 @@ def _joint_module(owner, kl_weight: float, stage_name: str):
             return make_optimizer([p for p in self.parameters() if p.requires_grad], self.train_config)
 
     return Joint()
-
-
-def _neutral_module(net, unscale, kl_weight):
-    """Two-step PB, step 1: a VAE on neutrals (reconstruction of F_neut)."""
-    import lightning.pytorch as pl
-
-    from fwk.engine import make_optimizer
-
-    class Step1(pl.LightningModule):
-        def __init__(self):
-            super().__init__()
-            self.net = net
-
-        def _loss(self, batch, stage):
-            (F,) = batch
-            mu, logvar = self.net.enc(F)
-            z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if (logvar is not None and self.training) else mu
-            err = torch.abs(unscale(self.net.dec(z)) - unscale(F)).mean()
-            loss = err + kl_weight * _kl(mu, logvar)
-            self.log(f"{stage}_loss", loss, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(F))
-            return loss
-
-        def training_step(self, batch, _):
-            return self._loss(batch, "train")
-
-        def validation_step(self, batch, _):
-            return self._loss(batch, "val")
-
-        def configure_optimizers(self):
-            return make_optimizer(self.parameters(), self.train_config)
-
-    return Step1()
 
 
 class _Blend:
@@ -258,16 +221,16 @@ class _Blend:
             mu, logvar = net.enc(X)
             if self.mode == "two-step":
                 return [mu] * len(self.expressions), mu.new_zeros(())  # frozen encoder, latent mean
-            z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if (sample and logvar is not None) else mu
-            return [z] * len(self.expressions), _kl(mu, logvar)
+            z = reparameterize(mu, logvar, sample)
+            return [z] * len(self.expressions), kl_divergence(mu, logvar)
         zs, kl = [], 0.0
         for i, enc in enumerate(net.enc):
             if only is not None and i != only:
                 zs.append(None)
                 continue
             mu, logvar = enc(X)
-            zs.append(mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if (sample and logvar is not None) else mu)
-            kl = kl + _kl(mu, logvar)
+            zs.append(reparameterize(mu, logvar, sample))
+            kl = kl + kl_divergence(mu, logvar)
         return zs, kl
 
     def _decode(self, b, e, zs):
@@ -338,7 +301,8 @@ class _Blend:
                 Nall = np.asarray(tr.positions[tr.present[:, j0], j0])
                 Fn = torch.as_tensor(self.in_reps[b].encode(Nall))
                 Fv = val[0][b] if val is not None else None
-                fit(_neutral_module(self.nets[f"b{b}_neutral"], self.in_reps[b].unscale, kl), Fn, Fv, ctx,
+                fit(autoencoder_module(self.nets[f"b{b}_neutral"], lambda net, F: net.enc(F), lambda net, z: net.dec(z),
+                                       self.in_reps[b].unscale, kl), Fn, Fv, ctx,
                     f"{self.name}-step1-{self.branch_names[b]}", config)
                 for p in self.nets[f"b{b}"].enc.parameters():
                     p.requires_grad_(False)

@@ -311,6 +311,60 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     return module
 
 
+def kl_divergence(mu, logvar):
+    """KL(N(mu, diag exp(logvar)) || N(0, I)) = -1/2 sum_j (1 + logvar_j - mu_j^2 - exp(logvar_j)),
+    averaged over the batch (thesis eq. 3.22); zero for a deterministic code (``logvar`` None)."""
+    if logvar is None:
+        return mu.new_zeros(())
+    return -0.5 * torch.mean(torch.sum(1 + logvar - mu.pow(2) - logvar.exp(), dim=1))
+
+
+def reparameterize(mu, logvar, sample: bool):
+    """z = mu + sigma eps with eps ~ N(0, I) when ``sample`` (training a VAE), else the mean."""
+    if not sample or logvar is None:
+        return mu
+    return mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
+
+
+def autoencoder_module(net, encode, decode, unscale, kl_weight: float):
+    """The LightningModule of every (variational) autoencoder trained on one feature tensor F:
+    loss = mean |unscale(decode(z)) - unscale(F)| + kl_weight KL (thesis table 3.2, eqs.
+    3.19-3.23: L1 in the representation's own unscaled space; the KL term only where ``encode``
+    returns a log-variance), z sampled by reparameterisation while training and the mean otherwise.
+
+    ``net`` is the nn.Module holding the parameters (checkpointed as ``net.*``); ``encode(net, F)``
+    returns (mu, logvar or None) and ``decode(net, z)`` the features. Logs ``<stage>_loss`` and
+    ``<stage>_l1``; Adam with per-epoch decay from the run's training settings.
+    """
+    import lightning.pytorch as pl
+
+    class AutoencoderModule(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.net = net
+
+        def _loss(self, batch, stage):
+            (F,) = batch
+            mu, logvar = encode(self.net, F)
+            G = decode(self.net, reparameterize(mu, logvar, self.training))
+            rec = torch.mean(torch.abs(unscale(G) - unscale(F)))
+            loss = rec + kl_weight * kl_divergence(mu, logvar) if logvar is not None else rec
+            self.log(f"{stage}_loss", loss, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(F))
+            self.log(f"{stage}_l1", rec, on_epoch=True, on_step=False, batch_size=len(F))
+            return loss
+
+        def training_step(self, batch, _):
+            return self._loss(batch, "train")
+
+        def validation_step(self, batch, _):
+            return self._loss(batch, "val")
+
+        def configure_optimizers(self):
+            return make_optimizer([p for p in self.parameters() if p.requires_grad], self.train_config)
+
+    return AutoencoderModule()
+
+
 @torch.no_grad()
 def predict_batches(fn, X, batch_size: int = 64, device: str | torch.device = "cpu", dtype=torch.float32) -> np.ndarray:
     """Apply ``fn`` to X (numpy or tensor, first dim = samples) in batches without gradients."""
@@ -322,4 +376,5 @@ def predict_batches(fn, X, batch_size: int = 64, device: str | torch.device = "c
     return np.concatenate(outs, axis=0) if outs else np.zeros((0,))
 
 
-__all__ = ["TrainConfig", "fit", "make_optimizer", "seed_everything", "predict_batches", "make_loader", "EpochSampler"]
+__all__ = ["TrainConfig", "fit", "make_optimizer", "seed_everything", "predict_batches", "make_loader", "EpochSampler",
+           "kl_divergence", "reparameterize", "autoencoder_module"]
