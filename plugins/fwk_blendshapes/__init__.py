@@ -27,9 +27,10 @@ from typing import Annotated
 
 import numpy as np
 
-from fwk.data.preprocess import PreprocessConfig, Preprocessor
-from fwk.data.split import SplitConfig, split_subjects
+from fwk.data.preprocess import PreprocessConfig, split_and_preprocess
+from fwk.data.split import SplitConfig
 from fwk.errors import DataError, RecipeError
+from fwk.evaluation import evaluate_summary
 from fwk.hookspecs import hookimpl
 from fwk.protocols import FitData
 from fwk.recipes import Kind, Spec
@@ -73,25 +74,11 @@ class Blendshapes:
 
     # ------------------------------------------------------------------ data
     def _prepare(self, col, ctx):
-        split = split_subjects(col.subjects, self.split, ctx.seed)
-        ctx.write_json("split.json", split)
-        index = {s: i for i, s in enumerate(col.subjects)}
-        j0 = col.shape_index("neutral")
-        tr = np.array([index[s] for s in split["train"]])
-        P = np.asarray(col.positions)
-        pre = Preprocessor(self.preprocess).fit(P[tr, j0], P[tr])
-        ctx.save_npz("stats/preprocess.npz", **pre.state_dict())
-        t = col.template
+        out = split_and_preprocess(col, self.split, self.preprocess, ctx.seed, ctx)
+        t = col.template  # what `fwk apply` needs to check and undo a user's neutral
         ctx.save_npz("stats/template.npz", triangles=t.triangles, n_vertices=np.int64(t.n_vertices),
-                     mean_neutral=pre.mean_neutral)
-        cols, transforms = {}, {}
-        for name in ("train", "val", "test"):
-            idx = np.array([index[s] for s in split[name]], dtype=np.int64)
-            sub = col.select(idx)
-            X, T = pre.transform(np.asarray(sub.positions), np.asarray(sub.positions[:, j0]))
-            sub.positions = X
-            cols[name], transforms[name] = sub, T
-        return split, pre, cols, transforms
+                     mean_neutral=out[1].mean_neutral)
+        return out
 
     # ------------------------------------------------------------------ run
     def run(self, ctx):
@@ -162,15 +149,11 @@ class Blendshapes:
             for r, P in preds[e].items():
                 if not np.all(np.isfinite(P)):
                     ctx.log(f"[{r}] warning: non-finite prediction for {e}")
-                from fwk.evaluation import evaluate_summary
-
                 results["blendshapes"][e][r] = evaluate_summary(P, G, template, metrics, scale=pre.scale)
         for r in row_labels:
             have = [e for e in expressions if r in preds[e]]
             P = np.concatenate([preds[e][r] for e in have])
             G = np.concatenate([gt[e][2] for e in have])
-            from fwk.evaluation import evaluate_summary
-
             results["models"][r] = {"test": evaluate_summary(P, G, template, metrics, scale=pre.scale)}
         for e in expressions:
             ctx.log(f"test {e}: " + "; ".join(

@@ -15,8 +15,8 @@ from typing import Annotated
 
 import numpy as np
 
-from fwk.data.preprocess import PreprocessConfig, Preprocessor
-from fwk.data.split import SplitConfig, split_subjects
+from fwk.data.preprocess import PreprocessConfig, split_and_preprocess
+from fwk.data.split import SplitConfig
 from fwk.errors import RecipeError
 from fwk.hookspecs import hookimpl
 from fwk.protocols import FitData
@@ -24,28 +24,6 @@ from fwk.recipes import Kind, Spec
 
 DEFAULT_METRICS = ["l1", "l2", "euclidean", "dame", "fmpd"]
 SPLITS = ("train", "val", "test")
-
-
-def prepare(collection, split_cfg, pre_cfg, seed, ctx, neutral: str = "neutral"):
-    """Split by subject and preprocess; saves split.json and stats/preprocess.npz.
-
-    Returns (split dict, Preprocessor, eval-space collections per split, transforms per split).
-    """
-    split = split_subjects(collection.subjects, split_cfg, seed)
-    ctx.write_json("split.json", split)
-    index = {s: i for i, s in enumerate(collection.subjects)}
-    j = collection.shape_index(neutral)
-    tr = np.array([index[s] for s in split["train"]])
-    pre = Preprocessor(pre_cfg).fit(np.asarray(collection.positions[tr, j]), np.asarray(collection.positions[tr]))
-    ctx.save_npz("stats/preprocess.npz", **pre.state_dict())
-    cols, transforms = {}, {}
-    for name in SPLITS:
-        idx = np.array([index[s] for s in split[name]], dtype=np.int64)
-        sub = collection.select(idx)
-        X, T = pre.transform(np.asarray(sub.positions), np.asarray(sub.positions[:, j]))
-        sub.positions = X
-        cols[name], transforms[name] = sub, T
-    return split, pre, cols, transforms
 
 
 class Reconstruct:
@@ -86,7 +64,7 @@ class Reconstruct:
         col = ctx.build("dataset", self.dataset).load(ctx.cache)
         for s in self.shapes:
             col.shape_index(s)
-        split, pre, cols, transforms = prepare(col, self.split, self.preprocess, ctx.seed, ctx)
+        split, pre, cols, transforms = split_and_preprocess(col, self.split, self.preprocess, ctx.seed, ctx)
         template = col.template.with_vertices(pre.mean_neutral)
         data = FitData(template, cols["train"], cols["val"], list(self.shapes))
         metrics = [ctx.build("metric", m) for m in (self.metrics or DEFAULT_METRICS)]

@@ -80,3 +80,32 @@ def test_kabsch_matches_a_naive_reference():
     # batched equals one by one
     Rb, tb = kabsch(np.stack([A, B]), np.stack([B, A]))
     assert np.allclose(Rb[0], R) and np.allclose(Rb[1], kabsch(B, A)[0])
+
+
+def test_split_and_preprocess_moves_each_subject_rigidly_and_inverts(tmp_path):
+    import json
+
+    import numpy as np
+
+    from fwk.data.preprocess import PreprocessConfig, split_and_preprocess
+    from fwk.data.split import SplitConfig
+    from fwk.plugins import get_registry
+    from fwk.runs import make_test_context
+
+    ctx = make_test_context(tmp_path)
+    col = get_registry().get("dataset", "synthetic-heads")(n_subjects=12, n_vertices=300,
+                                                          shapes=["neutral", "face-compression"]).load(None)
+    P0 = np.asarray(col.positions).copy()
+    split, pre, cols, T = split_and_preprocess(col, SplitConfig(ratios=[0.5, 0.25, 0.25]), PreprocessConfig(), 0, ctx)
+    assert json.loads((ctx.run_dir / "split.json").read_text()) == split
+    assert (ctx.run_dir / "stats" / "preprocess.npz").exists()
+    assert sorted(sum(split.values(), [])) == sorted(col.subjects)
+    index = {s: i for i, s in enumerate(col.subjects)}
+    for name in ("train", "val", "test"):
+        X = np.asarray(cols[name].positions)
+        orig = P0[[index[s] for s in split[name]]]
+        # every shape of a subject moved with its neutral: expression - neutral offsets keep their length
+        d0 = np.linalg.norm(orig[:, 1] - orig[:, 0], axis=-1)
+        d1 = np.linalg.norm(X[:, 1] - X[:, 0], axis=-1) / pre.scale
+        np.testing.assert_allclose(d1, d0, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(pre.inverse(X, T[name]), orig, atol=1e-9)

@@ -149,3 +149,29 @@ class Preprocessor:
     @classmethod
     def from_state(cls, d) -> "Preprocessor":
         return cls().load_state_dict(d)
+
+
+def split_and_preprocess(collection, split_cfg, pre_cfg, seed: int, ctx, neutral: str = "neutral"):
+    """What every task that trains on a collection does first: split by subject
+    (``split.json``), fit the preprocessing on the training neutrals (``stats/preprocess.npz``)
+    and apply it to each split, every shape of a subject moved with its neutral.
+
+    Returns (split dict, Preprocessor, preprocessed collection per split, transforms per split).
+    """
+    from .split import split_subjects
+
+    split = split_subjects(collection.subjects, split_cfg, seed)
+    ctx.write_json("split.json", split)
+    index = {s: i for i, s in enumerate(collection.subjects)}
+    j = collection.shape_index(neutral)
+    tr = np.array([index[s] for s in split["train"]])
+    pre = Preprocessor(pre_cfg).fit(np.asarray(collection.positions[tr, j]), np.asarray(collection.positions[tr]))
+    ctx.save_npz("stats/preprocess.npz", **pre.state_dict())
+    cols, transforms = {}, {}
+    for name in ("train", "val", "test"):
+        idx = np.array([index[s] for s in split[name]], dtype=np.int64)
+        sub = collection.select(idx)
+        X, T = pre.transform(np.asarray(sub.positions), np.asarray(sub.positions[:, j]))
+        sub.positions = X
+        cols[name], transforms[name] = sub, T
+    return split, pre, cols, transforms
