@@ -14,17 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from fwk.evaluation.core import as_pair
 from fwk.hookspecs import hookimpl
-
-
-def _pair(pred, target):
-    pred = np.asarray(pred, dtype=np.float64)
-    target = np.asarray(target, dtype=np.float64)
-    if pred.ndim == 2:
-        pred, target = pred[None], target[None]
-    if pred.shape != target.shape:
-        raise ValueError(f"prediction {pred.shape} and target {target.shape} differ in shape")
-    return pred, target
 
 
 class _Pointwise:
@@ -42,7 +33,7 @@ class _Pointwise:
         raise NotImplementedError
 
     def __call__(self, pred, target, template=None):
-        pred, target = _pair(pred, target)
+        pred, target = as_pair(pred, target)
         m = self.per_vertex(pred - target)
         return m.mean(axis=-1), m
 

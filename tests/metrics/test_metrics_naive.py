@@ -291,3 +291,24 @@ def test_invariant_on_a_head_sized_mesh(name):
     s2, m2 = m((0.01 * P @ R.T - 5)[None], (0.01 * V @ R.T - 5)[None], t)
     assert s2[0] == pytest.approx(s1[0], rel=1e-7)
     assert np.allclose(m1, m2, rtol=1e-6, atol=1e-9)
+
+
+def test_as_pair_and_in_chunks():
+    import numpy as np
+    import pytest
+
+    from fwk.evaluation.core import as_pair, in_chunks
+
+    a, b = as_pair(np.ones((5, 3), np.float32), np.zeros((5, 3)))
+    assert a.shape == b.shape == (1, 5, 3) and a.dtype == b.dtype == np.float64
+    with pytest.raises(ValueError, match=r"\(1, 5, 3\).*\(1, 4, 3\)"):
+        as_pair(np.ones((5, 3)), np.ones((4, 3)))
+    P, T = np.random.default_rng(0).normal(size=(2, 7, 9, 3))
+    fn = lambda p, t: (np.abs(p - t).mean((1, 2)), np.abs(p - t).mean(2))  # noqa: E731
+    whole = fn(P, T)
+    for size in (1, 2, 3, 7, 10):
+        s, m = in_chunks(fn, P, T, size)
+        np.testing.assert_array_equal(s, whole[0])
+        np.testing.assert_array_equal(m, whole[1])
+    s, m = in_chunks(fn, P[:0], T[:0], 2)
+    assert s.shape == (0,) and m.shape == (0, 9)

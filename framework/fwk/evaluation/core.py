@@ -4,6 +4,27 @@ from __future__ import annotations
 import numpy as np
 
 
+def as_pair(pred, target) -> tuple[np.ndarray, np.ndarray]:
+    """A metric's inputs as two float64 (b, n, 3) arrays of one shape; a single (n, 3) mesh
+    becomes a batch of one. A ValueError names both shapes when they differ."""
+    pred = np.asarray(pred, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    if pred.ndim == 2:
+        pred, target = pred[None], target[None]
+    if pred.shape != target.shape:
+        raise ValueError(f"prediction {pred.shape} and target {target.shape} differ in shape")
+    return pred, target
+
+
+def in_chunks(fn, pred, target, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(scores (b,), maps (b, n)) of ``fn(pred_chunk, target_chunk)`` over chunks of ``size``
+    meshes: a metric whose intermediates fall out of cache for large batches stays fast."""
+    parts = [fn(pred[i:i + size], target[i:i + size]) for i in range(0, len(pred), size)]
+    if not parts:
+        return np.zeros(0), np.zeros((0, pred.shape[1]))
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
 def evaluate(pred, target, template, metrics) -> dict:
     """{metric name: {"scores": (b,), "maps": (b, n)}} for every metric object (float64).
 
