@@ -356,7 +356,14 @@ def _edit(ctx, env: Env, p: "Edit") -> tuple[dict, dict, list]:
 # ------------------------------------------------------------------------------------- tasks
 
 class _Study:
-    """Shared: where the models come from (``run`` or inline training)."""
+    """Shared: where the models come from (``run`` or inline training), running, the report."""
+
+    title = ""
+
+    def run(self, ctx):
+        env = self.env(ctx)
+        out, figures, notes, sections = self.run_study(ctx, env)
+        self._report(ctx, env, f"{self.title}: {ctx.recipe.get('name', 'run')}", out, figures, notes, sections)
 
     def _init_source(self, run, dataset, models, split, preprocess, shapes, metrics, renders):
         if run and models:
@@ -401,6 +408,7 @@ class Interpolate(_Study):
     """Interpolate low and high frequencies of two subjects separately (eqs. 4.16-4.17)."""
 
     name = "interpolate"
+    title = "Interpolation"
 
     def __init__(self, run: str | None = None, dataset: Annotated[Spec, Kind("dataset")] = "synthetic-heads",
                  models: Annotated[dict[str, Spec], Kind("model")] | None = None, split: SplitConfig | None = None,
@@ -433,16 +441,13 @@ class Interpolate(_Study):
             sections += s2
         return out, figures, notes, sections
 
-    def run(self, ctx):
-        env = self.env(ctx)
-        out, figures, notes, sections = self.run_study(ctx, env)
-        self._report(ctx, env, f"Interpolation: {ctx.recipe.get('name', 'run')}", out, figures, notes, sections)
 
 
 class Edit(_Study):
     """Edit one spectral band's latent entries, next to editing a single-band VAE; disentanglement."""
 
     name = "edit"
+    title = "Multi-frequency editing"
 
     def __init__(self, run: str | None = None, dataset: Annotated[Spec, Kind("dataset")] = "synthetic-heads",
                  models: Annotated[dict[str, Spec], Kind("model")] | None = None, split: SplitConfig | None = None,
@@ -474,11 +479,6 @@ class Edit(_Study):
             notes += n2
         return out, figures, notes, sections
 
-    def run(self, ctx):
-        env = self.env(ctx)
-        out, figures, notes, sections = self.run_study(ctx, env)
-        self._report(ctx, env, f"Multi-frequency editing: {ctx.recipe.get('name', 'run')}", out, figures, notes,
-                     sections)
 
 
 @hookimpl
