@@ -60,9 +60,21 @@ def test_render_grid_shares_colour_limits():
     _shared_clims(cells)
     _bars(cells)
     row = cells[0]
-    assert row[1]["clim"] == row[2]["clim"] and row[1]["clim"][1] > 1.0  # 99th percentile of both maps
+    assert row[1]["clim"] == row[2]["clim"]
+    assert np.isclose(row[1]["clim"][1], np.median([np.percentile(np.linspace(0, m, len(V)), 99) for m in (1, 3)]))
     assert row[3]["clim"] == (0, 9)
     assert [c.get("show_bar") for c in row] == [None, False, True, True]
+
+
+def test_one_far_worse_map_saturates_instead_of_darkening_the_others():
+    from fwk.evaluation.render import _cells, _shared_clims
+
+    V, _ = sphere(1)
+    maps = [np.linspace(0, 1, len(V)), np.linspace(0, 1.2, len(V)), np.linspace(0, 40, len(V))]
+    cells = _cells([[{"V": V, "scalars": m, "bar": "DAME"} for m in maps]])
+    _shared_clims(cells)
+    lo, hi = cells[0][0]["clim"]
+    assert lo == 0 and np.isclose(hi, np.percentile(maps[1], 99))
 
 
 def test_render_rejects_unknown_view(tmp_path):

@@ -78,18 +78,24 @@ def _bars(cells: list[list[dict]]) -> None:
 
 
 def _shared_clims(cells: list[list[dict]]) -> None:
+    """One colour range per bar title across the grid: from min(0, smallest value) to the
+    median over the maps of each map's 99th percentile. A far worse model then saturates
+    instead of turning every other map black (measured: an untrained VAE's DAME is 12x the
+    others', and a pooled percentile left them unreadable)."""
     groups: dict = {}
     for row in cells:
         for c in row:
             if c.get("scalars") is not None and c.get("clim") is None:
                 groups.setdefault(c.get("bar", ""), []).append(c)
     for group in groups.values():
-        vals = np.concatenate([np.asarray(c["scalars"], dtype=np.float64).ravel() for c in group])
-        vals = vals[np.isfinite(vals)]
-        lo = float(min(0.0, vals.min())) if vals.size else 0.0
-        hi = float(np.percentile(vals, 99)) if vals.size else 1.0
+        per = [np.asarray(c["scalars"], dtype=np.float64).ravel() for c in group]
+        per = [v[np.isfinite(v)] for v in per]
+        per = [v for v in per if v.size]
+        lo = float(min(0.0, min(v.min() for v in per))) if per else 0.0
+        hi = float(np.median([np.percentile(v, 99) for v in per])) if per else 1.0
         if not hi > lo:
-            hi = lo + (float(vals.max()) - lo if vals.size and vals.max() > lo else 1e-12)
+            top = max((float(v.max()) for v in per), default=lo)
+            hi = top if top > lo else lo + 1e-12
         for c in group:
             c["clim"] = (lo, hi)
 
