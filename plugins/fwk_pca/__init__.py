@@ -7,6 +7,9 @@ singular values s: encode(x) = W (x - mu), decode(z) = mu + W^T z, sample z ~ N(
 (m - 1))). The SVD is taken of the small Gram matrix X X^T when there are fewer samples than
 coordinates (always the case for meshes), so it costs O(m^2 nc), not O(m (nc)^2); with more
 samples than ``GRAM_MAX`` a truncated SVD (scipy's ``svds``, ARPACK) computes only the top K.
+
+``n_components: 0`` is the mean-shape baseline: every reconstruction and sample is mu, the
+training mean (what a model must beat to have learnt anything about a subject).
 """
 from __future__ import annotations
 
@@ -54,10 +57,10 @@ class PCA:
 
     def __init__(self, n_components: int = 64,
                  representation: Annotated[Spec, Kind("representation")] | None = None):
-        if not isinstance(n_components, int) or n_components < 1:
+        if not isinstance(n_components, int) or isinstance(n_components, bool) or n_components < 0:
             from fwk.errors import RecipeError
 
-            raise RecipeError(f"n_components: expected a positive integer, got {n_components!r}")
+            raise RecipeError(f"n_components: expected an integer >= 0 (0: the mean shape), got {n_components!r}")
         self.n_components = n_components
         self.representation_spec = representation
         self.rep = None
@@ -85,7 +88,10 @@ class PCA:
         X = F - self.mean
         k = int(min(self.n_components, max(len(P) - 1, 1), X.shape[1]))
         # right singular vectors (k, nc); components of zero variance are dropped
-        self.singular_values, self.components = top_singular(X, k)
+        if self.n_components == 0:
+            self.singular_values, self.components = np.zeros(0), np.zeros((0, X.shape[1]))
+        else:
+            self.singular_values, self.components = top_singular(X, k)
         self.n_train = len(P)
         self._shape = P.shape[1:]
         self._channels = F.shape[1] // P.shape[1]

@@ -96,8 +96,24 @@ def test_pca_sample_follows_the_training_variance():
 def test_pca_rejects_bad_settings():
     from fwk.errors import RecipeError
 
-    with pytest.raises(RecipeError, match="n_components"):
-        REG.get("model", "pca")(n_components=0)
+    for bad in (-1, 2.5, True, "4"):
+        with pytest.raises(RecipeError, match="n_components"):
+            REG.get("model", "pca")(n_components=bad)
+
+
+def test_pca_with_no_components_is_the_training_mean():
+    data = tiny_fit_data()
+    P = data.stack("train")
+    m = REG.get("model", "pca")(n_components=0)
+    m.fit(data)
+    Q = data.stack("val")
+    mean = P.mean(0)
+    np.testing.assert_allclose(m.reconstruct(Q), np.broadcast_to(mean, Q.shape), atol=1e-6)
+    assert m.encode(Q).shape == (len(Q), 0)
+    np.testing.assert_allclose(m.sample(3), np.broadcast_to(mean, (3, *mean.shape)), atol=1e-6)
+    m2 = REG.get("model", "pca")(n_components=0)
+    m2.load_state_dict(m.state_dict())
+    np.testing.assert_allclose(m2.reconstruct(Q), m.reconstruct(Q))
 
 
 def test_mlp_vae_training_loss_decreases(tmp_path):
