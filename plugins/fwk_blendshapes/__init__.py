@@ -346,6 +346,7 @@ class Blendshapes:
 
     def _renders(self, ctx, template, expressions, gt, preds, metrics) -> dict:
         from fwk.evaluation import evaluate
+        from fwk.evaluation.render import colour_limits
 
         by = {m.name: m for m in metrics}
         figures = {}
@@ -360,9 +361,8 @@ class Blendshapes:
             for key in ("l1", "dame"):
                 if key not in by:
                     continue
-                # shared limits: the median over methods of their 99th percentiles, so one poor
-                # method saturates instead of washing out everyone else's map
-                clim = (0.0, float(np.median([np.percentile(maps[r][key]["maps"], 99) for r in labels])) or 1e-12)
+                # shared limits: one poor method saturates instead of washing out everyone else's map
+                clim = colour_limits([maps[r][key]["maps"] for r in labels])
                 rows = []
                 for i in range(n):
                     row = [{"V": N[i], "label": f"neutral {i}"}, {"V": G[i], "label": "ground truth"}]

@@ -324,7 +324,9 @@ def _edit(ctx, env: Env, p: "Edit") -> tuple[dict, dict, list]:
         rows_src = [(f"{l} {b}", decoded[(l, b)]) for l in dsm_labels]
         rows_src += [(f"{l}", decoded[(l, None)]) for l in cmp_labels]
         mags = [np.linalg.norm(out - base[None], axis=-1) for _, (out, base) in rows_src]
-        clim = (0.0, float(max(np.percentile(x, 99) for x in mags)) or 1e-12)
+        from fwk.evaluation.render import colour_limits
+
+        clim = colour_limits(mags)  # one far larger change saturates; the others stay readable
         rows = []
         for (name, (out, _)), mag in zip(rows_src, mags):
             rows.append([{"V": out[ai], "scalars": mag[ai], "clim": clim, "cmap": "magma", "bar": "|change|",

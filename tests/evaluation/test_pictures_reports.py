@@ -158,3 +158,15 @@ def test_write_report_relative_figures_and_json(tmp_path, monkeypatch):
     m = json.loads((run / "metrics.json").read_text())
     assert m["figures"] == {"scatter": "figures/s.png"} and fig.exists()
     assert m["models"]["pca"]["test"]["l1"]["mean_input"] == pytest.approx(0.02)
+
+
+def test_colour_limits_median_of_percentiles():
+    from fwk.evaluation.render import colour_limits
+
+    maps = [np.linspace(0, m, 101) for m in (1.0, 2.0, 50.0)]
+    lo, hi = colour_limits(maps)
+    assert lo == 0.0 and np.isclose(hi, np.percentile(maps[1], 99))
+    assert colour_limits([np.full(5, -1.0), np.zeros(5)])[0] == -1.0
+    assert colour_limits([]) == (0.0, 1.0)
+    lo, hi = colour_limits([np.zeros(4), np.zeros(4)])  # all-zero maps still get a valid range
+    assert hi > lo

@@ -77,27 +77,35 @@ def _bars(cells: list[list[dict]]) -> None:
             c["bar_title"] = (c.get("bar") or " ") + " " * (i * len(row) + j)
 
 
+def colour_limits(maps) -> tuple[float, float]:
+    """One colour range for several error maps: from min(0, smallest value) to the median over
+    the maps of each map's 99th percentile. A far worse model then saturates instead of turning
+    every other map black (seen on ICT-FaceKit: an undertrained VAE's DAME map is 12x the others',
+    and the percentile of the pooled values left them unreadable)."""
+    per = [np.asarray(v, dtype=np.float64).ravel() for v in maps]
+    per = [v[np.isfinite(v)] for v in per]
+    per = [v for v in per if v.size]
+    if not per:
+        return 0.0, 1.0
+    lo = float(min(0.0, min(v.min() for v in per)))
+    hi = float(np.median([np.percentile(v, 99) for v in per]))
+    if not hi > lo:
+        top = max(float(v.max()) for v in per)
+        hi = top if top > lo else lo + 1e-12
+    return lo, hi
+
+
 def _shared_clims(cells: list[list[dict]]) -> None:
-    """One colour range per bar title across the grid: from min(0, smallest value) to the
-    median over the maps of each map's 99th percentile. A far worse model then saturates
-    instead of turning every other map black (measured: an untrained VAE's DAME is 12x the
-    others', and a pooled percentile left them unreadable)."""
+    """One colour range per bar title across the grid (``colour_limits``), where not given."""
     groups: dict = {}
     for row in cells:
         for c in row:
             if c.get("scalars") is not None and c.get("clim") is None:
                 groups.setdefault(c.get("bar", ""), []).append(c)
     for group in groups.values():
-        per = [np.asarray(c["scalars"], dtype=np.float64).ravel() for c in group]
-        per = [v[np.isfinite(v)] for v in per]
-        per = [v for v in per if v.size]
-        lo = float(min(0.0, min(v.min() for v in per))) if per else 0.0
-        hi = float(np.median([np.percentile(v, 99) for v in per])) if per else 1.0
-        if not hi > lo:
-            top = max((float(v.max()) for v in per), default=lo)
-            hi = top if top > lo else lo + 1e-12
+        lim = colour_limits([c["scalars"] for c in group])
         for c in group:
-            c["clim"] = (lo, hi)
+            c["clim"] = lim
 
 
 def _frame(V: np.ndarray, az_deg: float):

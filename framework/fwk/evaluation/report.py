@@ -5,7 +5,6 @@ import math
 import os
 from pathlib import Path
 
-import numpy as np
 
 from .core import evaluate
 from .plots import scatter_pareto
@@ -177,8 +176,9 @@ def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metri
         for key in ("l1", "dame"):
             if key not in names:
                 continue
-            vals = np.concatenate([maps[l][key]["maps"].ravel() for l in maps]) if maps else np.zeros(1)
-            clim = (0.0, float(np.percentile(vals, 99)) or 1e-12)
+            from .render import colour_limits
+
+            clim = colour_limits([row for l in maps for row in maps[l][key]["maps"]])
             rows = []
             for i in range(n):
                 row = [{"V": P[i], "label": f"ground truth {i}"}]
