@@ -55,7 +55,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from fwk.engine import autoencoder_module, kl_divergence, reparameterize
+from fwk.engine import autoencoder_module, kl_divergence, loss_module, reparameterize
 from fwk.errors import DataError, RecipeError
 from fwk.hookspecs import hookimpl
 from fwk.recipes import Kind, Spec
@@ -118,46 +118,29 @@ class _Net(nn.Module):
 def _joint_module(owner, kl_weight: float, stage_name: str):
     """One LightningModule training every network of ``owner`` together (sum of the losses;
     separate parameters, so each net gets exactly its own loss's gradient)."""
-    import lightning.pytorch as pl
 
-    from fwk.engine import make_optimizer
+    def loss(module, batch, stage):
+        B, E = owner.n_branches, len(owner.expressions)
+        X, Y, mask = batch[:B], batch[B:B + B * E], batch[-1]
+        total = 0.0
+        for b in range(B):
+            unscale = owner.out_reps[b].unscale
+            z = owner._latent(b, X[b], sample=module.training)
+            kl = z[1]
+            for e in range(E):
+                m = mask[:, e]
+                if not bool(m.any()):
+                    continue
+                G = owner._decode(b, e, z[0])
+                err = torch.abs(unscale(G[m]) - unscale(Y[b * E + e][m])).mean()
+                total = total + err
+                module.log(f"{stage}_l1_{owner.branch_names[b]}_{owner.expressions[e]}", err, on_epoch=True,
+                           on_step=False, batch_size=int(m.sum()))
+            total = total + kl_weight * kl
+        module.log(f"{stage}_loss", total, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(mask))
+        return total
 
-    class Joint(pl.LightningModule):
-        def __init__(self):
-            super().__init__()
-            self.nets = owner.nets
-
-        def _loss(self, batch, stage):
-            B, E = owner.n_branches, len(owner.expressions)
-            X, Y, mask = batch[:B], batch[B:B + B * E], batch[-1]
-            total = 0.0
-            for b in range(B):
-                unscale = owner.out_reps[b].unscale
-                z = owner._latent(b, X[b], sample=self.training)
-                kl = z[1]
-                for e in range(E):
-                    m = mask[:, e]
-                    if not bool(m.any()):
-                        continue
-                    G = owner._decode(b, e, z[0])
-                    err = torch.abs(unscale(G[m]) - unscale(Y[b * E + e][m])).mean()
-                    total = total + err
-                    self.log(f"{stage}_l1_{owner.branch_names[b]}_{owner.expressions[e]}", err, on_epoch=True,
-                             on_step=False, batch_size=int(m.sum()))
-                total = total + kl_weight * kl
-            self.log(f"{stage}_loss", total, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(mask))
-            return total
-
-        def training_step(self, batch, _):
-            return self._loss(batch, "train")
-
-        def validation_step(self, batch, _):
-            return self._loss(batch, "val")
-
-        def configure_optimizers(self):
-            return make_optimizer([p for p in self.parameters() if p.requires_grad], self.train_config)
-
-    return Joint()
+    return loss_module({"nets": owner.nets}, loss)
 
 
 class _Blend:

@@ -326,32 +326,21 @@ def reparameterize(mu, logvar, sample: bool):
     return mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
 
 
-def autoencoder_module(net, encode, decode, unscale, kl_weight: float):
-    """The LightningModule of every (variational) autoencoder trained on one feature tensor F:
-    loss = mean |unscale(decode(z)) - unscale(F)| + kl_weight KL (thesis table 3.2, eqs.
-    3.19-3.23: L1 in the representation's own unscaled space; the KL term only where ``encode``
-    returns a log-variance), z sampled by reparameterisation while training and the mean otherwise.
-
-    ``net`` is the nn.Module holding the parameters (checkpointed as ``net.*``); ``encode(net, F)``
-    returns (mu, logvar or None) and ``decode(net, z)`` the features. Logs ``<stage>_loss`` and
-    ``<stage>_l1``; Adam with per-epoch decay from the run's training settings.
-    """
+def loss_module(modules: dict, loss):
+    """A LightningModule that trains the parameters of ``modules`` (attribute name -> nn.Module;
+    the names prefix the checkpoint's keys) that require gradients by ``loss(module, batch,
+    stage)``, stage ``"train"`` or ``"val"`` (log with ``module.log``), with Adam and per-epoch
+    decay from the run's training settings (``make_optimizer``)."""
     import lightning.pytorch as pl
 
-    class AutoencoderModule(pl.LightningModule):
+    class LossModule(pl.LightningModule):
         def __init__(self):
             super().__init__()
-            self.net = net
+            for name, m in modules.items():
+                setattr(self, name, m)
 
         def _loss(self, batch, stage):
-            (F,) = batch
-            mu, logvar = encode(self.net, F)
-            G = decode(self.net, reparameterize(mu, logvar, self.training))
-            rec = torch.mean(torch.abs(unscale(G) - unscale(F)))
-            loss = rec + kl_weight * kl_divergence(mu, logvar) if logvar is not None else rec
-            self.log(f"{stage}_loss", loss, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(F))
-            self.log(f"{stage}_l1", rec, on_epoch=True, on_step=False, batch_size=len(F))
-            return loss
+            return loss(self, batch, stage)
 
         def training_step(self, batch, _):
             return self._loss(batch, "train")
@@ -362,7 +351,30 @@ def autoencoder_module(net, encode, decode, unscale, kl_weight: float):
         def configure_optimizers(self):
             return make_optimizer([p for p in self.parameters() if p.requires_grad], self.train_config)
 
-    return AutoencoderModule()
+    return LossModule()
+
+
+def autoencoder_module(net, encode, decode, unscale, kl_weight: float):
+    """The LightningModule of every (variational) autoencoder trained on one feature tensor F:
+    loss = mean |unscale(decode(z)) - unscale(F)| + kl_weight KL (thesis table 3.2, eqs.
+    3.19-3.23: L1 in the representation's own unscaled space; the KL term only where ``encode``
+    returns a log-variance), z sampled by reparameterisation while training and the mean otherwise.
+
+    ``net`` is the nn.Module holding the parameters (checkpointed as ``net.*``); ``encode(net, F)``
+    returns (mu, logvar or None) and ``decode(net, z)`` the features. Logs ``<stage>_loss`` and
+    ``<stage>_l1``; Adam with per-epoch decay from the run's training settings.
+    """
+    def loss(module, batch, stage):
+        (F,) = batch
+        mu, logvar = encode(module.net, F)
+        G = decode(module.net, reparameterize(mu, logvar, module.training))
+        rec = torch.mean(torch.abs(unscale(G) - unscale(F)))
+        total = rec + kl_weight * kl_divergence(mu, logvar) if logvar is not None else rec
+        module.log(f"{stage}_loss", total, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(F))
+        module.log(f"{stage}_l1", rec, on_epoch=True, on_step=False, batch_size=len(F))
+        return total
+
+    return loss_module({"net": net}, loss)
 
 
 @torch.no_grad()
@@ -377,4 +389,4 @@ def predict_batches(fn, X, batch_size: int = 64, device: str | torch.device = "c
 
 
 __all__ = ["TrainConfig", "fit", "make_optimizer", "seed_everything", "predict_batches", "make_loader", "EpochSampler",
-           "kl_divergence", "reparameterize", "autoencoder_module"]
+           "kl_divergence", "reparameterize", "autoencoder_module", "loss_module"]
