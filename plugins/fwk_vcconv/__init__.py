@@ -102,16 +102,16 @@ class VCConv(nn.Module):
         # (b) wins where c_out is small next to K and b (the decoder's last, finest levels): it
         # also never builds the (n, M, b, c) intermediate, 800 MB at 11k vertices with c = 32
         explicit = self.order == "kernel" or (self.order == "auto" and K * c_out * (M + b) < M * b * (K + c_out))
+        # vertex-major gather (n, K, b, c); padded neighbours get zero coefficients
+        X = x.transpose(0, 1)[self.index.reshape(-1)].reshape(n, K, b, c)
         if explicit:
-            # vertex-major gather (n, b, K c); one batched (b x K c) @ (K c x c_out) product per vertex
-            X = x.transpose(0, 1)[self.index.reshape(-1)].reshape(n, K, b, c).transpose(1, 2)
+            # one batched (b x K c) @ (K c x c_out) product per vertex
             W = (A.reshape(n * K, M) @ self.basis.reshape(M, c * c_out)).reshape(n, K * c, c_out)
-            y = torch.bmm(X.reshape(n, b, K * c), W).transpose(0, 1) + self.bias
+            y = torch.bmm(X.transpose(1, 2).reshape(n, b, K * c), W).transpose(0, 1) + self.bias
         else:
-            # vertex-major gather (n, K, b c): one batched (M x K) @ (K x b c) product per output vertex,
-            # then one (b n, M c) @ (M c, c_out) product; padded neighbours get zero coefficients
-            X = x.transpose(0, 1)[self.index.reshape(-1)].reshape(n, K, b * c)
-            T = torch.bmm(A.transpose(1, 2), X).reshape(n, M, b, c).permute(2, 0, 1, 3).reshape(b * n, M * c)
+            # one batched (M x K) @ (K x b c) product per output vertex, then one (b n, M c) @ (M c, c_out)
+            T = torch.bmm(A.transpose(1, 2), X.reshape(n, K, b * c))
+            T = T.reshape(n, M, b, c).permute(2, 0, 1, 3).reshape(b * n, M * c)
             y = (T @ self.basis.reshape(M * c, -1)).reshape(b, n, -1) + self.bias
         if self.r is None:
             return y
@@ -120,10 +120,7 @@ class VCConv(nn.Module):
         else:
             w = self.res_w.abs() * self.mask
             w = w / w.sum(1, keepdim=True).clamp_min(1e-12)
-            if explicit:  # X is (n, b, K, c)
-                res = torch.einsum("nk,nbkc->bnc", w, X)
-            else:
-                res = torch.bmm(w[:, None, :], X).reshape(n, b, c).transpose(0, 1)
+            res = torch.einsum("nk,nkbc->bnc", w, X)
         if self.res_lin is not None:
             res = self.res_lin(res)
         return math.sqrt(1 - self.r) * y + math.sqrt(self.r) * res
