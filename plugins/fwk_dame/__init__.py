@@ -43,8 +43,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from fwk.geometry import edge_topology
 from fwk.evaluation.core import as_pair, in_chunks
+from fwk.geometry import edge_topology
 from fwk.hookspecs import hookimpl
 
 #: default of ``mask_scale`` (radians): the local mean |dihedral angle| at which masking halves an error

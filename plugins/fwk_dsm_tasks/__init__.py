@@ -444,7 +444,6 @@ class Interpolate(_Study):
         return out, figures, notes, sections
 
 
-
 class Edit(_Study):
     """Edit one spectral band's latent entries, next to editing a single-band VAE; disentanglement."""
 
@@ -480,7 +479,6 @@ class Edit(_Study):
             figures.update(f2)
             notes += n2
         return out, figures, notes, sections
-
 
 
 @hookimpl

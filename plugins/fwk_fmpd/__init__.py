@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from fwk.geometry import edge_topology
 from fwk.evaluation.core import as_pair, in_chunks
+from fwk.geometry import edge_topology
 from fwk.hookspecs import hookimpl
 
 #: floor of the local roughness in the modulation (authors' MATLAB: 0.0005)

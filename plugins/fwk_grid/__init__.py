@@ -11,7 +11,7 @@ L1, L2, DAME and FMPD on train and test, and the L1/DAME scatter with its Pareto
 
 ``sweep: models.dsm.k`` (a dotted key of the members' recipes, numeric in each) names the value a
 study varies: the report then also plots every metric against it, one line per split (the k
-study of thesis figure 4.11), and the scatter labels each point with its value.
+study of thesis figure 4.11).
 """
 from __future__ import annotations
 

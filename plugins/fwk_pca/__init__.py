@@ -88,7 +88,7 @@ class PCA:
         X = F - self.mean
         k = int(min(self.n_components, max(len(P) - 1, 1), X.shape[1]))
         # right singular vectors (k, nc); components of zero variance are dropped
-        if self.n_components == 0:
+        if k == 0:  # n_components 0: the mean shape
             self.singular_values, self.components = np.zeros(0), np.zeros((0, X.shape[1]))
         else:
             self.singular_values, self.components = top_singular(X, k)

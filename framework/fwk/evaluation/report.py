@@ -5,7 +5,6 @@ import math
 import os
 from pathlib import Path
 
-
 from .core import evaluate
 from .plots import scatter_pareto
 
@@ -173,11 +172,11 @@ def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metri
         for label, d in predictions.items():
             if split in d:
                 maps[label] = evaluate(d[split][:n], P[:n], template, [by[k] for k in ("l1", "dame") if k in by])
+        from .render import colour_limits
+
         for key in ("l1", "dame"):
             if key not in names:
                 continue
-            from .render import colour_limits
-
             clim = colour_limits([row for l in maps for row in maps[l][key]["maps"]])
             rows = []
             for i in range(n):
