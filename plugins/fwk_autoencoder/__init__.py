@@ -241,7 +241,7 @@ class AE:
         self.net = _Net(self.build_encoder(data.template, c, ctx), self.build_decoder(data.template, c, ctx))
         config = ctx.train.replace(**self.train_overrides)
         kl = config.kl_weight if self.kl_weight is None else self.kl_weight
-        module = autoencoder_module(self.net, lambda net, F: net.enc(F), lambda net, z: net.dec(z), self.rep.unscale, kl)
+        module = autoencoder_module(self.net, self.rep.unscale, kl)
         fit(module, F, Fv, ctx, self.name, config)
         self.net.eval()
 

@@ -92,8 +92,8 @@ class MLPVAE:
         config = ctx.train.replace(**self.train_overrides)
         kl = config.kl_weight if self.kl_weight is None else self.kl_weight
         shape = self.shape
-        module = autoencoder_module(self.net, lambda net, F: net.encode(F), lambda net, z: net.decode(z, shape),
-                                    self.rep.unscale, kl)
+        module = autoencoder_module(self.net, self.rep.unscale, kl, encode=lambda net, F: net.encode(F),
+                                    decode=lambda net, z: net.decode(z, shape))
         fit(module, F, Fv, ctx, self.name, config)
         self.net.cpu().eval()
 

@@ -284,8 +284,7 @@ class _Blend:
                 Nall = np.asarray(tr.positions[tr.present[:, j0], j0])
                 Fn = torch.as_tensor(self.in_reps[b].encode(Nall))
                 Fv = val[0][b] if val is not None else None
-                fit(autoencoder_module(self.nets[f"b{b}_neutral"], lambda net, F: net.enc(F), lambda net, z: net.dec(z),
-                                       self.in_reps[b].unscale, kl), Fn, Fv, ctx,
+                fit(autoencoder_module(self.nets[f"b{b}_neutral"], self.in_reps[b].unscale, kl), Fn, Fv, ctx,
                     f"{self.name}-step1-{self.branch_names[b]}", config)
                 for p in self.nets[f"b{b}"].enc.parameters():
                     p.requires_grad_(False)

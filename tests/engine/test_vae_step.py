@@ -37,7 +37,7 @@ def _step(variational, training):
     net = _Lin(variational)
     unscale = lambda F: 3.0 * F + 1.0  # noqa: E731
     enc = lambda n, F: (n.enc(F), n.lv(F) if n.lv is not None else None)  # noqa: E731
-    m = autoencoder_module(net, enc, lambda n, z: n.dec(z), unscale, kl_weight=0.5)
+    m = autoencoder_module(net, unscale, kl_weight=0.5, encode=enc)
     m.log = lambda *a, **k: None
     m.train(training)
     F = torch.randn(4, 6)

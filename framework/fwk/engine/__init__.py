@@ -354,16 +354,20 @@ def loss_module(modules: dict, loss):
     return LossModule()
 
 
-def autoencoder_module(net, encode, decode, unscale, kl_weight: float):
+def autoencoder_module(net, unscale, kl_weight: float, encode=None, decode=None):
     """The LightningModule of every (variational) autoencoder trained on one feature tensor F:
     loss = mean |unscale(decode(z)) - unscale(F)| + kl_weight KL (thesis table 3.2, eqs.
     3.19-3.23: L1 in the representation's own unscaled space; the KL term only where ``encode``
     returns a log-variance), z sampled by reparameterisation while training and the mean otherwise.
 
     ``net`` is the nn.Module holding the parameters (checkpointed as ``net.*``); ``encode(net, F)``
-    returns (mu, logvar or None) and ``decode(net, z)`` the features. Logs ``<stage>_loss`` and
+    returns (mu, logvar or None) and ``decode(net, z)`` the features (default: ``net.enc(F)`` and
+    ``net.dec(z)``). Logs ``<stage>_loss`` and
     ``<stage>_l1``; Adam with per-epoch decay from the run's training settings.
     """
+    encode = encode or (lambda n, F: n.enc(F))
+    decode = decode or (lambda n, z: n.dec(z))
+
     def loss(module, batch, stage):
         (F,) = batch
         mu, logvar = encode(module.net, F)
