@@ -6,15 +6,21 @@ from fwk.cli import main
 REPO = Path(__file__).resolve().parents[2]
 
 
-def test_grid_runs_members_once_and_combines(tmp_path, monkeypatch):
+def _run_grid(tmp_path, monkeypatch, body: str) -> Path:
+    """Run a grid over the smoke base recipe (``body``: the grid's keys after ``base``); its run dir."""
     monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
     grid = tmp_path / "g.yaml"
-    grid.write_text(f"task: grid\nbase: {REPO / 'recipes/smoke/grid_base.yaml'}\nconfigs:\n"
-                    "  a: {models: {ae: {conv: spiral++}}}\n"
-                    "  b: {models: {ae: {conv: lsa, representation: {name: dr, scaling: norm}}}}\n")
+    grid.write_text(f"task: grid\nbase: {REPO / 'recipes/smoke/grid_base.yaml'}\n{body}")
     runs = tmp_path / "runs"
     assert main(["--quiet", "run", str(grid), "--runs-dir", str(runs)]) == 0
     (d,) = list(runs.iterdir())
+    return d
+
+
+def test_grid_runs_members_once_and_combines(tmp_path, monkeypatch):
+    d = _run_grid(tmp_path, monkeypatch, "configs:\n"
+                  "  a: {models: {ae: {conv: spiral++}}}\n"
+                  "  b: {models: {ae: {conv: lsa, representation: {name: dr, scaling: norm}}}}\n")
     m = json.loads((d / "metrics.json").read_text())
     assert set(m["models"]) == {"a", "b"}
     for k in ("l1", "l2", "dame", "fmpd"):
@@ -38,14 +44,9 @@ def test_smoke_grid_recipe_validates():
 
 
 def test_grid_sweep_plots_every_metric_against_the_swept_value(tmp_path, monkeypatch):
-    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
-    grid = tmp_path / "g.yaml"
-    grid.write_text(f"task: grid\nbase: {REPO / 'recipes/smoke/grid_base.yaml'}\nsweep: models.ae.latent\n"
-                    "configs:\n  z4: {models: {ae: {conv: spiral++, latent: 4}}}\n"
-                    "  z8: {models: {ae: {conv: spiral++, latent: 8}}}\n")
-    runs = tmp_path / "runs"
-    assert main(["--quiet", "run", str(grid), "--runs-dir", str(runs)]) == 0
-    (d,) = list(runs.iterdir())
+    d = _run_grid(tmp_path, monkeypatch, "sweep: models.ae.latent\n"
+                  "configs:\n  z4: {models: {ae: {conv: spiral++, latent: 4}}}\n"
+                  "  z8: {models: {ae: {conv: spiral++, latent: 8}}}\n")
     report = (d / "report.md").read_text()
     for m in ("l1", "l2", "dame", "fmpd"):
         assert (d / "figures" / f"sweep_latent_{m}.png").stat().st_size > 1000
