@@ -1,14 +1,40 @@
-"""The typing.Protocol of every kind of component. The docstrings here are the reference.
+"""The roles components play, as runtime-checkable protocols. The docstrings here are the reference.
+
+Every call that one part of fwk makes on another is declared here; a caller that needs a role
+checks it with ``isinstance(obj, Role)`` (or ``issubclass(cls, Role)`` for method-only roles,
+or the role's class attribute where a protocol cannot tell, e.g. ``Conv.strided``), never with
+``hasattr``, ``inspect.signature`` or ``except TypeError``. ``fwk.testing`` has a contract
+suite for every role; every built-in passes the suites of the roles it plays.
 
 Conventions: geometry in float64 NumPy, training in float32 torch, batches are (b, n, c).
 Every component is constructed from its recipe section: ``Cls(**params)``; the constructor
 signature is the recipe schema (``fwk show KIND NAME`` prints it). Nested components arrive as
-``fwk.recipes.Spec`` objects (``spec.name``, ``spec.params``, ``spec.build(*args, **extra)``).
+``fwk.recipes.Spec`` objects (``spec.name``, ``spec.params``, ``spec.build(*args, **extra)``);
+a component that needs another (a model its representation, its assembler) takes it as a
+recipe parameter with a default, never by looking a name up in the registry.
+
+Roles by kind (``fwk list`` kinds on the left):
+
+=============== ==========================================================================
+dataset         :class:`Dataset`
+representation  :class:`Representation`
+sampler         :class:`Sampler` (builds a :class:`Hierarchy` of :class:`Level` s)
+conv            :class:`Conv`; with ``strided = True`` also the strided / transposed role
+model           :class:`Model`, and one family: :class:`ReconstructionModel` or
+                :class:`BlendshapeModel`; optionally :class:`GenerativeModel`,
+                :class:`BandModel` (latent split by frequency band), :class:`NetworkFactory`
+                (lends its encoder / decoder to other models), :class:`CutSelectingModel`
+                (chooses a spectral cut on validation), :class:`CompositeModel` (reports
+                its parts alone)
+metric          :class:`Metric` (carries its display scale, unit and label)
+assembler       :class:`Assembler`
+task            :class:`Task`
+=============== ==========================================================================
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -17,8 +43,16 @@ if TYPE_CHECKING:  # pragma: no cover
 
     from .cache import Cache
     from .data import MeshCollection, Template
+    from .recipes import Spec
     from .runs import RunContext
 
+#: The two model families; a task accepts the models of its own family only.
+RECONSTRUCT = "reconstruct"
+BLENDSHAPES = "blendshapes"
+FAMILIES = (RECONSTRUCT, BLENDSHAPES)
+
+
+# ----------------------------------------------------------------------------- data
 
 @runtime_checkable
 class Dataset(Protocol):
@@ -34,10 +68,14 @@ class Representation(Protocol):
 
     ``ref`` is the reference shape(s) a relative representation is taken against: (n, 3) or
     (b, n, 3); ``None`` means the representation's own fitted reference (e.g. the train mean).
+    ``relative`` (class or instance attribute) says whether features are taken against ``ref``
+    (an offset from it) rather than absolutely; ``places_rigidly`` whether ``decode`` loses the
+    rigid placement (dr: positions come out up to a rigid motion and are placed onto ``target``).
     """
 
     name: str
     channels: int
+    places_rigidly: bool
 
     def fit(self, P: np.ndarray, ref: np.ndarray | None, template: "Template") -> None: ...
     def encode(self, P: np.ndarray, ref: np.ndarray | None = None) -> np.ndarray:
@@ -48,18 +86,45 @@ class Representation(Protocol):
     def unscale(self, F: "torch.Tensor") -> "torch.Tensor":
         """Differentiable: undo std / norm (the loss space of thesis table 3.2)."""
     def state_dict(self) -> dict: ...
-    def load_state_dict(self, d: dict) -> None: ...
+    def load_state_dict(self, d: dict, ctx: "RunContext | None" = None) -> None: ...
+
+
+# ----------------------------------------------------------------------------- graphs
+
+@dataclass
+class Neighbourhood:
+    """Padded neighbour lists of one level's vertices: ``index`` (n, k) int64 into the source
+    level, ``mask`` (n, k) bool (False where padded). Row i lists the support of vertex i."""
+
+    index: np.ndarray
+    mask: np.ndarray
 
 
 @dataclass
 class Level:
-    """One graph level of a hierarchy."""
+    """One graph level of a hierarchy.
+
+    The optional neighbourhoods are the supports a sampler may define for strided convolutions
+    (``Conv.strided``); a conv falls back to ``Hierarchy.down`` / ``up`` and hop distances where
+    they are absent:
+
+    conv     this level's own convolution support (stride 1)
+    pool     for each vertex of this level, its support on the level above (finer): the
+             strided convolution level l -> l + 1 reads ``levels[l + 1].pool``
+    unpool   for each vertex of this level, its support on the level below (coarser): the
+             transposed convolution l + 1 -> l reads ``levels[l].unpool``
+    centres  (n,) indices of this level's vertices on the level above, where they are a subset
+    """
 
     n_vertices: int
     edges: np.ndarray                      # (e, 2) int64 undirected edges, i < j
     faces: np.ndarray | None = None        # (m, 3) triangles where the level is a mesh
     vertices: np.ndarray | None = None     # (n, 3) positions on the template where defined
-    extra: dict[str, Any] = field(default_factory=dict)  # sampler-specific (neighbourhoods, ...)
+    conv: Neighbourhood | None = None
+    pool: Neighbourhood | None = None
+    unpool: Neighbourhood | None = None
+    centres: np.ndarray | None = None
+    extra: dict[str, Any] = field(default_factory=dict)  # TODO(architecture): replaced by the typed fields above
 
 
 @dataclass
@@ -81,19 +146,53 @@ class Sampler(Protocol):
     def build(self, template: "Template", cache: "Cache | None" = None) -> Hierarchy: ...
 
 
+@runtime_checkable
 class Conv(Protocol):
-    """A graph convolution: ``Cls(in_channels, out_channels, hierarchy, level, **params)`` is a
-    torch.nn.Module mapping (b, n_level, c_in) -> (b, n_level, c_out). The class lists the
-    arguments the model supplies in ``build_args`` so that recipes only give ``**params``."""
+    """A graph convolution: a ``torch.nn.Module``,
+    ``Cls(in_channels, out_channels, hierarchy, level, **params)``, mapping
+    (b, n_level, c_in) -> (b, n_level, c_out). The model supplies the four ``build_args``; a
+    recipe gives only ``**params``. ``reset_parameters()`` re-draws the weights (PyG's
+    convention).
 
-    name: str
-    build_args: tuple = ("in_channels", "out_channels", "hierarchy", "level")
+    **Strided role** (``strided = True``): the class also accepts ``mode`` and
+    ``residual_rate``: ``mode="down"`` maps level l -> l + 1 ((b, n_l, c_in) ->
+    (b, n_{l+1}, c_out)), ``mode="up"`` maps level l + 1 -> l, ``mode="same"`` is the plain
+    convolution; ``residual_rate`` r (or None) mixes sqrt(1 - r) ELU(conv) + sqrt(r) res.
+    A model that needs strided convolutions (``ae fully_convolutional``) composes a conv
+    without this role with the sampler's pooling instead (see ``fwk_autoencoder``).
+    """
 
+    name: ClassVar[str]
+    build_args: ClassVar[tuple]
+    strided: ClassVar[bool]
+
+    def forward(self, x: "torch.Tensor") -> "torch.Tensor": ...
+    def reset_parameters(self) -> None: ...
+
+
+CONV_BUILD_ARGS = ("in_channels", "out_channels", "hierarchy", "level")
+
+
+# ----------------------------------------------------------------------------- metrics, assemblers
 
 @runtime_checkable
 class Metric(Protocol):
+    """A per-mesh score and per-vertex map, lower is better.
+
+    Class attributes say how reports show it: ``label`` (column header, e.g. "L1 norm"),
+    ``display_scale`` (tables show value / display_scale, e.g. 1e-3 for the thesis's L1),
+    ``units`` ("input": the mesh's units, "input^2", "rad", "1"), ``power`` (values in the
+    dataset's units are value / scale**power), and ``default`` (part of the default metric
+    list of evaluating tasks, in ``default_rank`` order).
+    """
+
     name: str
-    units: str  # e.g. "input" (the mesh's units), "input^2", "rad", "1"
+    label: str
+    units: str
+    display_scale: float
+    power: int
+    default: bool
+    default_rank: int
 
     def __call__(self, pred: np.ndarray, target: np.ndarray, template: "Template") -> tuple[np.ndarray, np.ndarray]:
         """(b, n, 3) x2 -> per-mesh scores (b,) and per-vertex maps (b, n), float64."""
@@ -103,33 +202,123 @@ class Metric(Protocol):
 class Assembler(Protocol):
     name: str
 
-    def fit(self, template: "Template", mean: np.ndarray) -> None: ...
+    def fit(self, template: "Template", mean: np.ndarray, cache: "Cache | None" = None) -> None: ...
     def split(self, P: np.ndarray) -> list[np.ndarray]:
         """(b, n, 3) -> bands, each (b, n, 3) and centred on the mean as in DESIGN.md (band_j - mean
         sum to P - mean), so that ``assemble(split(P)) == P`` exactly."""
     def assemble(self, bands: list[np.ndarray]) -> np.ndarray: ...
+    def assemble_many(self, bands: list[np.ndarray], ks: list[int]) -> np.ndarray:
+        """Two bands [low source, high source], each (b, n, 3), assembled at every cut k of
+        ``ks``: (len(ks), b, n, 3), the low frequencies (k smallest eigenvectors) of the first
+        and the rest of the second; one factorisation for all k."""
+    def state_dict(self) -> dict: ...
+    def load_state_dict(self, d: dict, ctx: "RunContext | None" = None) -> None: ...
 
+
+# ----------------------------------------------------------------------------- models
 
 @runtime_checkable
 class Model(Protocol):
-    """Learns from a collection. Two families share this protocol:
+    """Learns from a collection; everything a run stores and reopens.
 
-    * reconstruction models (pca, mlp-vae, ae, vae, dsm): ``task_family = "reconstruct"``;
-      ``fit(data, ctx)`` learns from ``data.train`` shapes, ``reconstruct(P)`` maps (b, n, 3)
-      positions in the evaluation space to their reconstruction; ``encode``/``decode``/``sample``
-      where meaningful;
-    * blendshape models (pb, pbs, dt): ``task_family = "blendshapes"``; ``fit(data, ctx)`` learns
-      neutral -> expression; ``predict(neutrals, expression)`` maps (b, n, 3) neutrals to that
-      expression.
-
-    ``state_dict()`` / ``load_state_dict()`` save and restore everything ``reconstruct`` /
-    ``predict`` needs (fwk stores it in the run directory).
+    ``task_family`` is ``"reconstruct"`` or ``"blendshapes"``. ``state_dict()`` /
+    ``load_state_dict(d, ctx=None)`` save and restore everything inference needs (fwk stores it
+    as ``models/<label>.pt``); ``ctx`` lends the run's cache to graph hierarchies and the like.
     """
 
     name: str
     task_family: str
 
     def fit(self, data: "FitData", ctx: "RunContext") -> None: ...
+    def state_dict(self) -> dict: ...
+    def load_state_dict(self, d: dict, ctx: "RunContext | None" = None) -> None: ...
+
+
+@runtime_checkable
+class ReconstructionModel(Model, Protocol):
+    """``task_family = "reconstruct"`` (pca, mlp-vae, ae, vae, dsm): ``fit`` learns from the
+    ``data.shapes`` of the training subjects; ``reconstruct(P)`` maps (b, n, 3) positions in the
+    evaluation space to their reconstruction."""
+
+    def reconstruct(self, P: np.ndarray) -> np.ndarray: ...
+
+
+@runtime_checkable
+class GenerativeModel(Protocol):
+    """A model with a latent space and a prior: ``encode`` (b, n, 3) -> (b, latent_size) (the
+    mean code), ``decode`` back to positions, ``sample(n, seed)`` decodes draws from N(0, I)
+    (deterministic for a seed). ``fwk sample`` uses any model playing this role."""
+
+    latent_size: int
+
+    def encode(self, P: np.ndarray) -> np.ndarray: ...
+    def decode(self, Z: np.ndarray) -> np.ndarray: ...
+    def sample(self, n: int, seed: int = 0) -> np.ndarray: ...
+
+
+@runtime_checkable
+class BandModel(GenerativeModel, Protocol):
+    """A generative model whose latent code is split by frequency band (Deep Spectral Meshes):
+    ``band_names`` (low to high), ``latent_slice(band)`` the part of Z that band owns,
+    ``split(P)`` the bands of a mesh (its assembler's), ``decode_bands(Z)`` each band decoded
+    alone. The ``edit`` and ``interpolate`` tasks work on every model playing this role."""
+
+    band_names: list[str]
+
+    def latent_slice(self, band: "str | int") -> slice: ...
+    def split(self, P: np.ndarray) -> list[np.ndarray]: ...
+    def decode_bands(self, Z: np.ndarray) -> list[np.ndarray]: ...
+
+
+@runtime_checkable
+class NetworkFactory(Protocol):
+    """Lends its networks to other models (pb, pbs and dsm take ``network:``).
+
+    ``build_encoder(template, in_channels, ctx=None)`` returns a module (b, n, c_in) ->
+    (mu (b, latent_size), logvar or None); ``build_decoder(template, out_channels, ctx=None,
+    latent_in=None)`` a module (b, latent_in or latent_size) -> (b, n, c_out).
+    ``variational`` says whether the encoder returns a log-variance."""
+
+    latent_size: int
+    variational: bool
+
+    def build_encoder(self, template: "Template", in_channels: int, ctx: "RunContext | None" = None): ...
+    def build_decoder(self, template: "Template", out_channels: int, ctx: "RunContext | None" = None,
+                      latent_in: int | None = None): ...
+
+
+@runtime_checkable
+class BlendshapeModel(Model, Protocol):
+    """``task_family = "blendshapes"`` (pb, pbs, dt): ``fit`` learns neutral -> expression for
+    ``expressions`` (None before fit means: every expression the task gives);
+    ``predict(neutrals, expression, target=None)`` maps (b, n, 3) neutrals to that expression.
+    ``target`` (the ground truth, optional) is used only by models whose output loses its rigid
+    placement (a dr network alone) to be scored as the thesis scores them; ``predict_all``
+    predicts several expressions at once (a model may share work between them)."""
+
+    expressions: list[str] | None
+
+    def predict(self, neutrals: np.ndarray, expression: str, target: np.ndarray | None = None) -> np.ndarray: ...
+    def predict_all(self, neutrals: np.ndarray, expressions: list[str],
+                    target: dict | None = None) -> dict[str, np.ndarray]: ...
+
+
+@runtime_checkable
+class CompositeModel(Protocol):
+    """A model made of parts that are models of their own (pbs: two PB networks): ``parts(
+    neutrals, expression, target=None)`` returns {part label: prediction}; tasks report each
+    part as its own row."""
+
+    def parts(self, neutrals: np.ndarray, expression: str, target: np.ndarray | None = None) -> dict[str, np.ndarray]: ...
+
+
+@runtime_checkable
+class CutSelectingModel(Protocol):
+    """A model that chooses a spectral cut per expression on validation (pbs): ``k`` {expression:
+    chosen k} and ``sweep`` {expression: the sweep's scores, fronts and choice}, both reported."""
+
+    k: dict
+    sweep: dict
 
 
 @dataclass
@@ -156,9 +345,32 @@ class FitData:
         return np.concatenate(out, axis=0) if out else np.zeros((0, self.template.n_vertices, 3))
 
 
+@runtime_checkable
 class Task(Protocol):
     """What ``fwk run`` does. Its constructor's parameters are the recipe's top-level keys."""
 
     name: str
 
     def run(self, ctx: "RunContext") -> None: ...
+
+
+def role_members(role) -> list[str]:
+    """The attribute and method names a protocol declares (its own and its protocol bases')."""
+    names: list[str] = []
+    for base in role.__mro__:
+        if base in (object, Protocol) or not getattr(base, "_is_protocol", False):
+            continue
+        for n in [*getattr(base, "__annotations__", {}), *vars(base)]:
+            if n.startswith("_") or n in names or n in ("__annotations__",):
+                continue
+            names.append(n)
+    return names
+
+
+def plays(obj, role) -> bool:
+    """Whether a component (instance or class) plays ``role``: ``isinstance`` for instances; for
+    a class (before it is built, e.g. a recipe's Spec.cls), whether it defines every member the
+    role declares. This is the one place where members are looked up by name."""
+    if isinstance(obj, type):
+        return all(hasattr(obj, n) for n in role_members(role))  # justified: the role check on classes
+    return isinstance(obj, role)
