@@ -76,6 +76,8 @@ class Representation(Protocol):
     name: str
     channels: int
     places_rigidly: bool
+    relative: bool          # features taken against ``ref`` (an offset / a deformation from it)
+    relative_option: bool   # class attribute: the constructor takes ``relative`` (else fixed)
 
     def fit(self, P: np.ndarray, ref: np.ndarray | None, template: "Template") -> None: ...
     def encode(self, P: np.ndarray, ref: np.ndarray | None = None) -> np.ndarray:

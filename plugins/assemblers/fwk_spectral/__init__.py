@@ -159,7 +159,7 @@ class Spectral:
         return {"cuts": self.cuts, "mass": self.mass, "eigen_k": self.eigen_k, "U": self.proj.U, "m": self.proj.m,
                 "mean": self.mean, "evals": self.evals}
 
-    def load_state_dict(self, d) -> None:
+    def load_state_dict(self, d, ctx=None) -> None:
         self.cuts, self.mass, self.mean = [int(c) for c in d["cuts"]], bool(d["mass"]), np.asarray(d["mean"])
         self.eigen_k = d.get("eigen_k")
         self.evals = d.get("evals")

@@ -115,6 +115,9 @@ class DR:
 
     name = "dr"
     channels = 9
+    places_rigidly = True  # decode integrates up to a rigid motion: placed onto `target` when given
+    relative_option = False  # always the deformation from ref
+    relative = True
 
     def __init__(self, scaling: str = "norm", granularity: str = "vertex", a: float = 1.0, ref: str = "mean",
                  align: str = "reference", normal_weight: float = 0.1, weight_floor: float = 1e-3,
@@ -316,7 +319,7 @@ class DR:
         return {"scaler": self.scaler.state_dict(), "mean": self.mean, "F": self.F, "align": self.align,
                 "ref": self.ref_mode, "normal_weight": self.normal_weight, "weight_floor": self.weight_floor}
 
-    def load_state_dict(self, d: dict) -> None:
+    def load_state_dict(self, d: dict, ctx=None) -> None:
         self.scaler.load_state_dict(d["scaler"])
         self.align, self.normal_weight = str(d["align"]), float(d["normal_weight"])
         self.ref_mode = str(d.get("ref", "mean"))

@@ -20,6 +20,8 @@ class Euclidean:
 
     name = "euclidean"
     channels = 3
+    places_rigidly = False  # positions come back where they were
+    relative_option = True  # `relative: true` takes the features against ref (an offset)
 
     def __init__(self, scaling: str = "std", granularity: str = "vertex", a: float = 1.0, relative: bool = False,
                  eps: float = 1e-8):
@@ -52,7 +54,7 @@ class Euclidean:
     def state_dict(self) -> dict:
         return {"scaler": self.scaler.state_dict(), "mean": self.mean, "relative": self.relative}
 
-    def load_state_dict(self, d: dict) -> None:
+    def load_state_dict(self, d: dict, ctx=None) -> None:
         self.scaler.load_state_dict(d["scaler"])
         self.mean = None if d["mean"] is None else np.asarray(d["mean"])
         self.relative = bool(d["relative"])
