@@ -1,15 +1,47 @@
 """Graph utilities shared by samplers and convolutions: sparse operators on (b, n, c) batches,
-ordered one-rings and spirals on triangle meshes."""
+the symmetric adjacency of an edge list, ordered one-rings and spirals on triangle meshes, and an
+in-process memo for data a conv derives from a hierarchy level."""
 from __future__ import annotations
+
+from typing import Any, Callable
 
 import numpy as np
 import scipy.sparse as sp
+import torch
+from scipy.sparse.csgraph import shortest_path
+
+from .cache import content_key
+
+_MEMO: dict[str, Any] = {}
+MEMO_SIZE = 64  # entries kept before the memo is cleared (one per level and setting)
+
+
+def memo(namespace: str, key_parts: tuple, build: Callable[[], Any]) -> Any:
+    """The value ``build()`` made for ``key_parts`` earlier in this process, else build it now.
+
+    For data a conv derives from a hierarchy level (spirals, neighbourhoods) that the encoder and
+    decoder would otherwise compute again for the same level. ``key_parts`` must cover every
+    input of ``build`` (arrays are hashed by content, as ``fwk.cache`` keys are). Nothing is
+    written to disk: the sampler's hierarchy itself is what ``fwk.cache`` keeps across runs.
+    """
+    key = content_key(namespace, *key_parts)
+    if key not in _MEMO:
+        if len(_MEMO) >= MEMO_SIZE:
+            _MEMO.clear()
+        _MEMO[key] = build()
+    return _MEMO[key]
+
+
+def symmetric_adjacency(edges, n: int, weights=None) -> sp.csr_matrix:
+    """(n, n) CSR adjacency of an undirected edge list (e, 2): edge k puts ``weights[k]`` (default
+    1) at (i, j) and (j, i); a repeated edge sums its entries."""
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    w = np.ones(len(e)) if weights is None else np.asarray(weights)
+    return sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
 
 
 def torch_sparse(M):
     """A scipy sparse matrix as a torch sparse COO tensor (float32)."""
-    import torch
-
     M = sp.coo_matrix(M)
     idx = torch.as_tensor(np.vstack([M.row, M.col]), dtype=torch.long)
     return torch.sparse_coo_tensor(idx, torch.as_tensor(M.data, dtype=torch.float32), M.shape,
@@ -18,8 +50,6 @@ def torch_sparse(M):
 
 def sparse_apply(M, x):
     """(m, n) sparse torch matrix applied to every sample of x (b, n, c) -> (b, m, c)."""
-    import torch
-
     b, n, c = x.shape
     y = torch.sparse.mm(M, x.transpose(0, 1).reshape(n, b * c))
     return y.reshape(M.shape[0], b, c).transpose(0, 1)
@@ -133,8 +163,6 @@ def spirals(F: np.ndarray, n: int, length: int, dilation: int = 1, first=None, p
 
 def bfs_distance(adj, sources) -> np.ndarray:
     """Hop distances from ``sources`` over a CSR adjacency (inf where unreachable)."""
-    from scipy.sparse.csgraph import shortest_path
-
     d = shortest_path(adj, unweighted=True, indices=np.atleast_1d(sources), directed=False)
     return d.min(axis=0) if d.ndim == 2 else d
 
@@ -142,8 +170,7 @@ def bfs_distance(adj, sources) -> np.ndarray:
 def neighbourhoods(edges: np.ndarray, n: int, k: int, include_self: bool = True) -> np.ndarray:
     """(n, k) the vertex (optionally) then its adjacency entries in index order, padded with the
     vertex itself where there are fewer."""
-    adj = sp.coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
-                        shape=(n, n)).tocsr()
+    adj = symmetric_adjacency(edges, n)
     adj.sort_indices()
     out = np.empty((n, k), dtype=np.int64)
     for v in range(n):
@@ -155,8 +182,6 @@ def neighbourhoods(edges: np.ndarray, n: int, k: int, include_self: bool = True)
 
 def edge_index(edges: np.ndarray, n: int, self_loops: bool = True):
     """torch_geometric edge_index (2, E) with both directions (and self loops)."""
-    import torch
-
     e = np.r_[edges, edges[:, ::-1]]
     if self_loops:
         e = np.r_[e, np.stack([np.arange(n), np.arange(n)], 1)]
@@ -193,8 +218,8 @@ def padded_rows(R, first=None):
     return idx, mask
 
 
-def adjacency(edges, n: int):
-    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+def adjacency(edges, n: int) -> sp.csr_matrix:
+    """(n, n) CSR 0/1 adjacency of an undirected edge list (repeated edges count once)."""
+    A = symmetric_adjacency(edges, n)
     A.data[:] = 1.0
     return A

@@ -126,7 +126,6 @@ class Level:
     pool: Neighbourhood | None = None
     unpool: Neighbourhood | None = None
     centres: np.ndarray | None = None
-    extra: dict[str, Any] = field(default_factory=dict)  # TODO(architecture): replaced by the typed fields above
 
 
 @dataclass

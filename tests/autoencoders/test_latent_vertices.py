@@ -75,9 +75,9 @@ def test_latent_level_covers_every_vertex_and_both_components():
     from fwk.graph import adjacency
 
     _, lab = connected_components(adjacency(h.levels[1].edges, n0))
-    assert len(set(lab[H.levels[2].extra["centres"]])) == 2  # a centre on each component
+    assert len(set(lab[H.levels[2].centres])) == 2  # a centre on each component
     assert H.levels[1] is not h.levels[1] and h.levels[2].n_vertices != 6  # the (cached) input is not changed
-    assert H.levels[1].extra["unpool_nbrs"].shape[0] == n0
+    assert H.levels[1].unpool.index.shape[0] == n0
 
 
 def test_too_few_vertices_or_levels_is_a_recipe_error():

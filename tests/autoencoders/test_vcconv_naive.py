@@ -33,8 +33,8 @@ def test_vcconv_matches_the_naive_sum(mode, c_in, c_out, residual, order):
             conv.res_w.uniform_(0.1, 2.0)
     x = torch.randn(2, conv.n_in, c_in)
     lv = h.levels[1] if mode == "down" else h.levels[0]
-    key = "pool" if mode == "down" else "unpool"
-    idx, mask = lv.extra[f"{key}_nbrs"], lv.extra[f"{key}_mask"]
+    nb = lv.pool if mode == "down" else lv.unpool
+    idx, mask = nb.index, nb.mask
     expect = _naive(conv, x, idx, mask)
     if residual is not None:
         w = torch.as_tensor(mask, dtype=torch.float32) * conv.res_w.abs()

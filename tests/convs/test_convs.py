@@ -121,7 +121,7 @@ def test_vcconv_strided_and_transposed_shapes_and_naive_reference():
     # naive: y_i = b + sum_j sum_m A_ijm B_m^T x_j over the pool neighbourhood of centre i
     plain = VC(3, 5, h, 0, weight_num=4, mode="down")
     y = plain(x)
-    idx, mask = h.levels[1].extra["pool_nbrs"], h.levels[1].extra["pool_mask"]
+    idx, mask = h.levels[1].pool.index, h.levels[1].pool.mask
     for i in (0, 7):
         acc = plain.bias.clone()
         for k in range(idx.shape[1]):

@@ -29,13 +29,13 @@ def test_neighbourhoods_match_operators():
     h = Simple(levels=2).build(t)
     for i in range(2):
         nxt, lv = h.levels[i + 1], h.levels[i]
-        idx, mask = nxt.extra["pool_nbrs"], nxt.extra["pool_mask"]
+        idx, mask = nxt.pool.index, nxt.pool.mask
         D = sp.csr_matrix(h.down[i])
         for c in range(0, nxt.n_vertices, 7):
             assert set(idx[c][mask[c]]) == set(D.indices[D.indptr[c]:D.indptr[c + 1]])
-        assert (idx[:, 0] == nxt.extra["centres"]).all()
-        assert lv.extra["conv_nbrs"].shape[0] == lv.n_vertices and (lv.extra["conv_nbrs"][:, 0] == np.arange(lv.n_vertices)).all()
-        assert lv.extra["unpool_mask"].any(1).all()
+        assert (idx[:, 0] == nxt.centres).all()
+        assert lv.conv.index.shape[0] == lv.n_vertices and (lv.conv.index[:, 0] == np.arange(lv.n_vertices)).all()
+        assert lv.unpool.mask.any(1).all()
 
 
 def test_per_level_strides_and_radii():
@@ -48,10 +48,10 @@ def test_per_level_strides_and_radii():
     from fwk_simple import _adj, _within
 
     A0 = _adj(t.edges, t.n_vertices)
-    C = h.levels[1].extra["centres"]
+    C = h.levels[1].centres
     assert _within(A0, 2)[C][:, C].nnz == len(C)  # stride 3: centres at least 3 hops apart
-    assert h.levels[0].extra["conv_mask"].sum(1).max() == _within(A0, 2).getnnz(1).max()
+    assert h.levels[0].conv.mask.sum(1).max() == _within(A0, 2).getnnz(1).max()
     A1 = _adj(h.levels[1].edges, h.levels[1].n_vertices)
-    assert h.levels[1].extra["conv_mask"].sum(1).max() == _within(A1, 1).getnnz(1).max()
+    assert h.levels[1].conv.mask.sum(1).max() == _within(A1, 1).getnnz(1).max()
     with pytest.raises(RecipeError):
         Simple(levels=2, stride=[3], radius=1)

@@ -42,21 +42,25 @@ ORDERS = ("auto", "sum", "kernel")  # evaluation order of the same sum (see forw
 
 
 def support(hierarchy, level: int, mode: str, radius: int):
+    """(index (n_out, K), mask (n_out, K), n_in, n_out): the padded support of a ``mode``
+    convolution at ``level``, the sampler's ``Level.conv`` / ``pool`` / ``unpool`` where it
+    defines them, else the vertices within ``radius`` hops (same) or the non-zeros of
+    ``Hierarchy.down`` / ``up`` (down / up)."""
     lv = hierarchy.levels[level]
     if mode == "same":
-        if "conv_nbrs" in lv.extra:
-            return lv.extra["conv_nbrs"], lv.extra["conv_mask"], lv.n_vertices, lv.n_vertices
+        if lv.conv is not None:
+            return lv.conv.index, lv.conv.mask, lv.n_vertices, lv.n_vertices
         R = reach(adjacency(lv.edges, lv.n_vertices), radius)
         idx, mask = padded_rows(R, first=np.arange(lv.n_vertices))
         return idx, mask, lv.n_vertices, lv.n_vertices
     nxt = hierarchy.levels[level + 1]
     if mode == "down":
-        if "pool_nbrs" in nxt.extra:
-            return nxt.extra["pool_nbrs"], nxt.extra["pool_mask"], lv.n_vertices, nxt.n_vertices
+        if nxt.pool is not None:
+            return nxt.pool.index, nxt.pool.mask, lv.n_vertices, nxt.n_vertices
         idx, mask = padded_rows(hierarchy.down[level])
         return idx, mask, lv.n_vertices, nxt.n_vertices
-    if "unpool_nbrs" in lv.extra:
-        return lv.extra["unpool_nbrs"], lv.extra["unpool_mask"], nxt.n_vertices, lv.n_vertices
+    if lv.unpool is not None:
+        return lv.unpool.index, lv.unpool.mask, nxt.n_vertices, lv.n_vertices
     idx, mask = padded_rows(hierarchy.up[level])
     return idx, mask, nxt.n_vertices, lv.n_vertices
 

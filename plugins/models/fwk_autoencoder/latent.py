@@ -13,8 +13,9 @@ of the hierarchy by a *latent level* of exactly ``n_latent`` vertices built from
   vertices of components without a centre go to the nearest centre in space (template positions);
 * pool support P (n_latent x n): the cell of each centre plus every vertex within ``radius`` hops
   of it; ``down`` is the mean over P's rows, ``up`` the mean over P's columns (rows of P^T), and
-  the neighbourhood arrays a strided / transposed ``vcconv`` reads (``pool_nbrs`` on the latent
-  level, ``unpool_nbrs`` on the level above) are P's rows and columns.
+  the neighbourhoods a strided / transposed conv reads (``Level.pool`` of the latent level,
+  ``Level.unpool`` of the level above) are P's rows and columns; the latent level's own ``conv``
+  support is the vertices within ``radius`` hops on its graph (centres whose supports touch).
 
 The encoder's last strided convolution maps onto the latent level with 2 c_L channels for a VAE
 (mean and log-variance halves) and c_L for an AE; z is the flattened (n_latent x c_L) map, so the
@@ -32,7 +33,7 @@ from scipy.sparse.csgraph import shortest_path
 
 from fwk.errors import RecipeError
 from fwk.graph import adjacency, padded_rows, reach
-from fwk.protocols import Hierarchy, Level
+from fwk.protocols import Hierarchy, Level, Neighbourhood
 
 
 def farthest_centres(A, n_latent: int) -> np.ndarray:
@@ -84,17 +85,14 @@ def with_latent_level(h: Hierarchy, depth: int, n_latent: int, radius: int = 2) 
     above = h.levels[depth - 1]
     C, P = latent_support(above, n_latent, radius)
     PT = P.T.tocsr()
-    above = dataclasses.replace(above, extra={**above.extra})
-    above.extra["unpool_nbrs"], above.extra["unpool_mask"] = padded_rows(PT)
+    above = dataclasses.replace(above, unpool=Neighbourhood(*padded_rows(PT)))
     A = adjacency(above.edges, above.n_vertices)
     near = (P @ A @ P.T).tocoo()  # centres whose supports touch
     keep = near.row < near.col
     V = above.vertices[C] if above.vertices is not None else None
-    lat = Level(n_latent, np.stack([near.row[keep], near.col[keep]], 1).astype(np.int64), None, V)
-    lat.extra["pool_nbrs"], lat.extra["pool_mask"] = padded_rows(P, first=C)
-    lat.extra["centres"] = C
-    lat.extra["conv_nbrs"], lat.extra["conv_mask"] = padded_rows(reach(adjacency(lat.edges, n_latent), radius),
-                                                                  first=np.arange(n_latent))
+    E = np.stack([near.row[keep], near.col[keep]], 1).astype(np.int64)
+    lat = Level(n_latent, E, None, V, pool=Neighbourhood(*padded_rows(P, first=C)), centres=C,
+                conv=Neighbourhood(*padded_rows(reach(adjacency(E, n_latent), radius), first=np.arange(n_latent))))
     return Hierarchy([*h.levels[:depth - 1], above, lat], [*h.down[:depth - 1], _mean_rows(P)],
                      [*h.up[:depth - 1], _mean_rows(PT)])
 

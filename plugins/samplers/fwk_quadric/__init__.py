@@ -253,7 +253,8 @@ class Quadric:
 
         if cache is None:
             return make()
-        return cache.get_or_build("quadric", (template.content_hash(), self.factors, self.min_vertices, "v2"), make)
+        # "v3": the Level class lost its untyped ``extra`` dict; older pickled entries rebuild
+        return cache.get_or_build(self.name, (template.content_hash(), self.factors, self.min_vertices, "v3"), make)
 
 
 def _edges(F):

@@ -10,14 +10,16 @@ lies within ``stride - 1`` hops of a centre. The next level's vertices are the c
 centres are joined when they are at most ``2 stride - 1`` hops apart (their covering balls touch
 or overlap), which gives non-manifold graphs, as in the paper.
 
-Neighbourhoods, stored in ``Level.extra`` as padded index arrays with boolean masks:
+Neighbourhoods, stored in the typed fields of ``fwk.protocols.Level`` as
+``Neighbourhood(index, mask)`` (padded index arrays with boolean masks):
 
-* ``conv_nbrs`` / ``conv_mask`` on every level: the vertices within ``radius`` hops of each
-  vertex (itself first): the support of a stride-1 convolution;
-* ``pool_nbrs`` / ``pool_mask`` on level i + 1: for each centre, the level-i vertices within
-  ``radius`` hops (a strided convolution's support, and ``down``: their mean);
-* ``unpool_nbrs`` / ``unpool_mask`` on level i: for each level-i vertex, the centres whose pool
-  neighbourhood contains it (a transposed convolution's support, and ``up``: their mean).
+* ``conv`` on every level: the vertices within ``radius`` hops of each vertex (itself first):
+  the support of a stride-1 convolution;
+* ``pool`` on level i + 1: for each centre, the level-i vertices within ``radius`` hops (centre
+  first; a strided convolution's support, and ``down``: their mean); ``centres`` on level
+  i + 1: the centres' indices on level i;
+* ``unpool`` on level i: for each level-i vertex, the centres whose pool neighbourhood contains
+  it (a transposed convolution's support, and ``up``: their mean).
 
 ``down`` and ``up`` are sparse averaging operators (rows sum to 1). Several connected components
 are handled, each keeping at least one centre; nothing n x n is dense.
@@ -31,7 +33,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components
 from fwk.errors import RecipeError
 from fwk.graph import adjacency, padded_rows, reach
 from fwk.hookspecs import hookimpl
-from fwk.protocols import Hierarchy, Level
+from fwk.protocols import Hierarchy, Level, Neighbourhood
 
 
 _adj, _within, _padded = adjacency, reach, padded_rows
@@ -98,22 +100,22 @@ class Simple:
                 keep = reach.row < reach.col
                 E = np.stack([reach.row[keep], reach.col[keep]], 1)
                 lv = levels[-1]
-                lv.extra["conv_nbrs"], lv.extra["conv_mask"] = _padded(conv, first=np.arange(A.shape[0]))
-                lv.extra["unpool_nbrs"], lv.extra["unpool_mask"] = _padded(P.T.tocsr())
-                nxt = Level(len(C), E, None, V[C])
-                nxt.extra["pool_nbrs"], nxt.extra["pool_mask"] = _padded(P, first=C)
-                nxt.extra["centres"] = C
+                lv.conv = Neighbourhood(*_padded(conv, first=np.arange(A.shape[0])))
+                lv.unpool = Neighbourhood(*_padded(P.T.tocsr()))
+                nxt = Level(len(C), E, None, V[C], pool=Neighbourhood(*_padded(P, first=C)), centres=C)
                 downs.append(D.tocsr())
                 ups.append(U.tocsr())
                 levels.append(nxt)
                 A, V = _adj(E, len(C)), V[C]
             last = levels[-1]
-            last.extra["conv_nbrs"], last.extra["conv_mask"] = _padded(_within(A, self.radii[-1]), first=np.arange(A.shape[0]))
+            last.conv = Neighbourhood(*_padded(_within(A, self.radii[-1]), first=np.arange(A.shape[0])))
             return Hierarchy(levels, downs, ups)
 
         if cache is None:
             return make()
-        return cache.get_or_build("simple", (template.content_hash(), self.n_levels, self.strides, self.radii, "v2"), make)
+        # "v3": Levels carry typed neighbourhoods (was an untyped ``extra`` dict): older entries rebuild
+        key = (template.content_hash(), self.n_levels, self.strides, self.radii, "v3")
+        return cache.get_or_build(self.name, key, make)
 
 
 @hookimpl
