@@ -1,7 +1,11 @@
-"""Metrics over batches and their summaries."""
+"""Metrics over batches and their summaries, and the helpers metric plugins share."""
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
+
+from ..plugins import get_registry
 
 
 def as_pair(pred, target) -> tuple[np.ndarray, np.ndarray]:
@@ -23,6 +27,38 @@ def in_chunks(fn, pred, target, size: int) -> tuple[np.ndarray, np.ndarray]:
     if not parts:
         return np.zeros(0), np.zeros((0, pred.shape[1]))
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+class TopologyMemo:
+    """``build(template)`` computed once per topology: ``memo(template)`` returns the structure
+    built for the first template of the same topology (``template.topology_hash()``: vertex
+    count and triangles), and remembers it per template object (weakly), so a template seen
+    before is not hashed again. At most ``size`` topologies are kept (all forgotten when full).
+
+    Metric plugins keep their per-topology structures (edge stencils, sparse scatters) in one::
+
+        _prep = TopologyMemo(_build)     # _build(template) -> the structures
+        p = _prep(template)
+    """
+
+    def __init__(self, build, size: int = 16):
+        self.build = build
+        self.size = size
+        self._by_template: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+        self._by_topology: dict = {}
+
+    def __call__(self, template):
+        hit = self._by_template.get(template)
+        if hit is None:
+            key = template.topology_hash()
+            hit = self._by_topology.get(key)
+            if hit is None:
+                hit = self.build(template)
+                if len(self._by_topology) > self.size:
+                    self._by_topology.clear()
+                self._by_topology[key] = hit
+            self._by_template[template] = hit
+        return hit
 
 
 def evaluate(pred, target, template, metrics) -> dict:
@@ -51,8 +87,6 @@ def _instances(metrics) -> list:
     out = []
     for m in metrics:
         if isinstance(m, str):
-            from ..plugins import get_registry
-
             m = get_registry().get("metric", m)
         if isinstance(m, type):
             m = m()
@@ -79,14 +113,13 @@ def evaluate_summary(pred, target, template, metrics, scale: float = 1.0) -> dic
     """
     metrics = _instances(metrics)
     res = evaluate(pred, target, template, metrics)
-    in_units = getattr(template, "units", None) or "input"
+    in_units = (template.units if template is not None else "") or "input"
     out = {}
     for m in metrics:
         summ = summarise(res[m.name]["scores"])
-        power = getattr(m, "power", 0)
-        units = getattr(m, "units", "")
+        units = m.units
         summ["units"] = units
-        f = 1.0 / float(scale) ** power
+        f = 1.0 / float(scale) ** m.power
         for k in ("mean", "median", "max", "std"):
             summ[f"{k}_input"] = summ[k] * f
         summ["units_input"] = units.replace("input", in_units)

@@ -6,21 +6,25 @@ Subclass it in a test module and set ``component`` (the metric class) and option
     class TestMyMetric(MetricContract):
         component = MyMetric
 
-Checked: ``name``/``units`` declared; scores (b,) and per-vertex maps (b, n), float64 and
-finite; identical meshes score 0 everywhere; a batch equals its meshes one at a time; a metric declaring ``rigid_invariant = True`` gives the
-same scores after a rigid motion of both meshes, one declaring ``scale_invariant = True`` after
-a uniform scaling, and one declaring ``power = p`` scales as s**p; a metric whose
-score is a non-negative distance grows with the size of a perturbation on average.
+Checked: the metric plays ``fwk.protocols.Metric``: ``name`` and the display attributes
+reports read (``label`` a non-empty str, ``display_scale`` > 0, ``units`` a str, ``power`` an
+int, ``default`` a bool, ``default_rank`` an int); scores (b,) and per-vertex maps (b, n),
+float64 and finite; identical meshes score 0 everywhere; a batch equals its meshes one at a
+time; a metric declaring ``rigid_invariant = True`` gives the same scores after a rigid motion
+of both meshes; one declaring ``scale_invariant = True`` the same after a uniform scaling,
+otherwise scores scale as s**power; a perturbation's score grows with its size on average.
 """
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+from fwk.data import Template
+from fwk.protocols import Metric
 
 
 def small_mesh():
     """A bumpy open grid (triangles), 9 x 9 vertices, and its Template."""
-    from fwk.data import Template
-
     n = 9
     x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
     z = 0.1 * np.sin(3 * x) * np.cos(2 * y)
@@ -32,6 +36,8 @@ def small_mesh():
 
 
 class MetricContract:
+    """The metric contract suite; set ``component`` (the class) and optionally ``params``."""
+
     component: type = None
     params: dict = {}
 
@@ -40,9 +46,19 @@ class MetricContract:
 
     def test_declares_name_and_units(self):
         m = self.make()
+        assert isinstance(m, Metric), "a metric declares every attribute of fwk.protocols.Metric"
         assert isinstance(m.name, str) and m.name
-        assert isinstance(getattr(m, "units", None), str)
+        assert isinstance(m.units, str)
         assert (m.__doc__ or "").strip(), "the class docstring is the `fwk list` summary"
+
+    def test_declares_how_reports_show_it(self):
+        m = self.make()
+        assert isinstance(m.label, str) and m.label.strip(), "label: the column header, e.g. 'L1 norm'"
+        assert isinstance(m.display_scale, (int, float)) and not isinstance(m.display_scale, bool)
+        assert m.display_scale > 0, "display_scale: tables show value / display_scale"
+        assert isinstance(m.power, int) and not isinstance(m.power, bool) and m.power >= 0
+        assert isinstance(m.default, bool)
+        assert isinstance(m.default_rank, int) and not isinstance(m.default_rank, bool)
 
     def test_shapes_and_identity(self):
         V, t = small_mesh()
@@ -79,10 +95,9 @@ class MetricContract:
 
     def test_rigid_invariance_when_declared(self):
         m = self.make()
+        # rigid_invariant / scale_invariant are optional declarations (absent: not claimed)
         if not getattr(m, "rigid_invariant", False):
             return
-        from scipy.spatial.transform import Rotation
-
         V, t = small_mesh()
         rng = np.random.default_rng(2)
         P = V + rng.normal(0, 0.01, V.shape)
@@ -101,5 +116,5 @@ class MetricContract:
         s2, _ = m((2.5 * P)[None], (2.5 * V)[None], t)
         if getattr(m, "scale_invariant", False):
             assert np.allclose(s1, s2, rtol=1e-8, atol=1e-12)
-        elif getattr(m, "power", None):
+        else:
             assert np.allclose(s2, s1 * 2.5 ** m.power, rtol=1e-10)

@@ -37,13 +37,13 @@ cached; target and prediction go through one batched pass (float64, structure of
 """
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
-from fwk.evaluation.core import as_pair, in_chunks
+from fwk.errors import RecipeError
+from fwk.evaluation.core import TopologyMemo, as_pair, in_chunks
 from fwk.geometry import edge_topology
 from fwk.hookspecs import hookimpl
 
@@ -68,43 +68,25 @@ class _Prep:
     vmean: sp.csr_matrix     # (n, e_i): per-vertex mean over incident interior edges
 
 
-_BY_TEMPLATE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-_BY_TOPOLOGY: dict = {}
-
-
-def _prep(template) -> _Prep:
-    try:
-        hit = _BY_TEMPLATE.get(template)
-    except TypeError:  # not weak-referenceable
-        hit = None
-    if hit is not None:
-        return hit
+def _build(template) -> _Prep:
     F = np.ascontiguousarray(template.triangles, dtype=np.int64)
-    n = int(template.n_vertices)
-    key = (n, F.shape, hash(F.tobytes()))
-    p = _BY_TOPOLOGY.get(key)
-    if p is None:
-        topo = edge_topology(F, n)
-        ne, ni = len(topo.edges), len(topo.interior)
-        slot = -np.ones(ne, dtype=np.int64)          # edge index -> interior index (or -1)
-        slot[topo.interior] = np.arange(ni)
-        # the 6 edge slots of the two faces of every interior edge (the edge itself twice);
-        # border / non-manifold edges have |phi| = 0 there but still count in the mean of 3
-        cols = np.concatenate([slot[topo.face_edges[topo.f1]], slot[topo.face_edges[topo.f2]]], axis=1)
-        rows = np.repeat(np.arange(ni), 6)
-        ok = cols.ravel() >= 0
-        rough = sp.csr_matrix((np.full(ok.sum(), 1 / 6), (rows[ok], cols.ravel()[ok])), shape=(ni, ni))
-        deg = np.asarray(topo.vertex_edge.sum(axis=1)).ravel()
-        vmean = sp.diags(1.0 / np.maximum(deg, 1)) @ topo.vertex_edge
-        p = _Prep(np.ascontiguousarray(F.T), topo.f1, topo.f2, topo.a, topo.b, rough.tocsr(), vmean.tocsr())
-        if len(_BY_TOPOLOGY) > 16:
-            _BY_TOPOLOGY.clear()
-        _BY_TOPOLOGY[key] = p
-    try:
-        _BY_TEMPLATE[template] = p
-    except TypeError:
-        pass
-    return p
+    topo = edge_topology(F, int(template.n_vertices))
+    ne, ni = len(topo.edges), len(topo.interior)
+    slot = -np.ones(ne, dtype=np.int64)          # edge index -> interior index (or -1)
+    slot[topo.interior] = np.arange(ni)
+    # the 6 edge slots of the two faces of every interior edge (the edge itself twice);
+    # border / non-manifold edges have |phi| = 0 there but still count in the mean of 3
+    cols = np.concatenate([slot[topo.face_edges[topo.f1]], slot[topo.face_edges[topo.f2]]], axis=1)
+    rows = np.repeat(np.arange(ni), 6)
+    ok = cols.ravel() >= 0
+    rough = sp.csr_matrix((np.full(ok.sum(), 1 / 6), (rows[ok], cols.ravel()[ok])), shape=(ni, ni))
+    deg = np.asarray(topo.vertex_edge.sum(axis=1)).ravel()
+    vmean = sp.diags(1.0 / np.maximum(deg, 1)) @ topo.vertex_edge
+    return _Prep(np.ascontiguousarray(F.T), topo.f1, topo.f2, topo.a, topo.b, rough.tocsr(), vmean.tocsr())
+
+
+#: the per-topology structures of a template (built once per topology)
+_prep = TopologyMemo(_build)
 
 
 def _soa(V: np.ndarray) -> np.ndarray:
@@ -149,16 +131,16 @@ class DAME:
     """Dihedral Angle Mesh Error (perceptual; shared connectivity; radians)."""
 
     name = "dame"
+    label = "DAME"
     units = "rad"
     power = 0               # scale-invariant: the same number in every unit
     display_scale = 1e-2    # tables show DAME x1e-2, as the thesis does
-    scale_label = "×1e-2"
+    default = True          # in the default metric list of evaluating tasks
+    default_rank = 3
     rigid_invariant = True
     scale_invariant = True
 
     def __init__(self, mask_scale: float = MASK_SCALE, visibility: str = "area"):
-        from fwk.errors import RecipeError
-
         if visibility not in ("area", "none"):
             raise RecipeError(f"visibility: expected area or none, got {visibility!r}")
         if not (np.isfinite(mask_scale) and mask_scale > 0):

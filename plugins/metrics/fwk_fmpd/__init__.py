@@ -22,13 +22,12 @@ batched pass in float64.
 """
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
-from fwk.evaluation.core import as_pair, in_chunks
+from fwk.evaluation.core import TopologyMemo, as_pair, in_chunks
 from fwk.geometry import edge_topology
 from fwk.hookspecs import hookimpl
 
@@ -62,42 +61,25 @@ class _Prep:
     c: np.ndarray             # (n,) pi on the border, 2 pi inside
 
 
-_BY_TEMPLATE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
-_BY_TOPOLOGY: dict = {}
-
-
-def _prep(template) -> _Prep:
-    try:
-        hit = _BY_TEMPLATE.get(template)
-    except TypeError:
-        hit = None
-    if hit is not None:
-        return hit
+def _build(template) -> _Prep:
     F = np.ascontiguousarray(template.triangles, dtype=np.int64)
     n = int(template.n_vertices)
-    key = (n, F.shape, hash(F.tobytes()))
-    p = _BY_TOPOLOGY.get(key)
-    if p is None:
-        topo = edge_topology(F, n)
-        m, ne = len(F), len(topo.edges)
-        corners = np.arange(3 * m)
-        ones = np.ones(3 * m)
-        to_vertex = sp.csr_matrix((ones, (F.T.ravel(), corners)), shape=(n, 3 * m))
-        to_edge = sp.csr_matrix((ones, (topo.face_edges.T.ravel(), corners)), shape=(ne, 3 * m))
-        e0, e1 = topo.edges[:, 0].copy(), topo.edges[:, 1].copy()
-        ar = np.arange(ne)
-        I0 = sp.csr_matrix((np.ones(ne), (e0, ar)), shape=(n, ne))
-        I1 = sp.csr_matrix((np.ones(ne), (e1, ar)), shape=(n, ne))
-        c = np.where(topo.border_vertex, np.pi, 2 * np.pi)
-        p = _Prep(np.ascontiguousarray(F.T), to_vertex, to_edge, I0, I1, e0, e1, c)
-        if len(_BY_TOPOLOGY) > 16:
-            _BY_TOPOLOGY.clear()
-        _BY_TOPOLOGY[key] = p
-    try:
-        _BY_TEMPLATE[template] = p
-    except TypeError:
-        pass
-    return p
+    topo = edge_topology(F, n)
+    m, ne = len(F), len(topo.edges)
+    corners = np.arange(3 * m)
+    ones = np.ones(3 * m)
+    to_vertex = sp.csr_matrix((ones, (F.T.ravel(), corners)), shape=(n, 3 * m))
+    to_edge = sp.csr_matrix((ones, (topo.face_edges.T.ravel(), corners)), shape=(ne, 3 * m))
+    e0, e1 = topo.edges[:, 0].copy(), topo.edges[:, 1].copy()
+    ar = np.arange(ne)
+    I0 = sp.csr_matrix((np.ones(ne), (e0, ar)), shape=(n, ne))
+    I1 = sp.csr_matrix((np.ones(ne), (e1, ar)), shape=(n, ne))
+    c = np.where(topo.border_vertex, np.pi, 2 * np.pi)
+    return _Prep(np.ascontiguousarray(F.T), to_vertex, to_edge, I0, I1, e0, e1, c)
+
+
+#: the per-topology structures of a template (built once per topology)
+_prep = TopologyMemo(_build)
 
 
 def _roughness(X: np.ndarray, p: _Prep) -> tuple[np.ndarray, np.ndarray]:
@@ -144,10 +126,12 @@ class FMPD:
     """Fast Mesh Perceptual Distance (perceptual; unitless, in [0, 1])."""
 
     name = "fmpd"
+    label = "FMPD"
     units = "1"
     power = 0               # scale-invariant
-    display_scale = 1e-2
-    scale_label = "×1e-2"
+    display_scale = 1e-2    # tables show FMPD x1e-2
+    default = True          # in the default metric list of evaluating tasks
+    default_rank = 4
     rigid_invariant = True
     scale_invariant = True
 

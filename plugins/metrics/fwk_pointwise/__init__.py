@@ -24,7 +24,7 @@ class _Pointwise:
     units = "input"         # the positions' own units (squared for l2)
     power = 1               # in input units: value / scale**power (positions were multiplied by scale)
     display_scale = 1e-3    # tables show the value divided by this (thesis: L1 x1e-3)
-    scale_label = "×1e-3"
+    default = True          # in the default metric list of evaluating tasks
     rigid_invariant = False
     scale_invariant = False
 
@@ -42,6 +42,8 @@ class L1(_Pointwise):
     """Mean absolute coordinate error (thesis L1 norm)."""
 
     name = "l1"
+    label = "L1 norm"
+    default_rank = 0
 
     @staticmethod
     def per_vertex(diff):
@@ -52,10 +54,11 @@ class L2(_Pointwise):
     """Mean squared coordinate error (thesis L2 norm)."""
 
     name = "l2"
+    label = "L2 norm"
     units = "input^2"
     power = 2
     display_scale = 1e-5
-    scale_label = "×1e-5"
+    default_rank = 1
 
     @staticmethod
     def per_vertex(diff):
@@ -66,6 +69,8 @@ class EuclideanError(_Pointwise):
     """Mean per-vertex Euclidean distance (CoMA's error)."""
 
     name = "euclidean"
+    label = "Euclidean"
+    default_rank = 2
 
     @staticmethod
     def per_vertex(diff):
