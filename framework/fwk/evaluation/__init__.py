@@ -8,8 +8,18 @@ API (tasks call these)::
     summarise(scores) -> {"mean", "median", "max", "std", "n"}
     pareto_front(points (k, 2)) -> indices of the non-dominated points (both minimised)
     markdown_table(rows, columns, units=None) -> str
-    write_report(ctx, title, results, figures=None, notes=None, sections=None) -> report.md path
+    write_report(ctx, title, results, figures=None, notes=None, sections=None, registry=None) -> report.md path
+    standard_scatters(ctx, results, split="test", groups=None, registry=None) -> {caption: path}
     render.render_mesh / render.render_grid, plots.scatter_pareto / plots.line_plot
+
+How metrics are shown comes from the metric classes (``label``, ``display_scale``, ``units``,
+``power``, ``default``, ``default_rank``; see ``fwk.protocols.Metric``), never from a list here::
+
+    default_metrics(registry=None) -> [name, ...]   # default = True, in default_rank order
+    display(metric, registry=None) -> Display(scale, label, units, name, power)
+                                       # .suffix " ×1e-3", .format(x), .header_unit(units)
+    figure_metrics(registry=None) -> (distance, [perceptual, ...])
+    format_value(x, scale=1.0) -> str; scale_suffix(scale) -> str
 
 metrics.json schema (every evaluating task writes it; ``fwk report`` reads it)::
 
@@ -27,5 +37,8 @@ The evaluation space is the registered data scaled by s into [-1, 1] (the thesis
 input-unit values divide l1 and euclidean by s and l2 by s^2; DAME and FMPD are
 scale-invariant, so their input-unit values equal the evaluation-space ones.
 """
-from .core import evaluate, evaluate_summary, pareto_front, summarise  # noqa: F401
-from .report import markdown_table, reconstruction_figures, write_report  # noqa: F401
+from .core import TopologyMemo, evaluate, evaluate_summary, pareto_front, summarise  # noqa: F401
+from .presentation import (Display, default_metrics, display, figure_metrics, format_value,  # noqa: F401
+                           scale_suffix)
+from .report import (markdown_table, reconstruction_figures, scatter_figure, standard_scatters,  # noqa: F401
+                     write_report)

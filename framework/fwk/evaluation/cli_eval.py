@@ -2,14 +2,17 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
+from ..data.io import read_mesh
 from ..errors import DataError, TopologyError
+from ..plugins import get_registry
 from .core import evaluate, summarise
+from .presentation import default_metrics
 
-DEFAULT = ["l1", "l2", "euclidean", "dame", "fmpd"]
 SUFFIXES = (".obj", ".ply")
 
 
@@ -50,12 +53,9 @@ def compare_paths(a, b, metrics: list[str] | None = None, maps_dir=None, registr
     whose OBJ/PLY files are paired by relative path (all with one topology). Returns
     ``{"metrics": {name: {mean, median, max}}, "units": {name: units}, "pairs": count}``;
     ``maps_dir`` receives one .npz of per-vertex maps per pair. User errors raise FwkError
-    subclasses naming the files."""
-    from ..data.io import read_mesh
-    from ..plugins import get_registry
-
+    subclasses naming the files; ``metrics`` default to ``default_metrics(registry)``."""
     registry = registry or get_registry()
-    ms = [registry.get("metric", m, key_path="--metrics")() for m in (metrics or DEFAULT)]
+    ms = [registry.get("metric", m, key_path="--metrics")() for m in (metrics or default_metrics(registry))]
     pairs, lonely = _pairs(Path(a), Path(b))
     template = None
     P, T = [], []
@@ -89,7 +89,7 @@ def add_eval_parser(sub):
     p = sub.add_parser("eval", help="metrics between two meshes or two folders (matched by relative path)")
     p.add_argument("a", help="predicted mesh or folder")
     p.add_argument("b", help="reference (ground-truth) mesh or folder")
-    p.add_argument("--metrics", nargs="+", default=None, help=f"default: {' '.join(DEFAULT)}")
+    p.add_argument("--metrics", nargs="+", default=None, help="default: the metrics marked default (`fwk list`)")
     p.add_argument("--json", action="store_true", help="print one JSON object {metric: {mean, median, max}}")
     p.add_argument("--maps", metavar="DIR", help="write per-vertex maps (.npz per mesh pair)")
     return p
@@ -98,8 +98,6 @@ def add_eval_parser(sub):
 def run_eval(args) -> int:
     r = compare_paths(args.a, args.b, args.metrics, args.maps)
     if r["unmatched"]:
-        import sys
-
         more = f" and {len(r['unmatched']) - 3} more" if len(r["unmatched"]) > 3 else ""
         print(f"warning: {len(r['unmatched'])} file(s) without a partner in the other folder were skipped: "
               f"{', '.join(r['unmatched'][:3])}{more}", file=sys.stderr)

@@ -5,7 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..cache import atomic_write_bytes
 from ..errors import FwkError
+from ..runs import write_json
+from .report import standard_scatters, write_report
 
 
 def _load(run: Path) -> dict:
@@ -30,20 +33,15 @@ class _Dir:
         return p
 
     def write_json(self, rel, obj):
-        from ..runs import write_json
-
         write_json(self.path(rel), obj)
 
     def write_text(self, rel, text):
-        from ..cache import atomic_write_bytes
-
         atomic_write_bytes(self.path(rel), text.encode())
         return self.path(rel)
 
 
 def combine(runs: list[Path], out: Path) -> Path:
-    from .report import scatter_figure, write_report
-
+    """One comparison report in ``out`` of the models of several runs (labelled ``run:model``)."""
     merged = {"models": {}, "runs": {}}
     groups = {}
     for r in runs:
@@ -55,11 +53,7 @@ def combine(runs: list[Path], out: Path) -> Path:
         merged["runs"][r.name] = str(r)
         merged.setdefault("dataset", m.get("dataset", {}))
     ctx = _Dir(out)
-    figures = {}
-    for y in ("dame", "fmpd"):
-        f = scatter_figure(ctx, merged, "test", "l1", y, groups=groups if len(runs) > 1 else None)
-        if f is not None:
-            figures[f"L1 against {y.upper()} (test), Pareto front dashed"] = f
+    figures = standard_scatters(ctx, merged, "test", groups=groups if len(runs) > 1 else None)
     title = "Comparison of " + ", ".join(r.name for r in runs)
     return write_report(ctx, title, merged, figures, notes=[f"runs: {', '.join(map(str, runs))}"])
 
@@ -79,8 +73,6 @@ def run_report(args) -> int:
     out = Path(args.out) if args.out else (runs[0] if len(runs) == 1 else Path("report-combined"))
     if len(runs) == 1 and not args.out:
         m = _load(runs[0])
-        from .report import write_report
-
         figs = m.get("figures", {})
         write_report(_Dir(runs[0]), f"Report: {runs[0].name}", {k: v for k, v in m.items() if k not in ("figures", "notes")},
                      {k: v for k, v in figs.items()}, notes=m.get("notes", []))

@@ -9,6 +9,8 @@ from .core import pareto_front
 
 
 def _plt():
+    """matplotlib.pyplot on the Agg backend. Deferred: pyplot costs ~0.5 s of import time that
+    `fwk list` and runs that draw nothing need not pay."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -22,9 +22,12 @@ per mesh. Cells with scalars and the same ``bar`` title but no ``clim`` share co
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
+
+from ..errors import FwkError
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
@@ -37,8 +40,6 @@ def _azimuth(view) -> float:
     if isinstance(view, (int, float)):
         return float(view)
     if view not in VIEWS:
-        from ..errors import FwkError
-
         raise FwkError(f"view {view!r}: expected one of {', '.join(VIEWS)} or an azimuth in degrees")
     return VIEWS[view]
 
@@ -159,14 +160,12 @@ def render_grid(cells: list[list], template, path, view: str | float | list = "f
         try:
             return _render_pyvista(cells, template, path, cell_size, cmap, titles, scale)
         except (ImportError, RuntimeError, OSError) as exc:  # no OpenGL context at all
-            import warnings
-
             warnings.warn(f"pyvista could not render ({type(exc).__name__}: {exc}); drawing with matplotlib")
     return _render_matplotlib(cells, template, path, cell_size, cmap, titles, scale)
 
 
 def _render_pyvista(cells, template, path, cell_size, cmap, titles, scale) -> Path:
-    import pyvista as pv
+    import pyvista as pv  # deferred: 0.25 s of import time that `fwk list` and runs without renders need not pay
 
     rows, cols = len(cells), max(len(r) for r in cells)
     faces = _faces(template)
@@ -212,7 +211,7 @@ def _render_pyvista(cells, template, path, cell_size, cmap, titles, scale) -> Pa
 
 def _render_matplotlib(cells, template, path, cell_size, cmap_name, titles, scale) -> Path:
     """Fallback without OpenGL: painter's algorithm on per-face colours, Lambert-shaded."""
-    import matplotlib
+    import matplotlib  # deferred: matplotlib.pyplot costs ~0.5 s of import time (see plots._plt)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -1,21 +1,16 @@
 """``report.md`` and ``metrics.json`` of evaluating tasks, and the standard figures."""
 from __future__ import annotations
 
-import math
 import os
 from pathlib import Path
 
+from ..registry import Registry
 from .core import evaluate
 from .plots import scatter_pareto
+from .presentation import bare_unit, display, figure_metrics, format_value
+from .render import colour_limits, render_grid
 
 SPLIT_ORDER = ("train", "val", "test")
-
-
-def _fmt(x, scale=1.0) -> str:
-    if x is None or (isinstance(x, float) and not math.isfinite(x)):
-        return "n/a"
-    v = x / scale
-    return f"{v:.4g}"
 
 
 def markdown_table(rows: list[list], columns: list[str], units=None) -> str:
@@ -33,14 +28,8 @@ def markdown_table(rows: list[list], columns: list[str], units=None) -> str:
     return "\n".join([head, sep, *body])
 
 
-def _scale_label(scale: float) -> str:
-    if scale == 1.0:
-        return ""
-    e = int(round(math.log10(scale)))
-    return f" ×1e{e}"
-
-
 def metric_columns(results: dict) -> list[str]:
+    """The metric names of ``results["models"]``, in order of first appearance."""
     names = []
     for per_split in results.get("models", {}).values():
         for per_metric in per_split.values():
@@ -48,9 +37,6 @@ def metric_columns(results: dict) -> list[str]:
                 if m not in names:
                     names.append(m)
     return names
-
-
-DISPLAY = {"l1": 1e-3, "l2": 1e-5, "euclidean": 1e-3, "dame": 1e-2, "fmpd": 1e-2}
 
 
 def _units_of(results: dict, metric: str, key: str = "units") -> str:
@@ -62,43 +48,38 @@ def _units_of(results: dict, metric: str, key: str = "units") -> str:
     return ""
 
 
-def _eval_unit(metric: str, units: str) -> str:
-    """Header unit in the evaluation space: the thesis's display factor, and the unit unless it
-    is the positions' own (the evaluation space has none: it is scaled into [-1, 1])."""
-    f = _scale_label(DISPLAY.get(metric, 1.0)).strip()
-    u = "" if (not units or "input" in units or units == "1") else units
-    return " ".join(x for x in (u, f) if x)
-
-
-def results_tables(results: dict, units: str = "") -> str:
+def results_tables(results: dict, units: str = "", registry: Registry | None = None) -> str:
     """One table per split: rows = models, columns = metrics (mean over meshes, divided by the
-    thesis's display factor in the header), then one table of the means in the dataset's units
-    (rows = model and split) where the task recorded them."""
+    metric's display factor in the header), then one table of the means in the dataset's units
+    (rows = model and split) where the task recorded them. Display attributes come from the
+    metric classes of ``registry`` (default: the process-wide one)."""
     out = []
     metrics = metric_columns(results)
+    shown = {m: display(m, registry) for m in metrics}
     models = list(results.get("models", {}))
     for split in _splits(results):
         cols = ["model"] + metrics
-        cu = [""] + [_eval_unit(m, _units_of(results, m)) for m in metrics]
+        cu = [""] + [shown[m].header_unit(_units_of(results, m)) for m in metrics]
         rows = []
         for label in models:
             r = results["models"][label].get(split, {})
             if not r:
                 continue
-            rows.append([label] + [_fmt(r.get(m, {}).get("mean"), DISPLAY.get(m, 1.0)) for m in metrics])
+            rows.append([label] + [shown[m].format(r.get(m, {}).get("mean")) for m in metrics])
         out.append(f"### {split}: mean over meshes, evaluation space\n\n" + markdown_table(rows, cols, cu))
     inp = [m for m in metrics if any("mean_input" in r.get(m, {}) for l in models
                                      for r in results["models"][l].values())]
     if inp:
         cols = ["model", "split"] + inp
         cu = ["", ""] + [_units_of(results, m, "units_input")
-                         or (units + ("^2" if m == "l2" else "") if units else "") for m in inp]
+                         or (units + (f"^{shown[m].power}" if shown[m].power > 1 else "") if units else "")
+                         for m in inp]
         rows = []
         for label in models:
             for split in _splits(results):
                 r = results["models"][label].get(split)
                 if r:
-                    rows.append([label, split] + [_fmt(r.get(m, {}).get("mean_input")) for m in inp])
+                    rows.append([label, split] + [format_value(r.get(m, {}).get("mean_input")) for m in inp])
         out.append("### mean over meshes, in the dataset's units\n\n" + markdown_table(rows, cols, cu))
     return "\n\n".join(out)
 
@@ -114,8 +95,12 @@ def _splits(results: dict) -> list[str]:
 
 
 def write_report(ctx, title: str, results: dict, figures: dict | None = None, notes: list[str] | None = None,
-                 sections: list[tuple[str, str]] | None = None) -> Path:
-    """Write ``metrics.json`` (``results`` plus figure paths and notes) and ``report.md``."""
+                 sections: list[tuple[str, str]] | None = None, registry: Registry | None = None) -> Path:
+    """Write ``metrics.json`` (``results`` plus figure paths and notes) and ``report.md``.
+
+    ``ctx`` is a run context (or anything with ``run_dir``, ``path``, ``write_json`` and
+    ``write_text``); ``registry`` gives the metrics' display attributes (default: the
+    process-wide registry)."""
     figures = figures or {}
     results = dict(results)
     results["figures"] = {k: _relative(v, ctx.run_dir) for k, v in figures.items()}
@@ -134,7 +119,7 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
                  "Columns show the mean divided by the factor in the header (×1e-3 means the number is in thousandths).\n")
     if results.get("models"):
         parts.append("## Results\n")
-        parts.append(results_tables(results, units))
+        parts.append(results_tables(results, units, registry))
     if results.get("timing"):
         rows = [[k, *(f"{v:.3g}" for v in t.values())] for k, t in results["timing"].items()]
         cols = ["model", *next(iter(results["timing"].values())).keys()]
@@ -159,11 +144,14 @@ def _relative(p, run_dir) -> str:
 
 
 def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metrics, n_rows: int = 2,
-                           split: str = "test") -> dict:
-    """Renders (ground truth first, then each model with L1 and, where present, DAME error maps,
-    shared colour limits) and the L1/DAME scatter with its Pareto front."""
+                           split: str = "test", registry: Registry | None = None) -> dict:
+    """Renders (ground truth first, then each model) with error maps of the figure metrics
+    (``figure_metrics``: the point-wise distance, then the first perceptual metric, where
+    ``metrics`` has them), shared colour limits per metric."""
     figures = {}
+    distance, perceptual = figure_metrics(registry)
     names = [m.name for m in metrics]
+    keys = [k for k in (distance, *perceptual[:1]) if k is not None and k in names]
     P = stacks.get(split)
     if n_rows and P is not None and len(P) and predictions:
         n = min(n_rows, len(P))
@@ -171,23 +159,18 @@ def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metri
         maps = {}
         for label, d in predictions.items():
             if split in d:
-                maps[label] = evaluate(d[split][:n], P[:n], template, [by[k] for k in ("l1", "dame") if k in by])
-        from .render import colour_limits
-
-        for key in ("l1", "dame"):
-            if key not in names:
-                continue
+                maps[label] = evaluate(d[split][:n], P[:n], template, [by[k] for k in keys])
+        for key in keys:
             clim = colour_limits([row for l in maps for row in maps[l][key]["maps"]])
+            cmap = "inferno" if key in perceptual else "viridis"
             rows = []
             for i in range(n):
                 row = [{"V": P[i], "label": f"ground truth {i}"}]
                 for label in maps:
                     row.append({"V": predictions[label][split][i], "scalars": maps[label][key]["maps"][i],
-                                "clim": clim, "label": label, "bar": key.upper(), "cmap": "inferno" if key == "dame" else "viridis"})
+                                "clim": clim, "label": label, "bar": key.upper(), "cmap": cmap})
                 rows.append(row)
             try:
-                from .render import render_grid
-
                 figures[f"{split} reconstructions with {key.upper()} error maps (front)"] = render_grid(
                     rows, template, ctx.path("figures", f"{split}_{key}_front.png"), view="front")
                 figures[f"{split} reconstructions with {key.upper()} error maps (three-quarter)"] = render_grid(
@@ -197,10 +180,15 @@ def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metri
     return figures
 
 
-def scatter_figure(ctx, results: dict, split: str = "test", x: str = "l1", y: str = "dame", name: str | None = None,
-                   groups: dict | None = None):
+def scatter_figure(ctx, results: dict, split: str = "test", x: str | None = None, y: str | None = None,
+                   name: str | None = None, groups: dict | None = None, registry: Registry | None = None):
     """Scatter of the models' mean ``x`` against mean ``y`` on ``split`` with the Pareto front;
-    None when no model has both."""
+    None when no model has both. ``x`` and ``y`` default to the figure metrics
+    (``figure_metrics``: the point-wise distance against the first perceptual metric)."""
+    if x is None or y is None:
+        distance, perceptual = figure_metrics(registry)
+        x = x if x is not None else distance
+        y = y if y is not None else next(iter(perceptual), None)
     pts = {}
     for label, per in results.get("models", {}).items():
         r = per.get(split, {})
@@ -208,10 +196,24 @@ def scatter_figure(ctx, results: dict, split: str = "test", x: str = "l1", y: st
             pts[label] = (r[x]["mean"], r[y]["mean"])
     if not pts:
         return None
+
     def label(m):
-        u = _eval_unit(m, _units_of(results, m)).replace(_scale_label(DISPLAY.get(m, 1.0)).strip(), "").strip()
+        u = bare_unit(_units_of(results, m))
         return f"{m.upper()} ({split}{', ' + u if u else ''})"
 
     groups = {k: g for k, g in (groups or {}).items() if k in pts} or None
     return scatter_pareto(pts, ctx.path("figures", name or f"{split}_{x}_{y}_scatter.png"), label(x), label(y),
                           title=f"{x.upper()} against {y.upper()}, {split} split", groups=groups)
+
+
+def standard_scatters(ctx, results: dict, split: str = "test", groups: dict | None = None,
+                      registry: Registry | None = None) -> dict:
+    """The standard scatter figures: the point-wise distance against each perceptual metric
+    (``figure_metrics``) on ``split``, with the Pareto front; {caption: path} of those drawn."""
+    distance, perceptual = figure_metrics(registry)
+    figures = {}
+    for y in perceptual:
+        f = scatter_figure(ctx, results, split, distance, y, groups=groups, registry=registry)
+        if f is not None:
+            figures[f"{distance.upper()} against {y.upper()} ({split}), Pareto front dashed"] = f
+    return figures
