@@ -7,7 +7,8 @@ mappings merged key by key as ``extends:`` does). Each member runs as a sub-run 
 ``<run>/<name>/`` with its own recipe, split, statistics, checkpoints and report; a member whose
 ``metrics.json`` exists is finished and is not run again, so a killed grid resumes where it
 stopped (``fwk run --resume``). The grid's report has one row per configuration and model with
-L1, L2, DAME and FMPD on train and test, and the L1/DAME scatter with its Pareto front.
+L1, L2, DAME and FMPD on train and test (``columns``), and the L1/DAME and L1/FMPD scatters
+with their Pareto fronts.
 
 ``sweep: models.dsm.k`` (a dotted key of the members' recipes, numeric in each) names the value a
 study varies: the report then also plots every metric against it, one line per split (the k
@@ -17,23 +18,30 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Annotated
 
 import yaml
 
 from fwk.errors import FwkError, RecipeError
+from fwk.evaluation import display, markdown_table, standard_scatters, write_report
+from fwk.evaluation.plots import line_plot
 from fwk.hookspecs import hookimpl
-
-COLUMNS = ("l1", "l2", "dame", "fmpd")
+from fwk.recipes import Kind, Spec, deep_merge, load_recipe, resolve
+from fwk.runs import RunContext, run_task
 
 
 class Grid:
-    """Run a list of recipes (or configurations of one base recipe) and compare them."""
+    """Run a list of recipes (or configurations of one base recipe) and compare them.
+
+    ``columns``: the metrics of the combined table and sweep plots (default: the thesis's L1,
+    L2, DAME and FMPD of tables 3.3-3.5)."""
 
     name = "grid"
 
     def __init__(self, recipes: list[str] | None = None, base: str | None = None,
                  configs: dict[str, dict] | None = None, splits: list[str] | None = None,
-                 sweep: str | None = None):
+                 sweep: str | None = None,
+                 columns: Annotated[list[Spec], Kind("metric")] = ("l1", "l2", "dame", "fmpd")):
         if not recipes and not configs:
             raise RecipeError("recipes: a grid needs `recipes` or `base` with `configs`")
         if configs and not base:
@@ -41,6 +49,8 @@ class Grid:
         self.recipes, self.base, self.configs = recipes or [], base, configs or {}
         self.splits = splits or ["train", "test"]
         self.sweep = sweep
+        # a recipe's columns arrive as Specs, the default as names
+        self.columns = [c.name if isinstance(c, Spec) else c for c in columns]
 
     def sweep_values(self, members: dict[str, dict]) -> dict[str, float]:
         """The value of ``sweep`` in each member's recipe (a RecipeError naming the member if absent)."""
@@ -57,9 +67,8 @@ class Grid:
         return out
 
     def members(self, ctx) -> dict[str, dict]:
-        from fwk.recipes import deep_merge, load_recipe
-
-        here = Path(ctx.source).parent if getattr(ctx, "source", None) else Path.cwd()
+        """{member name: its recipe}: the recipe files, then the configurations merged on ``base``."""
+        here = Path(ctx.source).parent if ctx.source else Path.cwd()
         out = {}
         for r in self.recipes:
             p = (here / r).resolve()
@@ -73,10 +82,7 @@ class Grid:
         return out
 
     def run(self, ctx):
-        from fwk.evaluation.report import markdown_table, scatter_figure, write_report
-        from fwk.recipes import resolve
-        from fwk.runs import RunContext, run_task
-
+        """Validate every member, run the unfinished ones as sub-runs, then combine their reports."""
         members = self.members(ctx)
         xs = self.sweep_values(members) if self.sweep else None
         resolved = {}
@@ -108,30 +114,23 @@ class Grid:
                 key = name if len(m["models"]) == 1 else f"{name}/{label}"
                 results["models"][key] = per
             results.setdefault("dataset", m.get("dataset", {}))
-        from fwk.evaluation.report import DISPLAY, _fmt, _scale_label
-
-        cols = ["configuration"] + [f"{m}{_scale_label(DISPLAY[m])} {s}" for s in self.splits for m in COLUMNS]
-        rows = [[key] + [_fmt(per.get(s, {}).get(m, {}).get("mean"), DISPLAY[m]) for s in self.splits for m in COLUMNS]
+        shown = {m: display(m, ctx.registry) for m in self.columns}
+        cols = ["configuration"] + [f"{m}{shown[m].suffix} {s}" for s in self.splits for m in self.columns]
+        rows = [[key] + [shown[m].format(per.get(s, {}).get(m, {}).get("mean")) for s in self.splits for m in self.columns]
                 for key, per in results["models"].items()]
-        figures = {}
-        for y in ("dame", "fmpd"):
-            f = scatter_figure(ctx, results, "test", "l1", y)
-            if f is not None:
-                figures[f"L1 against {y.upper()} (test), Pareto front dashed"] = f
+        figures = standard_scatters(ctx, results, "test", registry=ctx.registry)
         if xs:
             f = self._sweep_figures(ctx, results, xs)
             figures.update(f)
-        write_report(ctx, f"Grid: {ctx.recipe.get('name', 'grid')} ({len(rows)} configurations)", results, figures,
-                     sections=[("All configurations", markdown_table(rows, cols))])
+        write_report(ctx, f"Grid: {ctx.recipe.get('name', self.name)} ({len(rows)} configurations)", results, figures,
+                     sections=[("All configurations", markdown_table(rows, cols))], registry=ctx.registry)
 
     def _sweep_figures(self, ctx, results: dict, xs: dict[str, float]) -> dict:
         """Each metric against the swept value, one line per split and model (figure 4.11)."""
-        from fwk.evaluation.plots import line_plot
-        from fwk.evaluation.report import DISPLAY, _scale_label
-
         key = self.sweep.rsplit(".", 1)[-1]
         figures = {}
-        for m in COLUMNS:
+        for m in self.columns:
+            shown = display(m, ctx.registry)
             series = {}
             for label, per in results["models"].items():
                 member, _, model = label.partition("/")
@@ -139,12 +138,12 @@ class Grid:
                     v = per.get(s, {}).get(m, {}).get("mean")
                     if v is not None and member in xs:
                         name = f"{s}" + (f" {model}" if model else "")
-                        series.setdefault(name, []).append((xs[member], v / DISPLAY[m]))
+                        series.setdefault(name, []).append((xs[member], v / shown.scale))
             if not series:
                 continue
             series = {n: tuple(map(list, zip(*sorted(p)))) for n, p in series.items()}
             path = line_plot(series, ctx.path("figures", f"sweep_{key}_{m}.png"), key,
-                             f"{m.upper()}{_scale_label(DISPLAY[m])}", title=f"{m.upper()} against {key}",
+                             f"{m.upper()}{shown.suffix}", title=f"{m.upper()} against {key}",
                              logx=True)
             figures[f"{m.upper()} against {key} (figure 4.11)"] = path
         return figures
