@@ -2,10 +2,11 @@
 
 A finished ``blendshapes`` run holds everything a new neutral needs: the fitted preprocessing
 (``stats/preprocess.npz``: the mean training neutral and the dataset scale), the topology
-(``stats/template.npz``) and the trained model (``models/<label>.pt``, the run's
-``apply_model``). For each neutral: read it (its own polygons, UVs and material lines kept),
-check its topology against the run's, centre it, register it rigidly to the mean neutral and
-scale it (thesis 5.2.1), predict every expression the model was trained for, undo the
+(``stats/template.npz``) and the trained model (``models/<label>.pt``, reopened by
+``fwk.lifecycle``: ``--model LABEL``, else the run's ``apply_model``, else chosen by role). For
+each neutral: read it (its own polygons, UVs and material lines kept), check its topology
+against the run's, centre it, register it rigidly to the mean neutral and scale it (thesis
+5.2.1), predict every expression the model was trained for (``predict_all``), undo the
 registration and scale, and write ``<expression>.obj`` with the neutral's polygons, ``vt`` and
 material lines, vertex order unchanged. A folder of neutrals gives one sub-folder per neutral.
 
@@ -23,7 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .data import Template
+from .data.io import check_topology, read_obj, write_obj
 from .errors import DataError, FwkError
+from .lifecycle import choose_model, open_run
+from .protocols import BlendshapeModel, CutSelectingModel
 
 MESH_SUFFIXES = (".obj",)
 
@@ -36,52 +41,36 @@ def add_apply_parser(subparsers):
     p.add_argument("run_dir", help="a finished `fwk run` directory of task blendshapes")
     p.add_argument("neutral", help="a neutral head .obj sharing the run's topology, or a folder of them")
     p.add_argument("--out", required=True, help="output folder (created; existing files of the same name are replaced)")
-    p.add_argument("--model", default=None, help="model label of the run (default: the run's apply_model)")
+    p.add_argument("--model", default=None, help="model label of the run (default: the run's apply_model, else "
+                   "the first model choosing its spectral cut, else the first)")
     p.add_argument("--expressions", nargs="*", default=None, help="only these expressions (default: all trained)")
     p.add_argument("--quiet", action="store_true")
     return p
 
 
 class Applier:
-    """A run reopened for applying: ``predict(V_list) -> [{expression: (n, 3)}]`` in input units."""
+    """A run reopened for applying: ``predict(V_list) -> [{expression: (n, 3)}]`` in input units.
+
+    The model is ``model`` (a label, ``--model``) when given, else the run's recorded
+    ``apply_model``, else chosen by role: the first model choosing its spectral cut
+    (``fwk.protocols.CutSelectingModel``), else the first blendshape model."""
 
     def __init__(self, run_dir, model: str | None = None, registry=None):
-        import torch
-
-        from .data import Template
-        from .data.preprocess import Preprocessor
-        from .runs import load_run
-
-        run_dir = Path(run_dir)
-        loaded = load_run(run_dir, registry)
-        task = loaded.resolved.task
-        models = task.params.get("models") or {}
-        label = model or loaded.metrics.get("apply_model") or task.params.get("apply_model")
-        if label is None:
-            label = next((k for k, s in models.items() if getattr(s, "name", "") == "pbs"), next(iter(models), None))
-        if label not in models:
-            raise FwkError(f"--model {label}: not a model of {run_dir} (models: {', '.join(models)})")
-        state = run_dir / "models" / f"{label}.pt"
-        for p in (state, run_dir / "stats" / "preprocess.npz", run_dir / "stats" / "template.npz"):
-            if not p.exists():
-                raise FwkError(f"{p}: missing; is {run_dir} a finished blendshapes run?")
-        self.label = label
-        self.model = models[label].build()
-        d = torch.load(state, weights_only=False)
-        try:
-            self.model.load_state_dict(d, ctx=loaded.ctx)
-        except TypeError:
-            self.model.load_state_dict(d)
-        with np.load(run_dir / "stats" / "preprocess.npz") as z:
-            self.pre = Preprocessor.from_state({k: z[k] for k in z.files})
-        with np.load(run_dir / "stats" / "template.npz") as z:
+        run = open_run(run_dir, registry)
+        label = model or run.metrics.get("apply_model") or run.params.get("apply_model")
+        self.label = choose_model(run.specs, BlendshapeModel, label, prefer=CutSelectingModel,
+                                  source=str(run.run_dir))
+        tpl = run.run_dir / "stats" / "template.npz"
+        if not tpl.exists():
+            raise FwkError(f"{tpl}: missing; is {run.run_dir} a finished blendshapes run?")
+        self.model = run.model(self.label)
+        self.pre = run.preprocessor
+        with np.load(tpl) as z:
             self.template = Template(z["mean_neutral"], z["triangles"])
-        exprs = getattr(self.model, "expressions", None)
-        if exprs is None and hasattr(self.model, "src"):
-            exprs = list(self.model.src)
-        self.expressions = list(exprs or [])
+        self.expressions = list(self.model.expressions or [])
 
     def predict(self, neutrals: list[np.ndarray], expressions: list[str] | None = None, batch: int = 16) -> list[dict]:
+        """For each neutral (n, 3) in its own units and place: {expression: (n, 3)} likewise."""
         exprs = expressions or self.expressions
         bad = [e for e in exprs if e not in self.expressions]
         if bad:
@@ -90,8 +79,8 @@ class Applier:
         for s in range(0, len(neutrals), batch):
             V = np.stack(neutrals[s:s + batch])
             X, T = self.pre.transform_neutrals(V)
-            for e in exprs:
-                P = self.pre.inverse(np.asarray(self.model.predict(X, e), dtype=np.float64), T)
+            for e, P in self.model.predict_all(X, list(exprs)).items():
+                P = self.pre.inverse(np.asarray(P, dtype=np.float64), T)
                 for i in range(len(V)):
                     out[s + i][e] = P[i]
         return out
@@ -114,8 +103,6 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
           log=print, registry=None) -> list[Path]:
     """Write the blendshapes of one neutral (``out/<expression>.obj``) or of a folder of neutrals
     (``out/<stem>/<expression>.obj``); returns the written files."""
-    from .data.io import check_topology, read_obj, write_obj
-
     t0 = time.perf_counter()
     app = Applier(run_dir, model, registry)
     t_load = time.perf_counter() - t0

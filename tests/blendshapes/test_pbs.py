@@ -80,7 +80,7 @@ def test_perfect_networks_with_dr_reproduce_the_ground_truth_up_to_the_dr_round_
     assert all(b <= a + 1e-12 for a, b in zip(errs, errs[1:])) and errs[-1] < errs[0]
 
 
-def test_ends_equal_the_single_pb_predictions(trained):
+def test_parts_equal_the_single_pb_predictions(trained):
     m, data = trained
     N = np.asarray(data.val.positions[:, 0])
     n = N.shape[1]
@@ -88,7 +88,7 @@ def test_ends_equal_the_single_pb_predictions(trained):
     Ps = spatial.predict(N, "mouth-wide")
     assert np.allclose(m.predict(N, "mouth-wide", k=n), Ps, atol=1e-12)
     assert np.allclose(m.predict(N, "mouth-wide", k=0), diff.predict(N, "mouth-wide", target=Ps), atol=1e-12)
-    ends = m.ends(N, "mouth-wide")
+    ends = m.parts(N, "mouth-wide")
     assert np.allclose(ends["pb-euclidean-std"], Ps)
     # in between, eq. 5.10 against a direct evaluation with the explicit basis
     k = 20

@@ -70,3 +70,33 @@ def test_apply_with_the_trained_pbs(run, tmp_path):
     assert np.allclose(P, app.predict([V])[0]["mouth-wide"], atol=1e-6)
     # the prediction is in the user's units and place: close to the neutral, not to the mean
     assert np.abs(P - V).mean() < 0.2 * np.abs(V - V.mean(0)).mean()
+
+
+def test_apply_chooses_by_role_without_a_recorded_model(run, tmp_path):
+    """No apply_model recorded: the first cut-selecting model (pbs), although dt comes first;
+    --model names any other."""
+    import shutil
+
+    from fwk.apply import Applier
+
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    m = json.loads((copy / "metrics.json").read_text())
+    del m["apply_model"]
+    (copy / "metrics.json").write_text(json.dumps(m))
+    assert list(yaml.safe_load((copy / "recipe.yaml").read_text())["models"]) == ["dt", "pbs"]
+    assert Applier(copy).label == "pbs"
+    app = Applier(copy, model="dt")
+    assert app.label == "dt" and sorted(app.expressions) == ["face-compression", "mouth-wide"]
+
+
+def test_resume_loads_every_model_and_gives_the_same_numbers(run):
+    from fwk.runs import execute
+
+    before = json.loads((run / "metrics.json").read_text())
+    execute(None, resume=str(run), quiet=True)
+    after = json.loads((run / "metrics.json").read_text())
+    assert "loading the finished model" in (run / "log.txt").read_text()
+    for d in (before, after):
+        d.pop("timing")
+    assert after == before

@@ -35,6 +35,7 @@ from scipy.sparse.linalg import splu
 
 from fwk.errors import RecipeError
 from fwk.hookspecs import hookimpl
+from fwk.protocols import BLENDSHAPES
 
 
 def frames(V: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -87,58 +88,78 @@ class DeformationTransfer:
     """Deformation Transfer (Sumner & Popović 2004): the no-training blendshape baseline."""
 
     name = "dt"
-    task_family = "blendshapes"
+    task_family = BLENDSHAPES
+    expressions: list[str] | None = None  # the blendshape role's member, declared on the class; set per instance
 
     def __init__(self, sources: int | list[int] = 0):
         self.sources = [sources] if isinstance(sources, int) else list(sources)
         if not self.sources:
             raise RecipeError("sources: at least one source subject index")
+        self.expressions = None
         self.F = None
         self.src = {}  # expression -> (neutral (s, n, 3), expression (s, n, 3))
 
     def fit(self, data, ctx=None) -> None:
+        """Keep the source subjects' neutral and expressions (of ``expressions`` when set, else
+        every expression of the training split); afterwards ``expressions`` lists those with a
+        source."""
         col = data.train
         self.F = np.asarray(data.template.triangles)
         if max(self.sources) >= len(col.subjects):
             raise RecipeError(f"sources: index {max(self.sources)} but the training split has {len(col.subjects)} subjects")
         N = np.asarray(col.positions[self.sources, 0])
+        wanted = None if self.expressions is None else set(self.expressions)
+        self.src = {}
         for j, e in enumerate(col.shape_names):
-            if e == "neutral":
+            if e == "neutral" or (wanted is not None and e not in wanted):
                 continue
             ok = col.present[self.sources, j]
             if ok.any():
                 self.src[e] = (N[ok], np.asarray(col.positions[self.sources, j])[ok])
+        self.expressions = list(self.src)
 
     def gradients(self, expression: str) -> np.ndarray:
+        """The source's per-triangle maps Q_j (m, 3, 3) for ``expression``, averaged over sources."""
         if expression not in self.src:
-            raise RecipeError(f"dt: no source for expression {expression!r} (have: {', '.join(self.src)})")
+            raise RecipeError(f"{self.name}: no source for expression {expression!r} (have: {', '.join(self.src)})")
         S0, S1 = self.src[expression]
         Q = frames(S1, self.F) @ np.linalg.inv(frames(S0, self.F))
         return Q.mean(axis=0)
 
-    def predict(self, neutrals, expression: str, systems: list | None = None) -> np.ndarray:
-        neutrals = np.asarray(neutrals, dtype=np.float64)
+    def _transfer(self, neutrals: np.ndarray, expression: str, systems: list) -> np.ndarray:
         Q = self.gradients(expression)
         S0, S1 = self.src[expression]
         disp = (S1 - S0).mean(axis=0)
         cdisp = disp.mean(axis=0)
         out = np.empty_like(neutrals)
         for i, T0 in enumerate(neutrals):
-            sys_ = systems[i] if systems is not None else TargetSystem(T0, self.F)
+            sys_ = systems[i]
             X = sys_.solve(Q, T0[sys_.pins] + disp[sys_.pins])
             out[i] = X - X.mean(0) + T0.mean(0) + cdisp
         return out
 
-    def predict_all(self, neutrals, expressions) -> dict:
+    def _systems(self, neutrals: np.ndarray) -> list:
+        return [TargetSystem(T0, self.F) for T0 in neutrals]
+
+    def predict(self, neutrals, expression: str, target=None) -> np.ndarray:
+        """(b, n, 3) neutrals -> (b, n, 3) the expression transferred (``target`` is not used:
+        DT needs no ground truth)."""
+        neutrals = np.asarray(neutrals, dtype=np.float64)
+        return self._transfer(neutrals, expression, self._systems(neutrals))
+
+    def predict_all(self, neutrals, expressions: list[str], target: dict | None = None) -> dict:
         """Every expression for every neutral, one factorisation per neutral."""
-        systems = [TargetSystem(T0, self.F) for T0 in np.asarray(neutrals, dtype=np.float64)]
-        return {e: self.predict(neutrals, e, systems) for e in expressions}
+        neutrals = np.asarray(neutrals, dtype=np.float64)
+        systems = self._systems(neutrals)
+        return {e: self._transfer(neutrals, e, systems) for e in expressions}
 
     def state_dict(self) -> dict:
         return {"sources": self.sources, "F": self.F, "src": self.src}
 
-    def load_state_dict(self, d: dict) -> None:
+    def load_state_dict(self, d: dict, ctx=None) -> None:
+        """Restore (``ctx`` is not needed: DT keeps arrays only)."""
         self.sources, self.F, self.src = list(d["sources"]), np.asarray(d["F"]), dict(d["src"])
+        self.expressions = list(self.src)
 
 
 @hookimpl

@@ -19,8 +19,9 @@ E_neutral -> z -> D_expression, loss (eqs. 5.5 / 5.6)
 inference (eq. 5.7) P'_expr = g^-1(D(mu)) + P_neutral (for ``dr``: integrated against the
 neutral). ``mode: two-step`` (5.2.2): step 1 trains a VAE on neutrals alone (all training
 neutrals, with or without expressions); its encoder is frozen; step 2 trains one decoder per
-expression from the neutral's latent mean. The networks come from any registered autoencoder
-model (``network: {name: vae, ...}``) through its ``build_encoder`` / ``build_decoder``.
+expression from the neutral's latent mean. The networks come from any registered model
+playing ``fwk.protocols.NetworkFactory`` (``network: {name: vae, ...}``): its ``build_encoder``
+/ ``build_decoder``.
 
 ``pbs`` (section 5.3): two end-to-end PB networks trained together (one loop, one optimiser,
 separate parameters and losses), one ``euclidean`` std (spatial) and one ``dr`` norm
@@ -28,37 +29,46 @@ separate parameters and losses), one ``euclidean`` std (spatial) and one ``dr`` 
 
     P'_expr = (I - X_k) P'_diff + X_k P'_spatial,      X_k = U_k U_k^T M
 
-with the ``spectral`` assembler fitted on the mean neutral (U_k: the k smallest generalised
-eigenvectors of its cotangent Laplacian, M its mass matrix; X_k never formed). k = 0 gives
-P'_diff, k = n gives P'_spatial. The differential prediction carries no position; PBS places
-it by a rigid (Kabsch) fit onto P'_spatial, so no ground truth is needed at inference.
+with the ``assembler`` (default ``spectral``) fitted on the mean neutral (U_k: the k smallest
+generalised eigenvectors of its cotangent Laplacian, M its mass matrix; X_k never formed).
+k = 0 gives P'_diff, k = n gives P'_spatial. The differential prediction carries no position;
+PBS places it by a rigid (Kabsch) fit onto P'_spatial, so no ground truth is needed at
+inference.
 
 Pareto-optimal k (5.3.4): after training, for every expression the validation subjects are
 assembled at every k of a sweep (default: the thesis's 37 values {0, 10, ..., 100, 120, ...,
 200, 230, ..., 500, 550, ..., 1000, n} for n = 14,921, scaled to the template's n and
-deduplicated) and scored with L1 and with the perceptual DAME and FMPD; the Pareto front of
-(L1, ``knee_metric``) is found and k is chosen at its knee: both objectives are normalised to
-[0, 1] over the front, and the knee is the front point farthest below the chord joining the
-front's two ends (the "maximum distance to the chord" rule); a front of two points has no
-bend, so it takes the point with the smallest x / min x + y / min y (relative excess). The sweep, the fronts and the choice are
-kept in the state and saved with the run; ``predict`` and ``fwk apply`` use the chosen k.
+deduplicated) and scored with the ``sweep_metrics`` (L1 and the perceptual DAME and FMPD); the
+Pareto front of (``distance_metric``, ``knee_metric``), the thesis's (L1, FMPD), is found and k
+is chosen at its knee: both objectives are normalised to [0, 1] over the front, and the knee is
+the front point farthest below the chord joining the front's two ends (the "maximum distance
+to the chord" rule); a front of two points has no bend, so it takes the point with the
+smallest x / min x + y / min y (relative excess). The sweep, the fronts and the choice are kept
+in the state and saved with the run; ``predict`` and ``fwk apply`` use the chosen k
+(``fwk.protocols.CutSelectingModel``); ``parts`` gives the two networks alone
+(``fwk.protocols.CompositeModel``).
 
 Beyond the thesis (its future work, ``conditional: true``): one network pair for all
 expressions, the expression given to the decoders as a one-hot condition concatenated to z.
 """
 from __future__ import annotations
 
-import inspect
+from types import MappingProxyType
 from typing import Annotated
 
 import numpy as np
 import torch
 from torch import nn
 
+from fwk.data import Template
+from fwk import engine
 from fwk.engine import autoencoder_module, kl_divergence, loss_module, reparameterize
 from fwk.errors import DataError, RecipeError
+from fwk.evaluation import evaluate, pareto_front
 from fwk.hookspecs import hookimpl
-from fwk.recipes import Kind, Spec
+from fwk.plugins import get_registry
+from fwk.protocols import BLENDSHAPES, NetworkFactory
+from fwk.recipes import Kind, Spec, make_spec
 
 THESIS_KS = [*range(0, 101, 10), *range(120, 201, 20), *range(230, 471, 30), *range(500, 1001, 50)]
 THESIS_N = 14921
@@ -88,24 +98,16 @@ def knee(x, y) -> int:
     return int(order[int(np.argmin(dist))])
 
 
-def _registry():
-    from fwk.plugins import get_registry
-
-    return get_registry()
-
-
-def _spec(kind: str, value, path: str):
-    from fwk.recipes import make_spec
-
-    return make_spec(kind, value, path, _registry())
+def _as_spec(kind: str, value, path: str) -> Spec:
+    """A nested component as a Spec: a recipe gives Specs already; a model built in Python may
+    give a name or a mapping, resolved against the plugin registry."""
+    return make_spec(kind, value, path, get_registry())
 
 
-def _build_rep(spec, relative: bool):
-    """A representation from its spec; euclidean gets ``relative: true`` unless the recipe says."""
-    spec = _spec("representation", spec, "representation")
-    extra = {}
-    if "relative" in inspect.signature(spec.cls.__init__).parameters and "relative" not in spec.params:
-        extra["relative"] = relative
+def _build_rep(spec: Spec):
+    """A representation from its spec, taken against the reference (``relative: true``) where
+    its class offers the choice (``relative_option``) and the recipe does not say."""
+    extra = {"relative": True} if spec.cls.relative_option and "relative" not in spec.params else {}
     return spec.build(**extra)
 
 
@@ -146,15 +148,16 @@ def _joint_module(owner, kl_weight: float, stage_name: str):
 class _Blend:
     """Shared machinery: branches (one representation each), networks per branch and expression."""
 
-    task_family = "blendshapes"
+    task_family = BLENDSHAPES
+    expressions: list[str] | None = None  # the blendshape role's member, declared on the class; set per instance
 
     def _init(self, network, branches, mode, expressions, conditional, kl_weight, train):
         if mode not in MODES:
             raise RecipeError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
         if conditional and mode != "end-to-end":
             raise RecipeError("conditional: only with mode end-to-end")
-        self.network = network
-        self.branch_specs = branches
+        self.network = _as_spec("model", network, "network")
+        self.branch_specs = [_as_spec("representation", s, "representation") for s in branches]
         self.mode, self.conditional = mode, conditional
         self.expressions = list(expressions) if expressions else None
         self.kl_weight, self.train_overrides = kl_weight, dict(train or {})
@@ -171,16 +174,16 @@ class _Blend:
 
     def _network_model(self):
         if self._net_model is None:
-            spec = _spec("model", self.network, "network")
-            m = spec.build()
-            if not hasattr(m, "build_encoder") or not hasattr(m, "build_decoder"):
-                raise RecipeError(f"network: model {spec.name!r} has no build_encoder/build_decoder (use ae or vae)")
+            m = self.network.build()
+            if not isinstance(m, NetworkFactory):
+                raise RecipeError(f"network: model {self.network.name!r} does not lend its networks "
+                                  "(build_encoder, build_decoder, latent_size: see fwk.protocols.NetworkFactory)")
             self._net_model = m
         return self._net_model
 
     def _make_nets(self, template, channels, ctx=None):
         m = self._network_model()
-        latent = int(getattr(m, "latent", 64))
+        latent = int(m.latent_size)
         E = len(self.expressions)
         nets = nn.ModuleDict()
         for b, c in enumerate(channels):
@@ -227,8 +230,6 @@ class _Blend:
 
     # ------------------------------------------------------------------ fitting
     def fit(self, data, ctx) -> None:
-        from fwk.engine import fit, seed_everything
-
         tr, va = data.train, data.val
         names = [s for s in tr.shape_names if s != "neutral"]
         if self.expressions is None:
@@ -236,8 +237,8 @@ class _Blend:
         for e in self.expressions:
             tr.shape_index(e)
         self.template = data.template
-        self.in_reps = [_build_rep(s, True) for s in self.branch_specs]
-        self.out_reps = [_build_rep(s, True) for s in self.branch_specs]
+        self.in_reps = [_build_rep(s) for s in self.branch_specs]
+        self.out_reps = [_build_rep(s) for s in self.branch_specs]
 
         def arrays(col, fit_reps: bool):
             j0 = col.shape_index("neutral")
@@ -273,7 +274,7 @@ class _Blend:
         X, Y, mask, N = train
         channels = [x.shape[-1] for x in X]
         self.shape = (data.template.n_vertices, channels)
-        seed_everything(ctx.seed)
+        engine.seed_everything(ctx.seed)
         self._make_nets(data.template, channels, ctx)
         config = ctx.train.replace(**self.train_overrides)
         kl = config.kl_weight if self.kl_weight is None else self.kl_weight
@@ -284,14 +285,14 @@ class _Blend:
                 Nall = np.asarray(tr.positions[tr.present[:, j0], j0])
                 Fn = torch.as_tensor(self.in_reps[b].encode(Nall))
                 Fv = val[0][b] if val is not None else None
-                fit(autoencoder_module(self.nets[f"b{b}_neutral"], self.in_reps[b].unscale, kl), Fn, Fv, ctx,
+                engine.fit(autoencoder_module(self.nets[f"b{b}_neutral"], self.in_reps[b].unscale, kl), Fn, Fv, ctx,
                     f"{self.name}-step1-{self.branch_names[b]}", config)
                 for p in self.nets[f"b{b}"].enc.parameters():
                     p.requires_grad_(False)
         self.nets.train()
         train_t = (*X, *Y, mask)
         val_t = (*val[0], *val[1], val[2]) if val is not None else None
-        fit(_joint_module(self, kl, self.name), train_t, val_t, ctx,
+        engine.fit(_joint_module(self, kl, self.name), train_t, val_t, ctx,
             f"{self.name}-step2" if self.mode == "two-step" else self.name, config)
         self.nets.eval()
 
@@ -320,6 +321,12 @@ class _Blend:
         """Eq. 5.7: P'_expr = g^-1(F'_expr) relative to the neutral (dr integrated against it)."""
         return self.out_reps[b].decode(self.branch_features(N, expression, b), N, target)
 
+    def predict_all(self, neutrals, expressions: list[str], target: dict | None = None) -> dict:
+        """{expression: ``predict(neutrals, expression, target[expression])``}: one network pass
+        per expression (``target``: {expression: ground truth}, optional, as in ``predict``)."""
+        target = target or {}
+        return {e: self.predict(neutrals, e, target.get(e)) for e in expressions}
+
     # ------------------------------------------------------------------ saving
     def _base_state(self) -> dict:
         return {"expressions": self.expressions, "nets": self.nets.state_dict(), "shape": self.shape,
@@ -327,17 +334,15 @@ class _Blend:
                 "template_vertices": self.template.vertices, "template_triangles": self.template.triangles}
 
     def _load_base(self, d: dict, ctx=None) -> None:
-        from fwk.data import Template
-
         self.expressions = list(d["expressions"])
         self.shape = (int(d["shape"][0]), list(d["shape"][1]))
         self.template = Template(np.asarray(d["template_vertices"]), np.asarray(d["template_triangles"]))
-        self.in_reps = [_build_rep(s, True) for s in self.branch_specs]
-        self.out_reps = [_build_rep(s, True) for s in self.branch_specs]
+        self.in_reps = [_build_rep(s) for s in self.branch_specs]
+        self.out_reps = [_build_rep(s) for s in self.branch_specs]
         for r, s in zip(self.in_reps, d["in_reps"]):
-            r.load_state_dict(s)
+            r.load_state_dict(s, ctx=ctx)
         for r, s in zip(self.out_reps, d["out_reps"]):
-            r.load_state_dict(s)
+            r.load_state_dict(s, ctx=ctx)
         self._make_nets(self.template, self.shape[1], ctx)
         self.nets.load_state_dict(d["nets"])
         self.nets.eval()
@@ -353,7 +358,13 @@ class PB(_Blend):
                  expressions: list[str] | None = None, conditional: bool = False,
                  kl_weight: float | None = None, train: dict | None = None):
         self._init(network, [representation], mode, expressions, conditional, kl_weight, train)
-        self.branch_names = [getattr(representation, "name", str(representation))]
+        self.branch_names = [self.branch_specs[0].name]
+
+    @property
+    def places_rigidly(self) -> bool:
+        """Whether the output representation loses the rigid placement (dr): ``predict`` then
+        places the prediction onto ``target`` when one is given (the thesis's scoring)."""
+        return bool(self.branch_specs[0].cls.places_rigidly)
 
     def predict(self, neutrals, expression: str, target=None) -> np.ndarray:
         """(b, n, 3) neutrals -> (b, n, 3) the expression (``target``: ground truth that a ``dr``
@@ -362,7 +373,7 @@ class PB(_Blend):
         return self.branch_predict(N, expression, 0, target)
 
     def state_dict(self) -> dict:
-        return {"kind": "pb", **self._base_state()}
+        return {"kind": self.name, **self._base_state()}
 
     def load_state_dict(self, d: dict, ctx=None) -> None:
         """Restore; ``ctx`` (optional) lends its cache to the network's graph hierarchy."""
@@ -373,20 +384,27 @@ class PBS(_Blend):
     """PB with spectral assembly: a euclidean and a dr PB combined per expression at a Pareto-optimal k."""
 
     name = "pbs"
+    # the cut-selecting role's members, declared on the class (read-only; every instance sets its own)
+    k: dict[str, int] = MappingProxyType({})
+    sweep: dict = MappingProxyType({})
 
     def __init__(self, spatial: Annotated[Spec, Kind("representation")] = "euclidean",
                  differential: Annotated[Spec, Kind("representation")] = "dr",
-                 network: Annotated[Spec, Kind("model")] = "vae", expressions: list[str] | None = None,
+                 network: Annotated[Spec, Kind("model")] = "vae",
+                 assembler: Annotated[Spec, Kind("assembler")] = "spectral",
+                 expressions: list[str] | None = None,
                  conditional: bool = False, k: int | dict[str, int] | None = None, ks: list[int] | None = None,
-                 knee_metric: str = "fmpd", sweep_metrics: list[str] | None = None,
-                 kl_weight: float | None = None, train: dict | None = None):
+                 knee_metric: str = "fmpd", sweep_metrics: list[str] = ("l1", "dame", "fmpd"),
+                 distance_metric: str = "l1", kl_weight: float | None = None, train: dict | None = None):
         self._init(network, [spatial, differential], "end-to-end", expressions, conditional, kl_weight, train)
         self.branch_names = ["spatial", "differential"]
+        self.assembler_spec = _as_spec("assembler", assembler, "assembler")
         self.k_fixed, self.ks_param = k, ks
-        self.knee_metric = knee_metric
-        self.sweep_metrics = list(sweep_metrics or ["l1", "dame", "fmpd"])
-        if knee_metric not in self.sweep_metrics:
-            raise RecipeError(f"knee_metric: {knee_metric!r} must be one of sweep_metrics ({', '.join(self.sweep_metrics)})")
+        self.knee_metric, self.distance_metric = knee_metric, distance_metric
+        self.sweep_metrics = list(sweep_metrics)
+        for key, m in (("knee_metric", knee_metric), ("distance_metric", distance_metric)):
+            if m not in self.sweep_metrics:
+                raise RecipeError(f"{key}: {m!r} must be one of sweep_metrics ({', '.join(self.sweep_metrics)})")
         self.k: dict[str, int] = {}
         self.sweep: dict = {}
         self.assembler = None
@@ -406,10 +424,8 @@ class PBS(_Blend):
         if kmax <= 0:
             self.assembler = None
             return
-        cls = _registry().get("assembler", "spectral")
-        a = cls(k=kmax)
-        a.fit(template, template.vertices, cache=cache) if "cache" in inspect.signature(a.fit).parameters \
-            else a.fit(template, template.vertices)
+        a = self.assembler_spec.build(k=kmax)
+        a.fit(template, template.vertices, cache=cache)
         self.assembler = a
 
     def branches(self, N, expression: str):
@@ -430,11 +446,7 @@ class PBS(_Blend):
             elif k >= n:
                 out[i] = Ps
         if inner:
-            kin = [ks[i] for i in inner]
-            try:
-                out[inner] = self.assembler.assemble_many([Ps, Pd], kin)
-            except TypeError:  # older signature assemble_many(low, high, ks)
-                out[inner] = self.assembler.assemble_many(Ps, Pd, kin)
+            out[inner] = self.assembler.assemble_many([Ps, Pd], [ks[i] for i in inner])
         return out
 
     def predict(self, neutrals, expression: str, target=None, k: int | None = None) -> np.ndarray:
@@ -455,11 +467,12 @@ class PBS(_Blend):
         pb.nets = nn.ModuleDict({"b0": self.nets[f"b{b}"]})
         return pb
 
-    def ends(self, neutrals, expression: str, target=None) -> dict:
-        """The two single end-to-end PB predictions inside PBS (k = n, and the dr network
-        registered onto ``target`` when given, as the thesis evaluates dr outputs)."""
+    def parts(self, neutrals, expression: str, target=None) -> dict:
+        """The two single end-to-end PB predictions inside PBS (``fwk.protocols.CompositeModel``):
+        ``pb-<representation>-<scaling>`` of each network, the spatial one at k = n and the dr
+        one registered onto ``target`` when given, as the thesis evaluates dr outputs."""
         N = self._check(neutrals, expression)
-        names = [f"pb-{getattr(s, 'name', s)}-{getattr(s, 'params', {}).get('scaling', 'std' if b == 0 else 'norm')}"
+        names = [f"pb-{s.name}-{s.params.get('scaling', 'std' if b == 0 else 'norm')}"
                  for b, s in enumerate(self.branch_specs)]
         return {names[0]: self.single(0).predict(N, expression), names[1]: self.single(1).predict(N, expression, target)}
 
@@ -471,7 +484,7 @@ class PBS(_Blend):
         fixed = self.k_fixed
         self._fit_assembler(data.template, max([k for k in ks if k < n] + ([fixed] if isinstance(fixed, int) else
                                                                         list((fixed or {}).values())) + [1]),
-                            getattr(ctx, "cache", None))
+                            ctx.cache)
         if fixed is not None:
             self.k = {e: int(fixed if isinstance(fixed, int) else fixed.get(e, n)) for e in self.expressions}
             self.sweep = {}
@@ -480,11 +493,9 @@ class PBS(_Blend):
 
     def select_k(self, col, ks, ctx=None) -> dict:
         """Sweep ks on the subjects of ``col`` (validation), per expression: metrics, Pareto
-        front of (L1, knee_metric), knee. Sets and returns ``self.k``."""
-        from fwk.evaluation import evaluate, pareto_front
-
-        reg = _registry()
-        metrics = [reg.get("metric", m)() for m in self.sweep_metrics]
+        front of (distance_metric, knee_metric), knee. Sets and returns ``self.k``."""
+        metrics = [_as_spec("metric", m, "sweep_metrics").build() for m in self.sweep_metrics]
+        dist = self.distance_metric
         j0 = col.shape_index("neutral")
         self.sweep = {}
         for e in self.expressions:
@@ -504,22 +515,22 @@ class PBS(_Blend):
                 for m in metrics:
                     scores[m.name].append(float(res[m.name]["scores"].mean()))
             entry = {"ks": list(map(int, ks)), **{k: v for k, v in scores.items()}, "n_subjects": int(ok.sum())}
-            for pm in [m for m in self.sweep_metrics if m != "l1"]:
-                pts = np.stack([scores["l1"], scores[pm]], 1)
+            for pm in [m for m in self.sweep_metrics if m != dist]:
+                pts = np.stack([scores[dist], scores[pm]], 1)
                 entry[f"front_{pm}"] = [int(ks[i]) for i in pareto_front(pts)]
-            front = pareto_front(np.stack([scores["l1"], scores[self.knee_metric]], 1))
-            i = front[knee(np.asarray(scores["l1"])[front], np.asarray(scores[self.knee_metric])[front])]
+            front = pareto_front(np.stack([scores[dist], scores[self.knee_metric]], 1))
+            i = front[knee(np.asarray(scores[dist])[front], np.asarray(scores[self.knee_metric])[front])]
             self.k[e] = int(ks[i])
             entry["chosen"] = self.k[e]
             entry["knee_metric"] = self.knee_metric
             self.sweep[e] = entry
             if ctx is not None:
-                ctx.log(f"[{self.name}] {e}: Pareto front (L1, {self.knee_metric.upper()}) at k = "
+                ctx.log(f"[{self.name}] {e}: Pareto front ({dist.upper()}, {self.knee_metric.upper()}) at k = "
                         f"{[int(ks[j]) for j in front]}, knee k = {self.k[e]}")
         return self.k
 
     def state_dict(self) -> dict:
-        return {"kind": "pbs", **self._base_state(), "k": dict(self.k), "sweep": self.sweep,
+        return {"kind": self.name, **self._base_state(), "k": dict(self.k), "sweep": self.sweep,
                 "assembler": None if self.assembler is None else self.assembler.state_dict()}
 
     def load_state_dict(self, d: dict, ctx=None) -> None:
@@ -528,8 +539,8 @@ class PBS(_Blend):
         self.k = {str(k): int(v) for k, v in d["k"].items()}
         self.sweep = d.get("sweep", {})
         if d.get("assembler") is not None:
-            self.assembler = _registry().get("assembler", "spectral")(k=int(d["assembler"]["cuts"][-1]))
-            self.assembler.load_state_dict(d["assembler"])
+            self.assembler = self.assembler_spec.build(k=int(d["assembler"]["cuts"][-1]))
+            self.assembler.load_state_dict(d["assembler"], ctx=ctx)
 
 
 @hookimpl

@@ -4,44 +4,62 @@ Data flow: dataset (neutral + named expressions per subject) -> split by subject
 ``split.json``) -> preprocessing fitted on the training neutrals (centring, rigid registration
 to the mean neutral, one scale into [-1, 1]; a subject's expressions move with its neutral;
 thesis 5.2.1; saved as ``stats/preprocess.npz`` with the topology in ``stats/template.npz``)
--> each model (``pb``, ``pbs``, ``dt``, any ``task_family = "blendshapes"`` model) fits on the
-training subjects (``pbs`` also chooses its k per expression on the validation subjects) and
-is saved as ``models/<label>.pt`` -> every model predicts every expression of the test
-subjects from their neutrals -> l1, l2, euclidean, DAME, FMPD against the ground truth.
+-> each model (``pb``, ``pbs``, ``dt``, any model playing ``fwk.protocols.BlendshapeModel``)
+fits on the training subjects (``pbs`` also chooses its k per expression on the validation
+subjects) and is saved as ``models/<label>.pt`` (``fwk.lifecycle``) -> every model predicts
+every expression of the test subjects from their neutrals (``predict_all``) -> the metrics
+(default: l1, l2, euclidean, DAME, FMPD) against the ground truth.
 
 Report: the per-expression table in the layout of thesis table 5.2 (rows expression x metric,
 a column per method), the end-to-end vs two-step table of table 5.1 where both modes ran,
 PBS's k sweep on validation with the Pareto fronts and the chosen k (figure 5.8: L1 against
 FMPD and against DAME, k labelled, front drawn), the method comparison on test (figure 5.9),
 and renders of ground truth and every method with L1 and DAME maps (figures 5.4-5.6).
-A ``pbs`` model also reports its two networks alone (``<label>:pb-euclidean-std``, the k = n
-end, and ``<label>:pb-dr-norm``, its dr network registered onto the ground truth as the thesis
-evaluates dr outputs): they are the two end-to-end PBs trained jointly with separate
-parameters and losses, so a recipe need not train them twice (``pbs_ends: false`` turns the
-rows off). ``fwk apply RUN_DIR NEUTRAL.obj`` reuses the saved model (``apply_model``).
+Models are reported by the roles they play (``fwk.protocols``): a ``CompositeModel`` (``pbs``)
+also reports its parts alone (``<label>:pb-euclidean-std``, the k = n end, and
+``<label>:pb-dr-norm``, its dr network registered onto the ground truth as the thesis evaluates
+dr outputs): they are the two end-to-end PBs trained jointly with separate parameters and
+losses, so a recipe need not train them twice (``pbs_ends: false`` turns the rows off); a
+``CutSelectingModel`` (``pbs``) its k sweep (the ``pbs`` section of metrics.json). The figures
+and the summary plot the registered metrics' distance against their perceptual metrics
+(``fwk.evaluation.figure_metrics``: L1 against DAME and FMPD). ``fwk apply RUN_DIR
+NEUTRAL.obj`` reuses the saved model (``apply_model``; default: the first cut-selecting model,
+else the first model).
 """
 from __future__ import annotations
 
 import time
-from typing import Annotated
+from typing import Annotated, Protocol, runtime_checkable
 
 import numpy as np
 
+from fwk.data.io import write_obj
 from fwk.data.preprocess import PreprocessConfig, split_and_preprocess
 from fwk.data.split import SplitConfig
 from fwk.errors import DataError, RecipeError
-from fwk.evaluation import evaluate_summary
+from fwk.evaluation import (default_metrics, display, evaluate, evaluate_summary, figure_metrics, format_value,
+                            markdown_table, write_report)
+from fwk.evaluation.plots import scatter_pareto
+from fwk.evaluation.render import colour_limits, render_grid
 from fwk.hookspecs import hookimpl
-from fwk.protocols import FitData
+from fwk.lifecycle import build_model, fit_or_resume
+from fwk.protocols import BLENDSHAPES, BlendshapeModel, CompositeModel, CutSelectingModel, FitData
 from fwk.recipes import Kind, Spec
 
-DEFAULT_METRICS = ["l1", "l2", "euclidean", "dame", "fmpd"]
-DISPLAY = {"l1": 1e-3, "l2": 1e-5, "euclidean": 1e-3, "dame": 1e-2, "fmpd": 1e-2}
-LABEL = {"l1": "L1 norm", "l2": "L2 norm", "euclidean": "Euclidean", "dame": "DAME", "fmpd": "FMPD"}
+#: metrics.json sections (their names are kept from before the roles; they name no component)
+PER_EXPRESSION = "blendshapes"  # name-ok: metrics.json section {expression: {row: metrics}}
+CUTS = "pbs"  # name-ok: metrics.json section {label: {k, sweep}} of the cut-selecting models
 
 
-def _f(x, m):
-    return "n/a" if x is None or not np.isfinite(x) else f"{x / DISPLAY.get(m, 1.0):.4g}"
+@runtime_checkable
+class TrainingModes(Protocol):
+    """A blendshape model trained ``end-to-end`` or ``two-step`` (``pb``, thesis 5.2.2), whose
+    output representation does or does not lose the rigid placement (``places_rigidly``: dr).
+    The end-to-end against two-step table (thesis table 5.1) pairs the two modes of one kind of
+    representation."""
+
+    mode: str
+    places_rigidly: bool
 
 
 class Blendshapes:
@@ -82,8 +100,6 @@ class Blendshapes:
 
     # ------------------------------------------------------------------ run
     def run(self, ctx):
-        import torch
-
         ctx.log(f"loading dataset {getattr(self.dataset, 'name', self.dataset)}")
         col = ctx.build("dataset", self.dataset).load(ctx.cache)
         col.shape_index("neutral")
@@ -95,7 +111,9 @@ class Blendshapes:
         split, pre, cols, transforms = self._prepare(col, ctx)
         template = col.template.with_vertices(pre.mean_neutral)
         data = FitData(template, cols["train"], cols["val"], ["neutral", *expressions])
-        metrics = [ctx.build("metric", m) for m in (self.metrics or DEFAULT_METRICS)]
+        metrics = [ctx.build("metric", m) for m in (self.metrics or default_metrics(ctx.registry))]
+        shown = {m.name: display(m) for m in metrics}
+        dist, perceptual = figure_metrics(ctx.registry)
         ctx.log(f"{len(col.subjects)} subjects ({', '.join(f'{k} {len(v)}' for k, v in split.items())}), "
                 f"{template.n_vertices} vertices, expressions {', '.join(expressions)}")
 
@@ -110,27 +128,18 @@ class Blendshapes:
         results = {"dataset": {"name": getattr(self.dataset, "name", self.dataset), "n_vertices": template.n_vertices,
                                "units": col.units, "scale": float(pre.scale),
                                "subjects": {k: len(v) for k, v in split.items()}},
-                   "expressions": expressions, "models": {}, "blendshapes": {e: {} for e in expressions},
-                   "timing": {}, "pbs": {}}
+                   "expressions": expressions, "models": {}, PER_EXPRESSION: {e: {} for e in expressions},
+                   "timing": {}, CUTS: {}}
         preds = {e: {} for e in expressions}
         fitted = {}
         for label, spec in self.models.items():
-            model = ctx.build("model", spec)
-            family = getattr(model, "task_family", "reconstruct")
-            if family != "blendshapes":
-                raise RecipeError(f"models.{label}: {model.name} is a {family} model, not a blendshapes model")
-            if getattr(model, "expressions", None) is None and hasattr(model, "expressions"):
+            model = build_model(spec, label, BLENDSHAPES, ctx)
+            if not isinstance(model, BlendshapeModel):
+                raise RecipeError(f"models.{label}: {model.name} does not play the blendshape model role "
+                                  "(expressions, predict, predict_all; see fwk.protocols.BlendshapeModel)")
+            if model.expressions is None:
                 model.expressions = list(expressions)
-            state = ctx.run_dir / "models" / f"{label}.pt"
-            t0 = time.perf_counter()
-            if ctx.resume and state.exists():
-                ctx.log(f"[{label}] loading the finished model from {state}")
-                model.load_state_dict(torch.load(state, weights_only=False))
-            else:
-                ctx.log(f"[{label}] fitting {model.name}")
-                model.fit(data, ctx.scoped(label))
-                ctx.save_torch(f"models/{label}.pt", model.state_dict())
-            fit_s = time.perf_counter() - t0
+            fit_s = fit_or_resume(model, label, data, ctx)
             fitted[label] = model
             t0 = time.perf_counter()
             rows = self._predict(model, label, expressions, gt)
@@ -140,8 +149,8 @@ class Blendshapes:
             for row_label, per_e in rows.items():
                 for e, P in per_e.items():
                     preds[e][row_label] = P
-            if hasattr(model, "sweep") and isinstance(getattr(model, "k", None), dict):
-                results["pbs"][label] = {"k": dict(model.k), "sweep": model.sweep}
+            if isinstance(model, CutSelectingModel):
+                results[CUTS][label] = {"k": dict(model.k), "sweep": model.sweep}
         # metrics
         row_labels = list(dict.fromkeys(r for e in expressions for r in preds[e]))
         for e in expressions:
@@ -149,23 +158,23 @@ class Blendshapes:
             for r, P in preds[e].items():
                 if not np.all(np.isfinite(P)):
                     ctx.log(f"[{r}] warning: non-finite prediction for {e}")
-                results["blendshapes"][e][r] = evaluate_summary(P, G, template, metrics, scale=pre.scale)
+                results[PER_EXPRESSION][e][r] = evaluate_summary(P, G, template, metrics, scale=pre.scale)
         for r in row_labels:
             have = [e for e in expressions if r in preds[e]]
             P = np.concatenate([preds[e][r] for e in have])
             G = np.concatenate([gt[e][2] for e in have])
             results["models"][r] = {"test": evaluate_summary(P, G, template, metrics, scale=pre.scale)}
+        headline = [m for m in (dist, *perceptual[:1]) if m is not None]
         for e in expressions:
+            res = results[PER_EXPRESSION][e]
             ctx.log(f"test {e}: " + "; ".join(
-                f"{r} l1={results['blendshapes'][e][r]['l1']['mean']:.4g}"
-                + (f" dame={results['blendshapes'][e][r]['dame']['mean']:.4g}" if "dame" in results['blendshapes'][e][r] else "")
-                for r in preds[e]))
-        apply_label = self.apply_model or next((l for l, m in fitted.items() if m.name == "pbs"), next(iter(fitted)))
+                r + "".join(f" {m}={res[r][m]['mean']:.4g}" for m in headline if m in res[r]) for r in preds[e]))
+        # the model `fwk apply` uses: the recipe's, else the first that chooses its cut, else the first
+        apply_label = self.apply_model or next((lb for lb, m in fitted.items() if isinstance(m, CutSelectingModel)),
+                                               next(iter(fitted)))
         results["apply_model"] = apply_label
-        figures = self._figures(ctx, template, expressions, gt, preds, results, metrics)
+        figures = self._figures(ctx, template, expressions, gt, preds, results, metrics, dist, perceptual)
         if self.write_obj:
-            from fwk.data.io import write_obj
-
             for e in expressions:
                 idx, _, _ = gt[e]
                 n = min(self.write_obj, len(idx))
@@ -175,9 +184,11 @@ class Blendshapes:
                     for i in range(n):
                         write_obj(ctx.path("predictions", r.replace(":", "_"), f"{test.subjects[idx[i]]}_{e}.obj"),
                                   Pin[i], col.template)
-        from fwk.evaluation import write_report
-
-        sections = self._tables(results, expressions, row_labels, [m.name for m in metrics])
+        modes = {lb: (m.mode, m.places_rigidly) for lb, m in fitted.items() if isinstance(m, TrainingModes)}
+        # the baselines the summary compares each cut-selecting model with (DT): neither cut-selecting nor a PB
+        others = [lb for lb, m in fitted.items() if not isinstance(m, (CutSelectingModel, TrainingModes))]
+        sections = self._tables(results, expressions, row_labels, [m.name for m in metrics], shown, modes,
+                                others, headline)
         notes = [f"train epochs: {ctx.train.epochs} (recipe `train.epochs`; the thesis trained 500)",
                  f"evaluation space: registered and scaled into [-1, 1] (scale {pre.scale:.6g} per {col.units}); "
                  "numbers are means over test subjects",
@@ -188,75 +199,73 @@ class Blendshapes:
                      sections)
 
     def _predict(self, model, label, expressions, gt) -> dict:
-        """{row label: {expression: (b, n, 3)}}: the model, and a pbs model's two networks alone."""
-        rows = {label: {}}
-        if getattr(model, "name", "") == "dt" and hasattr(model, "predict_all"):
-            # one factorisation per target neutral for every expression
-            for e in expressions:
-                if len(gt[e][1]):
-                    rows[label][e] = model.predict_all(gt[e][1], [e])[e]
-            return rows
+        """{row label: {expression: (b, n, 3)}}: the model's ``predict_all`` on the test subjects
+        that have each expression (expressions with the same subjects in one call, so that a model
+        may share work between them, e.g. one factorisation per neutral), and a composite model's
+        parts alone."""
+        groups: dict[bytes, list[str]] = {}
         for e in expressions:
-            _, N, G = gt[e]
-            if not len(N):
-                continue
-            try:
-                rows[label][e] = np.asarray(model.predict(N, e, target=G), dtype=np.float64)
-            except TypeError:
-                rows[label][e] = np.asarray(model.predict(N, e), dtype=np.float64)
-            if self.pbs_ends and hasattr(model, "ends"):
-                for name, P in model.ends(N, e, target=G).items():
-                    rows.setdefault(f"{label}:{name}", {})[e] = P
+            if len(gt[e][0]):
+                groups.setdefault(gt[e][0].tobytes(), []).append(e)
+        out = {}
+        for es in groups.values():
+            out.update(model.predict_all(gt[es[0]][1], es, target={e: gt[e][2] for e in es}))
+        rows = {label: {e: np.asarray(out[e], dtype=np.float64) for e in expressions if e in out}}
+        if self.pbs_ends and isinstance(model, CompositeModel):
+            for e in expressions:
+                _, N, G = gt[e]
+                if len(N):
+                    for name, P in model.parts(N, e, target=G).items():
+                        rows.setdefault(f"{label}:{name}", {})[e] = P
         return rows
 
     # ------------------------------------------------------------------ tables
-    def _summary(self, results, expressions, rows) -> str:
-        """Plain sentences: does each PBS beat DT and its single PBs on L1 and on DAME?"""
+    def _summary(self, results, expressions, rows, shown, others, headline) -> str:
+        """Plain sentences: does each cut-selecting model (PBS) beat the baselines ``others`` (DT)
+        and its own parts (its single PBs) on the distance metric and the first perceptual one?"""
         lines = []
-        pbs = [r for r in rows if r in results["pbs"]]
-        dts = [r for r in rows if r.startswith("dt")]
+        pbs = [r for r in rows if r in results[CUTS]]
         for e in expressions:
-            r = results["blendshapes"][e]
+            r = results[PER_EXPRESSION][e]
             for p in pbs:
                 if p not in r:
                     continue
-                others = [x for x in dts if x in r] + [x for x in rows if x.startswith(p + ":") and x in r]
-                for m in ("l1", "dame"):
+                rivals = [x for x in rows if x in others and x in r] + [x for x in rows if x.startswith(p + ":") and x in r]
+                for m in headline:
                     if m not in r[p]:
                         continue
                     v = r[p][m]["mean"]
-                    better = [x for x in others if v < r[x][m]["mean"]]
-                    worse = [x for x in others if v >= r[x][m]["mean"]]
+                    better = [x for x in rivals if v < r[x][m]["mean"]]
+                    worse = [x for x in rivals if v >= r[x][m]["mean"]]
                     parts = []
                     if better:
                         parts.append("beats " + ", ".join(f"{x} ({(1 - v / r[x][m]['mean']) * 100:.0f}% lower)" for x in better))
                     if worse:
                         parts.append("does not beat " + ", ".join(f"{x} ({(v / r[x][m]['mean'] - 1) * 100:.0f}% higher)" for x in worse))
-                    lines.append(f"- {e}, {LABEL[m]}: `{p}` (k = {results['pbs'][p]['k'].get(e, 'n')}) " + "; ".join(parts) + ".")
+                    lines.append(f"- {e}, {shown[m].label}: `{p}` (k = {results[CUTS][p]['k'].get(e, 'n')}) "
+                                 + "; ".join(parts) + ".")
         return "\n".join(lines)
 
-    def _tables(self, results, expressions, rows, metric_names) -> list:
+    def _tables(self, results, expressions, rows, metric_names, shown, modes, others, headline) -> list:
         sections = []
-        summary = self._summary(results, expressions, rows)
+        summary = self._summary(results, expressions, rows, shown, others, headline)
         if summary:
             sections.append(("Summary: PBS against DT and the single PBs (test)", summary))
         cols = ["expression", "metric", *rows]
         body = []
         for e in expressions:
             for m in metric_names:
-                r = results["blendshapes"][e]
-                body.append([e, f"{LABEL.get(m, m)} ×{DISPLAY.get(m, 1.0):g}",
-                             *(_f(r.get(x, {}).get(m, {}).get("mean"), m) for x in rows)])
-        from fwk.evaluation import markdown_table
-
+                r = results[PER_EXPRESSION][e]
+                body.append([e, f"{shown[m].label} ×{shown[m].scale:g}",
+                             *(format_value(r.get(x, {}).get(m, {}).get("mean"), shown[m].scale) for x in rows)])
         sections.append(("Per expression (layout of thesis table 5.2)",
                          "Mean over test subjects in the evaluation space; lower is better; "
                          "the best value of each row is in bold.\n\n" + markdown_table(self._bold(body), cols)))
-        # table 5.1: end-to-end vs two-step, where a recipe has both modes for one representation
+        # table 5.1: end-to-end vs two-step, where a recipe has both modes for one kind of representation
         pairs = []
         for a in rows:
             for b in rows:
-                ma, mb = self._mode(a), self._mode(b)
+                ma, mb = modes.get(a), modes.get(b)
                 if ma and mb and ma[0] == "end-to-end" and mb[0] == "two-step" and ma[1] == mb[1]:
                     pairs.append((a, b))
         if pairs:
@@ -266,20 +275,20 @@ class Blendshapes:
             body = []
             for e in expressions:
                 for m in metric_names:
-                    r = results["blendshapes"][e]
-                    row = [e, f"{LABEL.get(m, m)} ×{DISPLAY.get(m, 1.0):g}"]
+                    r = results[PER_EXPRESSION][e]
+                    row = [e, f"{shown[m].label} ×{shown[m].scale:g}"]
                     for a, b in pairs:
                         va = r.get(a, {}).get(m, {}).get("mean")
                         vb = r.get(b, {}).get(m, {}).get("mean")
                         ch = f"{'↑' if vb > va else '↓'}{abs(vb / va - 1) * 100:.0f}%" if va and vb else "n/a"
-                        row += [_f(va, m), _f(vb, m), ch]
+                        row += [format_value(va, shown[m].scale), format_value(vb, shown[m].scale), ch]
                     body.append(row)
             sections.append(("End-to-end against two-step (layout of thesis table 5.1)",
                              "Change: the two-step model's error relative to the end-to-end one.\n\n"
                              + markdown_table(body, cols)))
-        if results["pbs"]:
+        if results[CUTS]:
             lines = []
-            for label, d in results["pbs"].items():
+            for label, d in results[CUTS].items():
                 for e, s in d["sweep"].items():
                     fronts = "; ".join(f"L1/{k[6:].upper()} front k = {s[k]}" for k in s if k.startswith("front_"))
                     lines.append(f"- `{label}` {e}: chosen k = **{s['chosen']}** of {len(s['ks'])} values "
@@ -290,17 +299,6 @@ class Blendshapes:
                              "objectives normalised to [0, 1] over the front, the front point farthest below the "
                              "chord joining its two ends.\n\n" + "\n".join(lines)))
         return sections
-
-    @staticmethod
-    def _mode(label):
-        m = None
-        for key in ("two-step", "end-to-end"):
-            if key in label:
-                m = key
-        if m is None:
-            return None
-        rep = "dr" if "dr" in label else "euclidean"
-        return m, rep
 
     @staticmethod
     def _bold(body):
@@ -317,38 +315,42 @@ class Blendshapes:
         return out
 
     # ------------------------------------------------------------------ figures
-    def _figures(self, ctx, template, expressions, gt, preds, results, metrics) -> dict:
-        from fwk.evaluation.plots import scatter_pareto
-
+    def _figures(self, ctx, template, expressions, gt, preds, results, metrics, dist, perceptual) -> dict:
+        """Figure 5.8 (each cut-selecting model's k sweep: the distance against each perceptual
+        metric it swept, the last first as in the thesis: FMPD, then DAME), figure 5.9 (the methods
+        on test: the distance against each perceptual metric) and the renders."""
         figures = {}
         names = [m.name for m in metrics]
-        for label, d in results["pbs"].items():
+        if dist is None:  # no registered distance metric to plot against
+            return self._renders(ctx, template, expressions, gt, preds, metrics, dist, perceptual) if self.renders else {}
+        xlabel = display(dist, ctx.registry).label
+        for label, d in results[CUTS].items():
             for e, s in d["sweep"].items():
-                for pm in ("fmpd", "dame"):
-                    if pm not in s:
+                for pm in perceptual[::-1]:
+                    if pm not in s or dist not in s:
                         continue
-                    pts = {str(k): (s["l1"][i], s[pm][i]) for i, k in enumerate(s["ks"])}
-                    p = scatter_pareto(pts, ctx.path("figures", f"pbs_k_{label}_{e}_{pm}.png"), "L1 norm",
+                    pts = {str(k): (s[dist][i], s[pm][i]) for i, k in enumerate(s["ks"])}
+                    p = scatter_pareto(pts, ctx.path("figures", f"pbs_k_{label}_{e}_{pm}.png"), xlabel,
                                        pm.upper(), f"{e}: k sweep on validation (chosen k = {s['chosen']})")
-                    figures[f"{label} {e}: L1 against {pm.upper()} for every k (figure 5.8)"] = p
+                    figures[f"{label} {e}: {dist.upper()} against {pm.upper()} for every k (figure 5.8)"] = p
         for e in expressions:
-            r = results["blendshapes"][e]
-            for pm in ("dame", "fmpd"):
+            r = results[PER_EXPRESSION][e]
+            for pm in perceptual:
                 if pm not in names:
                     continue
-                pts = {x: (r[x]["l1"]["mean"], r[x][pm]["mean"]) for x in r if "l1" in r[x]}
-                p = scatter_pareto(pts, ctx.path("figures", f"methods_{e}_{pm}.png"), "L1 norm", pm.upper(),
+                pts = {x: (r[x][dist]["mean"], r[x][pm]["mean"]) for x in r if dist in r[x]}
+                p = scatter_pareto(pts, ctx.path("figures", f"methods_{e}_{pm}.png"), xlabel, pm.upper(),
                                    f"{e}: methods on test")
-                figures[f"{e}: methods, L1 against {pm.upper()} on test (figure 5.9)"] = p
+                figures[f"{e}: methods, {dist.upper()} against {pm.upper()} on test (figure 5.9)"] = p
         if self.renders:
-            figures.update(self._renders(ctx, template, expressions, gt, preds, metrics))
+            figures.update(self._renders(ctx, template, expressions, gt, preds, metrics, dist, perceptual))
         return figures
 
-    def _renders(self, ctx, template, expressions, gt, preds, metrics) -> dict:
-        from fwk.evaluation import evaluate
-        from fwk.evaluation.render import colour_limits
-
+    def _renders(self, ctx, template, expressions, gt, preds, metrics, dist, perceptual) -> dict:
+        """Test subjects: neutral, ground truth and every row's prediction with its error map of
+        the distance metric and of the first perceptual one (figures 5.4-5.6)."""
         by = {m.name: m for m in metrics}
+        keys = [k for k in (dist, *perceptual[:1]) if k in by]
         figures = {}
         for e in expressions:
             _, N, G = gt[e]
@@ -356,11 +358,8 @@ class Blendshapes:
             if not n:
                 continue
             labels = list(preds[e])
-            maps = {r: evaluate(preds[e][r][:n], G[:n], template, [by[k] for k in ("l1", "dame") if k in by])
-                    for r in labels}
-            for key in ("l1", "dame"):
-                if key not in by:
-                    continue
+            maps = {r: evaluate(preds[e][r][:n], G[:n], template, [by[k] for k in keys]) for r in labels}
+            for key in keys:
                 # shared limits: one poor method saturates instead of washing out everyone else's map
                 clim = colour_limits([maps[r][key]["maps"] for r in labels])
                 rows = []
@@ -368,11 +367,9 @@ class Blendshapes:
                     row = [{"V": N[i], "label": f"neutral {i}"}, {"V": G[i], "label": "ground truth"}]
                     for r in labels:
                         row.append({"V": preds[e][r][i], "scalars": maps[r][key]["maps"][i], "clim": clim,
-                                    "label": r, "bar": key.upper(), "cmap": "inferno" if key == "dame" else "viridis"})
+                                    "label": r, "bar": key.upper(), "cmap": "viridis" if key == dist else "inferno"})
                     rows.append(row)
                 try:
-                    from fwk.evaluation.render import render_grid
-
                     figures[f"{e}: test subjects with {key.upper()} error maps (figures 5.4-5.6)"] = render_grid(
                         rows, template, ctx.path("figures", f"render_{e}_{key}.png"), view="front")
                 except Exception as exc:  # no OpenGL: keep the numbers
