@@ -1,0 +1,27 @@
+"""Every built-in blendshape model passes the BlendshapeModelContract: pb (end-to-end and
+two-step), pbs (composite, cut-selecting) and dt. Tiny data, one epoch."""
+from fwk.testing.blendshapes import BlendshapeModelContract
+from fwk_dt import DeformationTransfer
+from fwk_pb import PB, PBS
+
+NET = {"name": "vae", "channels": [8], "latent": 4, "sampler": {"name": "quadric", "factors": [4]}}
+
+
+class TestPBEndToEnd(BlendshapeModelContract):
+    component = PB
+    params = {"network": NET}
+
+
+class TestPBTwoStepDR(BlendshapeModelContract):
+    component = PB
+    params = {"network": NET, "mode": "two-step", "representation": "dr"}
+
+
+class TestPBS(BlendshapeModelContract):
+    component = PBS
+    params = {"network": NET, "ks": [0, 10, 40, 10_000]}
+
+
+class TestDT(BlendshapeModelContract):
+    component = DeformationTransfer
+    params = {"sources": 0}
