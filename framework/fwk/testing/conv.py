@@ -1,34 +1,57 @@
-"""ConvContract: shapes, gradients, batch independence, determinism, 3 and 9 channels, CUDA."""
+"""ConvContract: the conv role (``fwk.protocols.Conv``), shapes, gradients, batch independence,
+determinism, ``reset_parameters``, 3 and 9 channels, CUDA; the strided / transposed role when
+the class declares ``strided = True``.
+
+Subclass it in a test module::
+
+    from fwk.testing.conv import ConvContract
+
+    class TestMyConv(ConvContract):
+        component = MyConv                # the class
+        params = {"k": 3}                 # its recipe parameters (kept small)
+        sampler = ("quadric", {"factors": [4]})   # the hierarchy it is tested on (name, params)
+
+The hierarchy is built by a registered sampler on ``fwk.testing.sampler.two_components()`` (two
+icospheres: a template with two connected components).
+"""
 from __future__ import annotations
 
 import pytest
+import torch
+
+from fwk.plugins import get_registry
+from fwk.protocols import CONV_BUILD_ARGS, Conv, plays
+from fwk.testing.sampler import two_components
 
 
 class ConvContract:
     component: type = None
     params: dict = {}
-    sampler: tuple = ("quadric", {"factors": [4]})
+    sampler: tuple = ("quadric", {"factors": [4]})  # name-ok: the suite's default hierarchy, a test parameter
+    residual_rate: float = 0.5  # the rate the strided tests use besides None
 
     def hierarchy(self):
-        from fwk.plugins import get_registry
-        from fwk.testing.sampler import two_components
-
         name, params = self.sampler
         return get_registry().get("sampler", name)(**params).build(two_components())
 
-    def make(self, c_in, c_out, level=0, seed=0):
-        import torch
-
+    def make(self, c_in, c_out, level=0, seed=0, hierarchy=None, **extra):
         torch.manual_seed(seed)
-        return self.component(c_in, c_out, self.hierarchy(), level, **self.params)
+        return self.component(c_in, c_out, hierarchy or self.hierarchy(), level, **{**self.params, **extra})
+
+    def test_plays_the_conv_role(self):
+        c = self.component
+        assert plays(c, Conv), "a conv class defines name, build_args, strided, forward and reset_parameters"
+        assert isinstance(c.name, str) and c.name
+        assert tuple(c.build_args) == CONV_BUILD_ARGS, "the model supplies (in_channels, out_channels, hierarchy, level)"
+        assert isinstance(c.strided, bool), "strided: a class attribute, True or False"
+        assert (c.__doc__ or "").strip(), "the first docstring line is the `fwk list` summary"
+        assert isinstance(self.make(3, 4), torch.nn.Module)
 
     @pytest.mark.parametrize("c_in", [3, 9])
     def test_shape_and_gradients(self, c_in):
-        import torch
-
         h = self.hierarchy()
         for level in (0, 1):
-            conv = self.make(c_in, 16, level)
+            conv = self.make(c_in, 16, level, hierarchy=h)
             x = torch.randn(4, h.levels[level].n_vertices, c_in, requires_grad=True)
             y = conv(x)
             assert y.shape == (4, h.levels[level].n_vertices, 16)
@@ -37,21 +60,70 @@ class ConvContract:
             assert all(p.grad is not None for p in conv.parameters())
 
     def test_batch_independence_and_determinism(self):
-        import torch
-
         h = self.hierarchy()
-        conv = self.make(3, 8)
+        conv = self.make(3, 8, hierarchy=h)
         x = torch.randn(3, h.levels[0].n_vertices, 3)
         y = conv(x)
         x2 = x.clone()
         x2[1] += 1.0
         y2 = conv(x2)
         assert torch.allclose(y[0], y2[0]) and torch.allclose(y[2], y2[2])
-        assert torch.allclose(self.make(3, 8, seed=0)(x), self.make(3, 8, seed=0)(x))
+        assert torch.allclose(self.make(3, 8, seed=0, hierarchy=h)(x), self.make(3, 8, seed=0, hierarchy=h)(x))
+
+    def test_reset_parameters_redraws_every_parameter_deterministically(self):
+        conv = self.make(3, 8)
+        first = {k: v.detach().clone() for k, v in conv.named_parameters()}
+        assert first, "a conv has parameters"
+        torch.manual_seed(1)
+        conv.reset_parameters()
+        a = {k: v.detach().clone() for k, v in conv.named_parameters()}
+        assert any(not torch.equal(first[k], a[k]) for k in a), "reset_parameters() draws new random values"
+        with torch.no_grad():  # whatever the parameters hold, a reset under a seed gives the same state
+            for p in conv.parameters():
+                p.add_(1.0)
+        torch.manual_seed(1)
+        conv.reset_parameters()
+        b = dict(conv.named_parameters())
+        assert all(torch.equal(a[k], b[k]) for k in a), "reset_parameters() under a seed sets every parameter"
+
+    # ---- the strided / transposed role (strided = True)
+    def _strided(self):
+        if not self.component.strided:
+            pytest.skip(f"{self.component.name} does not play the strided role (strided = False)")
+
+    @pytest.mark.parametrize("residual", [False, True])
+    def test_strided_down_and_up_shapes_and_gradients(self, residual):
+        self._strided()
+        h = self.hierarchy()
+        r = self.residual_rate if residual else None
+        n0, n1 = h.levels[0].n_vertices, h.levels[1].n_vertices
+        for mode, n_in, n_out, c_in, c_out in (("down", n0, n1, 3, 12), ("up", n1, n0, 12, 3), ("down", n0, n1, 6, 6)):
+            conv = self.make(c_in, c_out, 0, hierarchy=h, mode=mode, residual_rate=r)
+            x = torch.randn(2, n_in, c_in, requires_grad=True)
+            y = conv(x)
+            assert y.shape == (2, n_out, c_out), (mode, y.shape)
+            y.square().mean().backward()
+            assert x.grad is not None and torch.isfinite(x.grad).all()
+            assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in conv.parameters())
+
+    def test_strided_reset_and_batch_independence(self):
+        self._strided()
+        h = self.hierarchy()
+        for mode, n_in in (("down", h.levels[0].n_vertices), ("up", h.levels[1].n_vertices)):
+            conv = self.make(4, 5, 0, hierarchy=h, mode=mode, residual_rate=self.residual_rate)
+            x = torch.randn(3, n_in, 4)
+            y = conv(x)
+            x2 = x.clone()
+            x2[1] += 1.0
+            assert torch.allclose(conv(x2)[0], y[0]) and torch.allclose(conv(x2)[2], y[2])
+            torch.manual_seed(2)
+            conv.reset_parameters()
+            a = [p.detach().clone() for p in conv.parameters()]
+            torch.manual_seed(2)
+            conv.reset_parameters()
+            assert all(torch.equal(p, q) for p, q in zip(a, conv.parameters()))
 
     def test_cuda_when_available(self):
-        import torch
-
         if not torch.cuda.is_available():
             pytest.skip("no CUDA device on this machine")
         conv = self.make(3, 8).cuda()

@@ -30,10 +30,12 @@ import math
 import numpy as np
 import torch
 from torch import nn
+from torch.nn.utils import skip_init
 
 from fwk.errors import RecipeError
 from fwk.graph import neighbourhoods
 from fwk.hookspecs import hookimpl
+from fwk.protocols import CONV_BUILD_ARGS
 
 
 def fourier_features(V: np.ndarray, idx: np.ndarray, n_freq: int = 64, generator=None) -> torch.Tensor:
@@ -50,10 +52,38 @@ def fourier_features(V: np.ndarray, idx: np.ndarray, n_freq: int = 64, generator
 
 
 class LSA(nn.Module):
-    """LSA-3DMM local structure-aware adaptive convolution (per-vertex K x K weighting)."""
+    r"""LSA-3DMM local structure-aware adaptive convolution (per-vertex K x K weighting).
+
+    With N(i) = (i, j_2, ..., j_K) vertex i's ordered neighbourhood and X_i = [x_j]_{j in N(i)}
+    (K x c_in):
+
+        x'_i = W vec(A_i^T X_i) + b,    A_i in R^{K x K} (per vertex), W in R^{c_out x K c_in}
+
+    A_i is a free parameter initialised to the identity, or with ``basis`` B (the "tiny"
+    variant) A_i = sum_m w_im B_m, w_i = softmax(MLP(phi_i) / tau_i) (see the method below).
+
+    Args:
+        in_channels (int): c_in, features of each input vertex.
+        out_channels (int): c_out, features of each output vertex.
+        hierarchy (fwk.protocols.Hierarchy): the sampler's hierarchy (any sampler: the level's
+            ``edges``, and its ``vertices`` for the tiny variant's features where present).
+        level (int): the level the convolution works on (stride 1).
+        k (int): K, the neighbourhood size: the vertex and its first K - 1 neighbours (default 9).
+        basis (int or None): B shared basis matrices (the tiny variant); None: a free A_i.
+        basis_min_vertices (int): levels with at most this many vertices keep a free A_i.
+
+    Shapes:
+        - **input:** (b, n, c_in), n = ``hierarchy.levels[level].n_vertices``
+        - **output:** (b, n, c_out)
+
+    ``reset_parameters()`` sets every A_i (or every B_m) to the identity, draws the linear
+    layers as ``torch.nn.Linear`` does and the tiny variant's free features (levels without
+    positions) ~ N(0, 0.01^2); the random Fourier frequencies are a fixed buffer, drawn once.
+    """
 
     name = "lsa"
-    build_args = ("in_channels", "out_channels", "hierarchy", "level")
+    build_args = CONV_BUILD_ARGS
+    strided = False
 
     def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0, k: int = 9,
                  basis: int | None = None, basis_min_vertices: int = 128):
@@ -68,27 +98,42 @@ class LSA(nn.Module):
         self.register_buffer("index", torch.as_tensor(idx.reshape(-1), dtype=torch.long))
         self.k, self.n = k, n
         self.tiny = bool(basis) and n > basis_min_vertices
+        # the layers are allocated without initialising (skip_init); reset_parameters() draws
+        # them in the order they were always drawn: mix, temp, phi_free, layer
         if self.tiny:
             if lv.vertices is not None:
                 phi = fourier_features(lv.vertices, idx)
             else:  # no positions on this level: learned per-vertex features instead
                 phi = torch.zeros(n, 128)
             self.register_buffer("phi", phi)
-            self.mix = nn.Linear(phi.shape[1], basis)
-            self.temp = nn.Linear(phi.shape[1], 1)
-            self.bases = nn.Parameter(torch.eye(k).repeat(basis, 1, 1))
-            if lv.vertices is None:
-                self.phi_free = nn.Parameter(0.01 * torch.randn(n, phi.shape[1]))
+            self.mix = skip_init(nn.Linear, phi.shape[1], basis)
+            self.temp = skip_init(nn.Linear, phi.shape[1], 1)
+            self.bases = nn.Parameter(torch.empty(basis, k, k))
+            self.phi_free = nn.Parameter(torch.empty(n, phi.shape[1])) if lv.vertices is None else None
             self.A = None
         else:
-            self.A = nn.Parameter(torch.eye(k).repeat(n, 1, 1))
-        self.layer = nn.Linear(in_channels * k, out_channels)
+            self.A = nn.Parameter(torch.empty(n, k, k))
+        self.layer = skip_init(nn.Linear, in_channels * k, out_channels)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """A_i (or B_m) = I; the linear layers as torch.nn.Linear; free features ~ N(0, 0.01^2)."""
+        with torch.no_grad():
+            if self.tiny:
+                self.mix.reset_parameters()
+                self.temp.reset_parameters()
+                self.bases.copy_(torch.eye(self.k).repeat(self.bases.shape[0], 1, 1))
+                if self.phi_free is not None:
+                    self.phi_free.copy_(0.01 * torch.randn(self.phi_free.shape))
+            else:
+                self.A.copy_(torch.eye(self.k).repeat(self.n, 1, 1))
+        self.layer.reset_parameters()
 
     def weights(self) -> torch.Tensor:
         """(n, K, K) the per-vertex matrices A_i."""
         if self.A is not None:
             return self.A
-        phi = self.phi + self.phi_free if hasattr(self, "phi_free") else self.phi
+        phi = self.phi + self.phi_free if self.phi_free is not None else self.phi
         tau = torch.sigmoid(self.temp(phi)) * (0.1 - 0.01) + 0.01
         w = torch.softmax(self.mix(phi) / tau, dim=1)
         return torch.einsum("nm,mij->nij", w, self.bases)

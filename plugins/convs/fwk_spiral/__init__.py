@@ -31,18 +31,16 @@ face looking along +z). Meshes with several connected components get one referen
 """
 from __future__ import annotations
 
-import hashlib
-
 import numpy as np
-import scipy.sparse as sp
 import torch
+from scipy.sparse.csgraph import connected_components, dijkstra
+from scipy.spatial import cKDTree
 from torch import nn
 
 from fwk.errors import RecipeError
-from fwk.graph import spiral_sequences
+from fwk.graph import memo, spiral_sequences, symmetric_adjacency
 from fwk.hookspecs import hookimpl
-
-_CACHE: dict = {}
+from fwk.protocols import CONV_BUILD_ARGS
 
 
 def _at(v, level: int):
@@ -58,8 +56,6 @@ def reference_vertices(lv, labels: np.ndarray, reference=None, template_vertices
     V = np.asarray(lv.vertices, dtype=np.float64) if lv.vertices is not None else np.zeros((lv.n_vertices, 3))
     refs = {}
     if reference is not None and len(reference) and template_vertices is not None:
-        from scipy.spatial import cKDTree
-
         _, near = cKDTree(V).query(np.asarray(template_vertices)[np.asarray(reference, dtype=np.int64)])
         for v in np.atleast_1d(near):
             refs.setdefault(int(labels[v]), int(v))
@@ -72,22 +68,22 @@ def reference_vertices(lv, labels: np.ndarray, reference=None, template_vertices
 
 def anchored_spirals(lv, rings: int, dilation: int = 1, length: int | None = None,
                      reference=None, template_vertices=None) -> np.ndarray:
-    """(n, L) Neural 3DMM spirals of a level, -1 where padded (see the module docstring)."""
-    from scipy.sparse.csgraph import connected_components, dijkstra
-
+    """(n, L) Neural 3DMM spirals of a level, -1 where padded (see the module docstring);
+    computed once per level and setting."""
     if lv.faces is None:
         raise RecipeError("conv spiral needs a sampler whose levels are triangle meshes (e.g. quadric)")
     V = np.asarray(lv.vertices, dtype=np.float64) if lv.vertices is not None else np.zeros((lv.n_vertices, 3))
-    h = hashlib.sha1(np.ascontiguousarray(lv.faces, dtype=np.int64).tobytes())
-    h.update(np.ascontiguousarray(V).tobytes())
-    key = (lv.n_vertices, h.hexdigest(), rings, dilation, length,
+    key = (lv.n_vertices, np.asarray(lv.faces, dtype=np.int64), V, rings, dilation, length,
            None if reference is None else tuple(reference),
-           None if template_vertices is None or reference is None else hashlib.sha1(np.ascontiguousarray(template_vertices).tobytes()).hexdigest())
-    if key in _CACHE:
-        return _CACHE[key]
+           None if template_vertices is None or reference is None else np.asarray(template_vertices))
+    return memo(f"{__name__}.spirals", key,
+                lambda: _anchored_spirals(lv, V, rings, dilation, length, reference, template_vertices))
+
+
+def _anchored_spirals(lv, V, rings, dilation, length, reference, template_vertices) -> np.ndarray:
     n, e = lv.n_vertices, np.asarray(lv.edges, dtype=np.int64).reshape(-1, 2)
     w = np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1) + 1e-12  # zero-length edges still count
-    W = sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    W = symmetric_adjacency(e, n, weights=w)
     _, labels = connected_components(W, directed=False)
     refs = reference_vertices(lv, labels, reference, template_vertices)
     _, pred, _ = dijkstra(W, directed=False, indices=refs, return_predecessors=True, min_only=True)
@@ -107,15 +103,44 @@ def anchored_spirals(lv, rings: int, dilation: int = 1, length: int | None = Non
     for v, s in enumerate(seqs):
         s = s[:L]
         S[v, :len(s)] = s
-    _CACHE[key] = S
     return S
 
 
 class Spiral(nn.Module):
-    """Neural 3DMM spiral convolution (reference-anchored spirals, -1 padding to a zero vertex)."""
+    r"""Neural 3DMM spiral convolution (reference-anchored spirals, -1 padding to a zero vertex).
+
+    With S(i) = (s_1 = i, s_2, ..., s_L) the anchored spiral of vertex i (see the method below;
+    a padded entry reads a dummy vertex whose features are zero):
+
+        x'_i = W [x_{s_1} || x_{s_2} || ... || x_{s_L}] + b,    W in R^{c_out x L c_in}, b in R^{c_out}
+
+    Args:
+        in_channels (int): c_in, features of each input vertex.
+        out_channels (int): c_out, features of each output vertex.
+        hierarchy (fwk.protocols.Hierarchy): the sampler's hierarchy; the level must be a
+            triangle mesh (``Level.faces``); level 0's positions place ``reference``.
+        level (int): the level the convolution works on (stride 1).
+        length (int, list or None): L per level; None: int(mean + 2 std) of the level's spirals.
+        rings (int or list): rings a spiral covers per level (default [2, 2, 1, 1, 1]).
+        dilation (int or list): keep the centre and every d-th entry after it, per level
+            (default [2, 2, 1, 1, 1]).
+        reference (list of int or None): template vertices that anchor the spirals (None: the
+            front-most vertex, largest z, of each connected component).
+
+    A list gives one entry per hierarchy level, the last entry repeating.
+
+    Shapes:
+        - **input:** (b, n, c_in), n = ``hierarchy.levels[level].n_vertices``
+        - **output:** (b, n, c_out)
+
+    ``reset_parameters()`` draws W Xavier-uniform and sets b = 0 (the constructor's
+    ``torch.nn.Linear`` draws its own initialisation first, so the random stream is that of the
+    reference implementation).
+    """
 
     name = "spiral"
-    build_args = ("in_channels", "out_channels", "hierarchy", "level")
+    build_args = CONV_BUILD_ARGS
+    strided = False
 
     def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0,
                  length: int | list[int] | None = None, rings: int | list[int] = [2, 2, 1, 1, 1],  # noqa: B006
@@ -135,6 +160,10 @@ class Spiral(nn.Module):
         self.length = idx.shape[1]
         self.padded = bool((idx == lv.n_vertices).any())
         self.layer = nn.Linear(in_channels * self.length, out_channels)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """W Xavier-uniform, b = 0."""
         nn.init.xavier_uniform_(self.layer.weight)
         nn.init.zeros_(self.layer.bias)
 

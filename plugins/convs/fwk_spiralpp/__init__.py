@@ -21,29 +21,50 @@ import numpy as np
 import torch
 from torch import nn
 
-from fwk.graph import spirals
+from fwk.errors import RecipeError
+from fwk.graph import memo, spirals
 from fwk.hookspecs import hookimpl
-
-_CACHE: dict = {}
+from fwk.protocols import CONV_BUILD_ARGS
 
 
 def level_spirals(hierarchy, level: int, length: int, dilation: int) -> np.ndarray:
+    """(n, length) spirals of a level's triangle mesh, computed once per topology and setting."""
     lv = hierarchy.levels[level]
     if lv.faces is None:
-        from fwk.errors import RecipeError
-
         raise RecipeError("conv spiral++ needs a sampler whose levels are triangle meshes (quadric)")
-    key = (lv.n_vertices, hash(np.asarray(lv.faces).tobytes()), length, dilation)
-    if key not in _CACHE:
-        _CACHE[key] = spirals(lv.faces, lv.n_vertices, length, dilation)
-    return _CACHE[key]
+    return memo(f"{__name__}.spirals", (lv.n_vertices, np.asarray(lv.faces), length, dilation),
+                lambda: spirals(lv.faces, lv.n_vertices, length, dilation))
 
 
 class SpiralPP(nn.Module):
-    """SpiralNet++ convolution (fixed-length spirals, shared linear layer)."""
+    r"""SpiralNet++ convolution (fixed-length spirals, shared linear layer).
+
+    With S(i) = (s_1 = i, s_2, ..., s_L) the spiral of vertex i on the level's mesh (see the
+    method below):
+
+        x'_i = W [x_{s_1} || x_{s_2} || ... || x_{s_L}] + b,    W in R^{c_out x L c_in}, b in R^{c_out}
+
+    Args:
+        in_channels (int): c_in, features of each input vertex.
+        out_channels (int): c_out, features of each output vertex.
+        hierarchy (fwk.protocols.Hierarchy): the sampler's hierarchy; the level must be a
+            triangle mesh (``Level.faces``).
+        level (int): the level the convolution works on (stride 1).
+        length (int): L, entries per spiral (default 9).
+        dilation (int): keep every d-th entry of a spiral L d long (default 1).
+
+    Shapes:
+        - **input:** (b, n, c_in), n = ``hierarchy.levels[level].n_vertices``
+        - **output:** (b, n, c_out)
+
+    ``reset_parameters()`` draws W Xavier-uniform and sets b = 0 (the constructor's
+    ``torch.nn.Linear`` draws its own initialisation first, so the random stream is that of the
+    reference implementation).
+    """
 
     name = "spiral++"
-    build_args = ("in_channels", "out_channels", "hierarchy", "level")
+    build_args = CONV_BUILD_ARGS
+    strided = False
 
     def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0, length: int = 9,
                  dilation: int = 1):
@@ -52,6 +73,10 @@ class SpiralPP(nn.Module):
         self.register_buffer("index", torch.as_tensor(idx, dtype=torch.long))
         self.length = length
         self.layer = nn.Linear(in_channels * length, out_channels)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """W Xavier-uniform, b = 0."""
         nn.init.xavier_uniform_(self.layer.weight)
         nn.init.zeros_(self.layer.bias)
 

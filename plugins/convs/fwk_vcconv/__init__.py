@@ -9,8 +9,9 @@ its neighbourhood N(i), so the kernel W_ij = sum_m A_ijm B_m varies over the mes
     y_i = b + sum_{j in N(i)} sum_m A_ijm B_m^T x_j
         = b + sum_m B_m^T (sum_j A_ijm x_j)            (computed in this cheaper order)
 
-``mode`` chooses the support (from the ``simple`` sampler's neighbourhoods; for other samplers
-the vertices within ``radius`` hops):
+``mode`` chooses the support (the sampler's ``Level.conv`` / ``pool`` / ``unpool``
+neighbourhoods where it defines them, as the connectivity-only sampler of Zhou et al. does;
+otherwise the vertices within ``radius`` hops, and the non-zeros of ``Hierarchy.down`` / ``up``):
 
 * ``same``: N(i) = vertices within the kernel radius on the same level (stride 1);
 * ``down``: a strided convolution, level l -> l + 1: N(c) = the pool neighbourhood of centre c;
@@ -32,10 +33,12 @@ import math
 import numpy as np
 import torch
 from torch import nn
+from torch.nn.utils import skip_init
 
 from fwk.errors import RecipeError
 from fwk.graph import adjacency, padded_rows, reach
 from fwk.hookspecs import hookimpl
+from fwk.protocols import CONV_BUILD_ARGS
 
 MODES = ("same", "down", "up")
 ORDERS = ("auto", "sum", "kernel")  # evaluation order of the same sum (see forward); auto: fewer multiply-adds
@@ -66,10 +69,43 @@ def support(hierarchy, level: int, mode: str, radius: int):
 
 
 class VCConv(nn.Module):
-    """Spatially varying kernels from a shared basis (Zhou et al. 2020); strided and transposed modes."""
+    r"""Spatially varying kernels from a shared basis (Zhou et al. 2020); strided and transposed modes.
+
+    With N(i) the support of output vertex i (``mode``, see the method below), a basis of M
+    kernels B_m (c_in x c_out) and per-vertex coefficients A_ijm:
+
+        y_i = b + sum_{j in N(i)} sum_{m=1}^{M} A_ijm B_m^T x_j
+
+    and with a residual rate r: y = sqrt(1 - r) y + sqrt(r) R(sum_{j in N(i)} w~_ij x_j),
+    w~_ij = |w_ij| / sum_j |w_ij| (learned; the identity when ``mode="same"``), R a linear
+    channel map (no bias) when c_in != c_out, else the identity.
+
+    Plays the strided / transposed role (``strided = True``, ``fwk.protocols.Conv``).
+
+    Args:
+        in_channels (int): c_in, features of each input vertex.
+        out_channels (int): c_out, features of each output vertex.
+        hierarchy (fwk.protocols.Hierarchy): the sampler's hierarchy.
+        level (int): l; ``same`` works on level l, ``down`` maps l -> l + 1, ``up`` l + 1 -> l.
+        weight_num (int): M, kernels in the shared basis (default 35, the thesis's).
+        mode (str): ``same``, ``down`` (strided) or ``up`` (transposed).
+        radius (int): hops of the support where the sampler defines no neighbourhoods.
+        residual_rate (float or None): r in [0, 1]; None: no residual path.
+        order (str): evaluation order of the same sum: ``auto`` (fewer multiply-adds), ``sum``
+            or ``kernel`` (see ``forward``); the numbers agree to rounding.
+
+    Shapes:
+        - **input:** (b, n_l, c_in) for ``same`` and ``down``, (b, n_{l+1}, c_in) for ``up``
+        - **output:** (b, n_l, c_out) for ``same`` and ``up``, (b, n_{l+1}, c_out) for ``down``
+
+    ``reset_parameters()`` draws B_m ~ N(0, 2 / (c_in K)) and A_ijm ~ N(0, 1 / M) (K the padded
+    support size), sets b = 0 and the residual weights w_ij = 1, and draws R as
+    ``torch.nn.Linear`` does.
+    """
 
     name = "vcconv"
-    build_args = ("in_channels", "out_channels", "hierarchy", "level")
+    build_args = CONV_BUILD_ARGS
+    strided = True
 
     def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0, weight_num: int = 35,
                  mode: str = "same", radius: int = 2, residual_rate: float | None = None, order: str = "auto"):
@@ -78,22 +114,36 @@ class VCConv(nn.Module):
             raise RecipeError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
         if order not in ORDERS:
             raise RecipeError(f"order: expected one of {', '.join(ORDERS)}, got {order!r}")
+        if residual_rate is not None and not 0.0 <= residual_rate <= 1.0:
+            raise RecipeError(f"residual_rate: expected a number in [0, 1], got {residual_rate}")
         self.order = order
         idx, mask, self.n_in, self.n_out = support(hierarchy, level, mode, radius)
         self.register_buffer("index", torch.as_tensor(idx, dtype=torch.long))
         self.register_buffer("mask", torch.as_tensor(mask, dtype=torch.float32))
         K = idx.shape[1]
         self.K = K
-        self.basis = nn.Parameter(torch.randn(weight_num, in_channels, out_channels) *
-                                  math.sqrt(2.0 / (in_channels * K)))
-        self.coef = nn.Parameter(torch.randn(self.n_out, K, weight_num) / math.sqrt(weight_num))
-        self.bias = nn.Parameter(torch.zeros(out_channels))
+        self.c_in = in_channels
+        # allocated here, drawn by reset_parameters() in the order they always were: basis, coef, res_lin
+        self.basis = nn.Parameter(torch.empty(weight_num, in_channels, out_channels))
+        self.coef = nn.Parameter(torch.empty(self.n_out, K, weight_num))
+        self.bias = nn.Parameter(torch.empty(out_channels))
         self.r = residual_rate
         if residual_rate is not None:
-            if not 0.0 <= residual_rate <= 1.0:
-                raise RecipeError(f"residual_rate: expected a number in [0, 1], got {residual_rate}")
-            self.res_w = nn.Parameter(torch.ones(self.n_out, K)) if mode != "same" else None
-            self.res_lin = nn.Linear(in_channels, out_channels, bias=False) if in_channels != out_channels else None
+            self.res_w = nn.Parameter(torch.empty(self.n_out, K)) if mode != "same" else None
+            self.res_lin = skip_init(nn.Linear, in_channels, out_channels, bias=False) if in_channels != out_channels else None
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """B_m ~ N(0, 2 / (c_in K)), A_ijm ~ N(0, 1 / M), b = 0, w_ij = 1, R as torch.nn.Linear."""
+        M = self.basis.shape[0]
+        with torch.no_grad():
+            self.basis.copy_(torch.randn(self.basis.shape) * math.sqrt(2.0 / (self.c_in * self.K)))
+            self.coef.copy_(torch.randn(self.coef.shape) / math.sqrt(M))
+            self.bias.zero_()
+            if self.r is not None and self.res_w is not None:
+                self.res_w.fill_(1.0)
+        if self.r is not None and self.res_lin is not None:
+            self.res_lin.reset_parameters()
 
     def forward(self, x):
         b, _, c = x.shape

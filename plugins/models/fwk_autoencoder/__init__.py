@@ -20,16 +20,22 @@ Thesis defaults: channels [|f|, 16, 32, 64, 128], pooling factor 4, latent 64, E
 thesis's vcconv VAE: ``conv: vcconv``, ``sampler: {name: simple, levels: 5}``, channels
 [|f|, 32, 64, 128, 128, 8], residual rate 0.5): each encoder level is a strided convolution
 (mode ``down``) with a residual path, each decoder level a transposed one (mode ``up``); no
-separate pooling. The last level's features (flattened) meet the latent through linear layers.
+separate pooling. A conv playing the strided role (``strided = True``: vcconv) does each step
+itself; any other conv is composed with the sampler's pooling (``fwk_autoencoder.strided.
+PooledConv``: pool, then the conv on the new level, the same residual mix). The last level's
+features (flattened) meet the latent through linear layers.
 ``latent_vertices: n`` (implies ``fully_convolutional``) makes the latent itself a graph level as in
 the thesis (8 latent vertices x 8 features = 64): the sampler supplies levels 0..L-1 and the last
 strided convolution maps onto a level of exactly n vertices (farthest-point centres, see
 ``fwk_autoencoder.latent``); z is the flattened (n, c_L) map, ``latent`` = n c_L, no linear layer.
 
-Composable API for other models (Deep Spectral Meshes, personalised blendshapes):
-``m.build_encoder(template, in_channels, ctx)`` returns a module (b, n, c_in) -> (mu, logvar)
-(logvar None for ``ae``); ``m.build_decoder(template, out_channels, ctx, latent_in=None)`` a module
-(b, latent_in) -> (b, n, c_out).
+Both play ``fwk.protocols.NetworkFactory`` for other models (Deep Spectral Meshes, personalised
+blendshapes): ``m.build_encoder(template, in_channels, ctx)`` returns a module (b, n, c_in) ->
+(mu, logvar) (logvar None for ``ae``: ``variational`` False); ``m.build_decoder(template,
+out_channels, ctx, latent_in=None)`` a module (b, latent_in or latent_size) -> (b, n, c_out). As
+models they play ``ReconstructionModel`` and ``GenerativeModel`` (encode, decode, sample from
+N(0, I)). The representation (default ``euclidean``, whose own default scaling is std) is a
+recipe parameter.
 """
 from __future__ import annotations
 
@@ -39,9 +45,16 @@ import numpy as np
 import torch
 from torch import nn
 
+from fwk.data import Template
+from fwk.errors import RecipeError
 from fwk.graph import sparse_apply, torch_sparse
 from fwk.hookspecs import hookimpl
+from fwk.protocols import RECONSTRUCT, Conv, plays
 from fwk.recipes import Kind, Spec
+from fwk.registry import did_you_mean
+
+from .latent import LatentConvDecoder, LatentConvEncoder, with_latent_level
+from .strided import strided_conv
 
 ACTIVATIONS = {"elu": nn.ELU, "relu": nn.ReLU, "leaky_relu": nn.LeakyReLU}
 
@@ -58,6 +71,8 @@ class _Sparse(nn.Module):
 
 
 class Encoder(nn.Module):
+    """Conv, activation and pooling per level, then a linear map to the latent (mu, logvar or None)."""
+
     def __init__(self, conv, hierarchy, channels, latent, variational, act):
         super().__init__()
         L = len(channels) - 1
@@ -76,6 +91,8 @@ class Encoder(nn.Module):
 
 
 class Decoder(nn.Module):
+    """A linear map from the latent, then unpooling, conv and activation per level, and an output conv."""
+
     def __init__(self, conv, hierarchy, channels, latent_in, out_channels, act):
         super().__init__()
         L = len(channels) - 1
@@ -102,8 +119,8 @@ class ConvEncoder(nn.Module):
     def __init__(self, conv, hierarchy, channels, latent, variational, act, residual_rate):
         super().__init__()
         L = len(channels) - 1
-        self.convs = nn.ModuleList(conv.build(channels[i], channels[i + 1], hierarchy, i, mode="down",
-                                              residual_rate=residual_rate) for i in range(L))
+        self.convs = nn.ModuleList(strided_conv(conv, channels[i], channels[i + 1], hierarchy, i, "down",
+                                                residual_rate) for i in range(L))
         self.act = act()
         d = hierarchy.levels[L].n_vertices * channels[-1]
         self.mu = nn.Linear(d, latent)
@@ -127,8 +144,8 @@ class ConvDecoder(nn.Module):
         self.n_last, self.c_last = hierarchy.levels[L].n_vertices, channels[-1]
         self.fc = nn.Linear(latent_in, self.n_last * self.c_last)
         chans = [out_channels, *channels[1:]]
-        self.convs = nn.ModuleList(conv.build(chans[i + 1], chans[i], hierarchy, i, mode="up",
-                                              residual_rate=residual_rate) for i in reversed(range(L)))
+        self.convs = nn.ModuleList(strided_conv(conv, chans[i + 1], chans[i], hierarchy, i, "up", residual_rate)
+                                   for i in reversed(range(L)))
         self.act = act()
 
     def forward(self, z):
@@ -141,6 +158,8 @@ class ConvDecoder(nn.Module):
 
 
 class _Net(nn.Module):
+    """The encoder and decoder as one module (``enc``, ``dec``: the state_dict's key prefixes)."""
+
     def __init__(self, enc, dec):
         super().__init__()
         self.enc, self.dec = enc, dec
@@ -150,29 +169,27 @@ class AE:
     """Graph autoencoder composed of a conv and a sampler (thesis 3.4 architecture)."""
 
     name = "ae"
-    task_family = "reconstruct"
+    task_family = RECONSTRUCT
     variational = False
 
     def __init__(self, conv: Annotated[Spec, Kind("conv")] = "spiral++",
                  sampler: Annotated[Spec, Kind("sampler")] = "quadric",
                  channels: list[int] | None = None, latent: int = 64, activation: str = "elu",
-                 representation: Annotated[Spec, Kind("representation")] | None = None,
+                 representation: Annotated[Spec, Kind("representation")] = "euclidean",
                  kl_weight: float | None = None, train: dict | None = None,
                  fully_convolutional: bool = False, residual_rate: float = 0.5,
                  latent_vertices: int | None = None):
         if latent_vertices is not None and latent_vertices < 1:
-            from fwk.errors import RecipeError
-
             raise RecipeError(f"latent_vertices: at least 1 latent vertex, got {latent_vertices}")
         if activation not in ACTIVATIONS:
-            from fwk.errors import RecipeError
-            from fwk.registry import did_you_mean
-
             raise RecipeError(f"activation: unknown {activation!r}{did_you_mean(activation, ACTIVATIONS)}")
+        if not plays(conv.cls, Conv):
+            raise RecipeError(f"conv: {conv.name} does not play the conv role (name, build_args, strided, "
+                              "forward, reset_parameters; see fwk.protocols.Conv)")
         self.conv, self.sampler = conv, sampler
         self.channels = list(channels) if channels else [16, 32, 64, 128]
         self.latent, self.activation = latent, activation
-        self.representation_spec, self.kl_weight, self.train_overrides = representation, kl_weight, train or {}
+        self.representation, self.kl_weight, self.train_overrides = representation, kl_weight, train or {}
         self.rep = self.net = self.hierarchy = None
         self.shape = None
         self.fully_convolutional, self.residual_rate = fully_convolutional or bool(latent_vertices), residual_rate
@@ -180,57 +197,52 @@ class AE:
         if latent_vertices:  # z is the flattened (latent_vertices, c_L) map of the last strided convolution
             self.latent = latent_vertices * self.channels[-1]
 
-    # ---- composable parts
+    @property
+    def latent_size(self) -> int:
+        """The size of the code z (``latent``, or latent_vertices x c_L)."""
+        return self.latent
+
+    # ---- the NetworkFactory role
     def _hierarchy(self, template, ctx=None):
         if self.hierarchy is None:
-            h = self.sampler.build().build(template, getattr(ctx, "cache", None))
+            h = self.sampler.build().build(template, ctx.cache if ctx is not None else None)
             if self.latent_vertices:
-                from .latent import with_latent_level
-
                 h = with_latent_level(h, len(self.channels), self.latent_vertices,
                                       radius=int(self.sampler.params.get("radius", 2)))
             self.hierarchy = h
         return self.hierarchy
 
     def build_encoder(self, template, in_channels: int, ctx=None) -> nn.Module:
+        """A module (b, n, in_channels) -> (mu (b, latent_size), logvar (vae) or None (ae))."""
         h = self._hierarchy(template, ctx)
         ch = [in_channels, *self.channels][: len(h.levels)]
+        act = ACTIVATIONS[self.activation]
         if self.latent_vertices:
-            from .latent import LatentConvEncoder
-
-            return LatentConvEncoder(self.conv, h, ch, self.variational, ACTIVATIONS[self.activation],
-                                     self.residual_rate)
+            return LatentConvEncoder(self.conv, h, ch, self.variational, act, self.residual_rate)
         if self.fully_convolutional:
-            return ConvEncoder(self.conv, h, ch, self.latent, self.variational, ACTIVATIONS[self.activation],
-                               self.residual_rate)
-        return Encoder(self.conv, h, ch, self.latent, self.variational, ACTIVATIONS[self.activation])
+            return ConvEncoder(self.conv, h, ch, self.latent, self.variational, act, self.residual_rate)
+        return Encoder(self.conv, h, ch, self.latent, self.variational, act)
 
     def build_decoder(self, template, out_channels: int, ctx=None, latent_in: int | None = None) -> nn.Module:
+        """A module (b, latent_in or latent_size) -> (b, n, out_channels)."""
         h = self._hierarchy(template, ctx)
         ch = [out_channels, *self.channels][: len(h.levels)]
+        act = ACTIVATIONS[self.activation]
         if self.latent_vertices:
-            from .latent import LatentConvDecoder
-
-            return LatentConvDecoder(self.conv, h, ch, latent_in or self.latent, out_channels,
-                                     ACTIVATIONS[self.activation], self.residual_rate)
+            return LatentConvDecoder(self.conv, h, ch, latent_in or self.latent, out_channels, act,
+                                     self.residual_rate)
         if self.fully_convolutional:
-            return ConvDecoder(self.conv, h, ch, latent_in or self.latent, out_channels, ACTIVATIONS[self.activation],
-                               self.residual_rate)
-        return Decoder(self.conv, h, ch, latent_in or self.latent, out_channels, ACTIVATIONS[self.activation])
+            return ConvDecoder(self.conv, h, ch, latent_in or self.latent, out_channels, act, self.residual_rate)
+        return Decoder(self.conv, h, ch, latent_in or self.latent, out_channels, act)
 
-    # ---- the Model protocol
-    def _make_rep(self):
-        if self.representation_spec is None:
-            from fwk.plugins import get_registry
-
-            return get_registry().get("representation", "euclidean")(scaling="std")
-        return self.representation_spec.build()
-
+    # ---- the model roles
     def fit(self, data, ctx) -> None:
+        # deferred: these load Lightning (~2.2 s of import time, measured in fwk.engine) that
+        # `fwk list` and every command loading the plugins would otherwise pay
         from fwk.engine import autoencoder_module, fit, seed_everything
 
         P, V = data.stack("train"), data.stack("val")
-        self.rep = self._make_rep()
+        self.rep = self.representation.build()
         self.rep.fit(P, None, data.template)
         F = torch.as_tensor(self.rep.encode(P))
         Fv = torch.as_tensor(self.rep.encode(V)) if len(V) else None
@@ -247,11 +259,13 @@ class AE:
 
     @torch.no_grad()
     def encode(self, P) -> np.ndarray:
+        """(b, n, 3) -> (b, latent_size) the (posterior mean) code."""
         mu, _ = self.net.enc(torch.as_tensor(self.rep.encode(P)))
         return mu.numpy().astype(np.float64)
 
     @torch.no_grad()
     def decode(self, z, target=None) -> np.ndarray:
+        """(b, latent_size) -> (b, n, 3); ``target`` places dr outputs (see ``reconstruct``)."""
         G = self.net.dec(torch.as_tensor(np.asarray(z), dtype=torch.float32))
         return self.rep.decode(G.numpy(), None, target)
 
@@ -260,21 +274,21 @@ class AE:
         return self.decode(self.encode(P), target=P)
 
     def sample(self, n: int, seed: int = 0) -> np.ndarray:
+        """Decode n codes drawn from N(0, I) (deterministic for a seed)."""
         return self.decode(np.random.default_rng(seed).standard_normal((n, self.latent)))
 
     def state_dict(self) -> dict:
         return {"net": self.net.state_dict(), "rep": self.rep.state_dict(), "shape": self.shape,
                 "template_vertices": self._template.vertices, "template_triangles": self._template.triangles}
 
-    def load_state_dict(self, d: dict) -> None:
-        from fwk.data import Template
-
-        self.rep = self._make_rep()
-        self.rep.load_state_dict(d["rep"])
+    def load_state_dict(self, d: dict, ctx=None) -> None:
+        """Restore a ``state_dict``; ``ctx`` (optional) lends the run's cache to the hierarchy."""
+        self.rep = self.representation.build()
+        self.rep.load_state_dict(d["rep"], ctx)
         self.shape = tuple(d["shape"])
         self._template = Template(d["template_vertices"], d["template_triangles"])
         c = self.shape[1]
-        self.net = _Net(self.build_encoder(self._template, c), self.build_decoder(self._template, c))
+        self.net = _Net(self.build_encoder(self._template, c, ctx), self.build_decoder(self._template, c, ctx))
         self.net.load_state_dict(d["net"])
         self.net.eval()
 

@@ -30,10 +30,13 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
+from torch import nn
 
 from fwk.errors import RecipeError
 from fwk.graph import adjacency, padded_rows, reach
 from fwk.protocols import Hierarchy, Level, Neighbourhood
+
+from .strided import strided_conv
 
 
 def farthest_centres(A, n_latent: int) -> np.ndarray:
@@ -97,24 +100,16 @@ def with_latent_level(h: Hierarchy, depth: int, n_latent: int, radius: int = 2) 
                      [*h.up[:depth - 1], _mean_rows(PT)])
 
 
-def _torch():
-    import torch
-    from torch import nn
-
-    return torch, nn
-
-
-class LatentConvEncoder(_torch()[1].Module):
+class LatentConvEncoder(nn.Module):
     """Strided convolutions down to the latent level; z = the flattened (n_latent, c_L) map."""
 
-    def __init__(self, conv, hierarchy, channels, variational, act, residual_rate, extra=None):
+    def __init__(self, conv, hierarchy, channels, variational, act, residual_rate):
         super().__init__()
-        nn = _torch()[1]
         L = len(channels) - 1
         self.c_last, self.variational = channels[-1], variational
         outs = [*channels[1:-1], channels[-1] * (2 if variational else 1)]
-        self.convs = nn.ModuleList(conv.build(channels[i], outs[i], hierarchy, i, mode="down",
-                                              residual_rate=residual_rate, **(extra or {})) for i in range(L))
+        self.convs = nn.ModuleList(strided_conv(conv, channels[i], outs[i], hierarchy, i, "down", residual_rate)
+                                   for i in range(L))
         self.act = act()
 
     def forward(self, x):
@@ -126,19 +121,18 @@ class LatentConvEncoder(_torch()[1].Module):
         return mu, (x[..., self.c_last:].flatten(1) if self.variational else None)
 
 
-class LatentConvDecoder(_torch()[1].Module):
+class LatentConvDecoder(nn.Module):
     """Transposed convolutions from the latent level (a linear layer first only for foreign codes)."""
 
-    def __init__(self, conv, hierarchy, channels, latent_in, out_channels, act, residual_rate, extra=None):
+    def __init__(self, conv, hierarchy, channels, latent_in, out_channels, act, residual_rate):
         super().__init__()
-        nn = _torch()[1]
         L = len(channels) - 1
         self.n_last, self.c_last = hierarchy.levels[L].n_vertices, channels[-1]
         d = self.n_last * self.c_last
         self.fc = nn.Linear(latent_in, d) if latent_in != d else None
         chans = [out_channels, *channels[1:]]
-        self.convs = nn.ModuleList(conv.build(chans[i + 1], chans[i], hierarchy, i, mode="up",
-                                              residual_rate=residual_rate, **(extra or {})) for i in reversed(range(L)))
+        self.convs = nn.ModuleList(strided_conv(conv, chans[i + 1], chans[i], hierarchy, i, "up", residual_rate)
+                                   for i in reversed(range(L)))
         self.act = act()
 
     def forward(self, z):

@@ -1,0 +1,83 @@
+"""Strided / transposed steps of the fully convolutional layouts: a conv with the strided role is
+used as it is, any other conv is composed with the sampler's pooling (PooledConv), here checked
+against a naive dense computation."""
+import math
+
+import pytest
+import torch
+
+from fwk.plugins import get_registry
+from fwk.recipes import make_spec
+from fwk.testing.sampler import two_components
+from fwk_autoencoder.strided import PooledConv, strided_conv
+
+REG = get_registry()
+
+
+def _conv(value):
+    return make_spec("conv", value, "conv", REG)
+
+
+def _naive_spiralpp(conv, x):
+    """x'_i = W [x_{s_1} || ... || x_{s_L}] + b, vertex by vertex."""
+    idx = conv.index.reshape(x.shape[1], conv.length)
+    out = torch.empty(x.shape[0], x.shape[1], conv.layer.out_features)
+    for i in range(x.shape[1]):
+        out[:, i] = x[:, idx[i]].reshape(x.shape[0], -1) @ conv.layer.weight.T + conv.layer.bias
+    return out
+
+
+@pytest.mark.parametrize("mode", ["down", "up"])
+@pytest.mark.parametrize("residual", [None, 0.3])
+@pytest.mark.parametrize("c_in,c_out", [(3, 7), (5, 5)])
+def test_pooled_conv_matches_a_dense_computation(mode, residual, c_in, c_out):
+    h = REG.get("sampler", "quadric")(factors=[4, 4]).build(two_components())
+    level = 0
+    torch.manual_seed(0)
+    m = PooledConv(_conv("spiral++"), c_in, c_out, h, level, mode, residual)
+    with torch.no_grad():
+        m.conv.layer.bias.normal_()
+    P = torch.as_tensor((h.down[level] if mode == "down" else h.up[level]).toarray(), dtype=torch.float32)
+    x = torch.randn(2, P.shape[1], c_in)
+    p = torch.einsum("mn,bnc->bmc", P, x)                          # dense pooling
+    y = _naive_spiralpp(m.conv, p)                                  # the conv on the new level
+    if residual is not None:
+        R = p @ m.res_lin.weight.T if c_in != c_out else p
+        y = math.sqrt(1 - residual) * y + math.sqrt(residual) * R
+    assert torch.allclose(m(x), y, atol=1e-5)
+    assert m.conv.index.numel() == h.levels[level + 1 if mode == "down" else level].n_vertices * m.conv.length
+    assert (m.res_lin is None) == (residual is None or c_in == c_out)
+
+
+def test_strided_conv_picks_by_role():
+    h = REG.get("sampler", "simple")(levels=2).build(two_components())
+    vc = strided_conv(_conv({"name": "vcconv", "weight_num": 4}), 3, 4, h, 0, "down", 0.5)
+    assert type(vc) is REG.get("conv", "vcconv") and vc.n_out == h.levels[1].n_vertices
+    lsa = strided_conv(_conv("lsa"), 3, 4, h, 0, "up", 0.5)
+    assert isinstance(lsa, PooledConv) and type(lsa.conv) is REG.get("conv", "lsa")
+
+
+def test_pooled_conv_reset_parameters_is_seeded():
+    h = REG.get("sampler", "quadric")(factors=[4]).build(two_components())
+    m = PooledConv(_conv("lsa"), 3, 6, h, 0, "down", 0.5)
+    states = []
+    for _ in range(2):
+        torch.manual_seed(4)
+        m.reset_parameters()
+        states.append([p.detach().clone() for p in m.parameters()])
+    assert all(torch.equal(a, b) for a, b in zip(*states))
+
+
+@pytest.mark.parametrize("conv", ["spiral++", "lsa", "feast"])
+def test_fully_convolutional_ae_with_a_plain_conv(conv):
+    """Before the strided role was declared, these failed with a TypeError on mode=."""
+    from fwk.testing.model import tiny_fit_data
+
+    t = tiny_fit_data(n_subjects=4).template
+    m = make_spec("model", {"name": "vae", "conv": conv, "sampler": {"name": "quadric", "factors": [4, 4]},
+                            "channels": [8, 8], "latent": 6, "fully_convolutional": True}, "model", REG).build()
+    enc, dec = m.build_encoder(t, 3), m.build_decoder(t, 3)
+    assert all(isinstance(c, PooledConv) for c in [*enc.convs, *dec.convs])
+    mu, logvar = enc(torch.randn(2, t.n_vertices, 3))
+    assert mu.shape == logvar.shape == (2, 6)
+    assert dec(mu).shape == (2, t.n_vertices, 3)
