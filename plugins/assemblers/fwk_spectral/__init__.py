@@ -21,7 +21,8 @@ basis (eq. 4.1, M = I). The n x n matrices X_j are never formed: everything is U
 one (n, 3b) block product for a batch. ``assemble_many([low, high], ks)`` assembles two bands
 for many cut points k at once (the PBS k sweep, thesis 5.3.3) from cumulative coefficient sums;
 ``eigen_k`` computes a larger basis than the last cut so that such a sweep can reach further.
-``project(P, j)`` is band j's part of P - mean. A differentiable torch version for training-time
+``project(P, j)`` is band j's part of P - mean; ``band_shares(D)`` the share of a displacement's
+M-weighted energy in each band. A differentiable torch version for training-time
 use is ``Spectral.torch()`` (``TorchSpectral``, built on ``fwk.geometry.spectral_torch``).
 
 How the mean enters: every band is a mesh centred on the mean (band_j - mean is the band's
@@ -31,11 +32,20 @@ displacements of all bands sum to P - mean and assembly adds the mean back exact
 from __future__ import annotations
 
 import numpy as np
+import torch
 
+from fwk.cache import default_cache
 from fwk.errors import RecipeError
 from fwk.geometry.operators import mass_matrix
 from fwk.geometry.spectral import SpectralProjector, eigenbasis
+from fwk.geometry.spectral_torch import TorchSpectralProjector
 from fwk.hookspecs import hookimpl
+
+
+def _energy(D, m):
+    """sum_n m_n |D_n|^2 over the vertices of (..., n, 3) (m = None: unweighted)."""
+    w = np.ones(D.shape[-2]) if m is None else np.asarray(m).reshape(-1)
+    return np.einsum("...ni,...ni,n->...", D, D, w)
 
 
 class Spectral:
@@ -63,8 +73,6 @@ class Spectral:
     def fit(self, template, mean=None, cache=None) -> None:
         """Eigenbasis of the mean's geometry (``mean`` (n, 3); default the template's vertices),
         cached in ``cache`` (default: fwk's content-hash cache)."""
-        from fwk.cache import default_cache
-
         n = template.n_vertices
         K = self.eigen_k or self.cuts[-1]
         if K > n:
@@ -123,6 +131,17 @@ class Spectral:
             return self.proj.project(D, *self._ranges()[band])
         return D - self.proj.project(D, 0, self.cuts[-1])
 
+    def band_shares(self, D) -> np.ndarray:
+        """(..., n, 3) displacements D -> (..., bands): the share of their M-weighted energy in
+        each band, ||X_j D||_M^2 / ||D||_M^2 (M = I with ``mass: false``). The bands are
+        M-orthogonal, so the shares sum to 1 (the disentanglement of thesis 4.7.3's edits)."""
+        self._check()
+        D = np.asarray(D, dtype=np.float64)
+        flat = D.reshape(-1, *D.shape[-2:])
+        parts = np.stack([_energy(self.project(flat + self.mean, j), self.proj.m) for j in range(self.n_bands)], -1)
+        total = np.maximum(_energy(flat, self.proj.m), 1e-300)
+        return (parts / total[:, None]).reshape(*D.shape[:-2], self.n_bands)
+
     def assemble_many(self, bands, ks) -> np.ndarray:
         """Two-band assembly ``[low, high]`` for every cut k in ``ks`` (each <= the fitted basis
         size, ``eigen_k``): (len(ks), b, n, 3), or (len(ks), n, 3) for single meshes. With
@@ -171,10 +190,6 @@ class TorchSpectral:
     ``Spectral``: ``project(P, lo, hi)``, ``split(P)``, ``assemble(bands)`` on (b, n, 3) tensors."""
 
     def __init__(self, assembler: Spectral, device="cpu", dtype=None):
-        import torch
-
-        from fwk.geometry.spectral_torch import TorchSpectralProjector
-
         dtype = dtype or torch.float32
         self.proj = TorchSpectralProjector(assembler.proj.U, assembler.proj.m, dtype=dtype).to(device)
         self.U, self.UtM = self.proj.U, self.proj.UtM

@@ -12,9 +12,14 @@ last cut"). Every band is a mesh centred on the mean, so each gets its own repre
 g_b, fitted on that band of the training set: thesis default ``euclidean`` std for the low
 band(s) and ``dr`` norm with the training mean as reference for the high band.
 
-Network (4.2.2, 4.4.2-4.4.3). One encoder E_b and one decoder D_b per band, built by any
-model with the composable API (``vae``: the thesis uses the fully convolutional vcconv VAE with
-8 latent vertices x 4 channels = 32 entries per band). Encoders give (mu_b, log sigma_b^2);
+The assembler is the recipe's ``assembler`` (default ``spectral``), built with dsm's ``k`` and
+``mass``; the representations are ``low_representation`` (every band below the last cut) and
+``high_representation`` (the band above it), or one per band in ``representations``.
+
+Network (4.2.2, 4.4.2-4.4.3). One encoder E_b and one decoder D_b per band, built by ``network``
+(or ``networks``, one per band): any model playing ``fwk.protocols.NetworkFactory`` (``vae``: the
+thesis uses the fully convolutional vcconv VAE with 8 latent vertices x 4 channels = 32 entries
+per band). Encoders give (mu_b, log sigma_b^2);
 mu = [mu_0 | ... | mu_B], sigma likewise, Z = mu + sigma * eps, and every decoder reads the
 whole Z: D_b decodes its band from Z_b conditioned on the other bands' codes.
 
@@ -50,37 +55,28 @@ the ground truth) and assemble
 so each band contributes only its own frequencies. With perfect decoders (ground-truth
 features) the assembly returns the input exactly (tested to 1e-8).
 
-API: ``encode(P) -> Z`` (b, |Z|), ``decode(Z) -> P'``, ``decode_bands(Z)``, ``reconstruct(P)``,
-``sample(n, seed)`` (Z ~ N(0, I)), ``band_names``, ``latent_slice(name)`` / ``slices``
-(the entries of Z of one band), ``split(P)``, ``features(P)``, ``assemble(bands)``.
+API (roles ``ReconstructionModel`` and ``BandModel`` of ``fwk.protocols``): ``encode(P) -> Z``
+(b, |Z|), ``decode(Z) -> P'``, ``decode_bands(Z)``, ``reconstruct(P)``, ``sample(n, seed)``
+(Z ~ N(0, I)), ``latent_size`` (|Z|), ``band_names``, ``latent_slice(name)`` / ``slices`` (the
+entries of Z of one band), ``split(P)``, ``assemble(bands)``, ``band_shares(D)``; also
+``features(P)``. Training: ``fwk_dsm.module.DSMModule``.
 """
 from __future__ import annotations
 
-import inspect
 from typing import Annotated
 
 import numpy as np
 import torch
 from torch import nn
 
-from fwk.engine import kl_divergence
-from fwk.errors import RecipeError
+from fwk.data import Template
+from fwk.engine import fit, kl_divergence, seed_everything
+from fwk.errors import DataError, RecipeError
 from fwk.hookspecs import hookimpl
+from fwk.protocols import RECONSTRUCT, NetworkFactory
 from fwk.recipes import Kind, Spec
 
 DROPOUT_MODES = ("band", "element")
-
-
-def _registry():
-    from fwk.plugins import get_registry
-
-    return get_registry()
-
-
-def _spec(kind: str, value, path: str, registry=None):
-    from fwk.recipes import make_spec
-
-    return make_spec(kind, value, path, registry or _registry())
 
 
 def conditioning_mask(batch: int, n_bands: int, gamma: float, mode: str = "band", latents=None,
@@ -164,70 +160,26 @@ def band_losses(net: DSMNet, feats, unscales, kl_weight: float):
     return losses, l1s
 
 
-def lightning_module(net: DSMNet, unscales, kl_weight: float, band_names):
-    import lightning.pytorch as pl
-
-    from fwk.engine import make_optimizer
-
-    class DSMModule(pl.LightningModule):
-        """One Adam per band, manual optimisation (thesis 4.4.4)."""
-
-        def __init__(self):
-            super().__init__()
-            self.net = net
-            self.automatic_optimization = False
-
-        def _log(self, stage, losses, l1s, n):
-            total = sum(losses)
-            self.log(f"{stage}_loss", total, prog_bar=True, on_epoch=True, on_step=False, batch_size=n)
-            for name, l, l1 in zip(band_names, losses, l1s):
-                self.log(f"{stage}_loss_{name}", l, on_epoch=True, on_step=False, batch_size=n)
-                self.log(f"{stage}_l1_{name}", l1, on_epoch=True, on_step=False, batch_size=n)
-            return total
-
-        def training_step(self, batch, _):
-            opts = self.optimizers()
-            opts = opts if isinstance(opts, (list, tuple)) else [opts]
-            for o in opts:
-                o.zero_grad()
-            losses, l1s = band_losses(self.net, list(batch), unscales, kl_weight)
-            total = self._log("train", losses, l1s, len(batch[0]))
-            # parameters are disjoint and other bands' codes are detached in each decoder's
-            # input, so one backward of the sum gives every band exactly dL_b / d theta_b
-            self.manual_backward(total)
-            for o in opts:
-                o.step()
-            return total.detach()
-
-        def validation_step(self, batch, _):
-            losses, l1s = band_losses(self.net, list(batch), unscales, kl_weight)
-            return self._log("val", losses, l1s, len(batch[0]))
-
-        def configure_optimizers(self):
-            return [make_optimizer(list(self.net.encoders[b].parameters()) + list(self.net.decoders[b].parameters()),
-                                   self.train_config) for b in range(self.net.n_bands)]
-
-    return DSMModule()
-
-
-def _default_rep(b: int, n_bands: int):
-    if b == n_bands - 1:
-        return {"name": "dr", "scaling": "norm"}
-    return {"name": "euclidean", "scaling": "std"}
-
-
 class DSM:
-    """Deep Spectral Meshes: one VAE per spectral band, shared latent, Conditioning Factor gamma."""
+    """Deep Spectral Meshes: one VAE per spectral band, shared latent, Conditioning Factor gamma.
+
+    Nested components are recipe parameters (``fwk.recipes.Spec``): ``network`` / ``networks``
+    (models playing ``NetworkFactory``), ``representations`` or ``low_representation`` /
+    ``high_representation``, and ``assembler`` (built with ``k`` and ``mass``).
+    """
 
     name = "dsm"
-    task_family = "reconstruct"
+    task_family = RECONSTRUCT
 
     def __init__(self, network: Annotated[Spec, Kind("model")] = "vae",
                  networks: Annotated[list[Spec], Kind("model")] | None = None,
                  k: int | list[int] = 500, mass: bool = True,
                  representations: Annotated[list[Spec], Kind("representation")] | None = None,
                  band_names: list[str] | None = None, gamma: float = 1.0, conditioning_dropout: str = "band",
-                 kl_weight: float | None = None, train: dict | None = None):
+                 kl_weight: float | None = None, train: dict | None = None,
+                 low_representation: Annotated[Spec, Kind("representation")] = "euclidean",
+                 high_representation: Annotated[Spec, Kind("representation")] = "dr",
+                 assembler: Annotated[Spec, Kind("assembler")] = "spectral"):
         if not 0.0 <= float(gamma) <= 1.0:
             raise RecipeError(f"gamma: the Conditioning Factor lies in [0, 1], got {gamma}")
         if conditioning_dropout not in DROPOUT_MODES:
@@ -246,8 +198,11 @@ class DSM:
             raise RecipeError(f"band_names: give {n_bands} distinct names (k = {k})")
         self.network, self.networks = network, networks
         self.mass, self.gamma, self.conditioning_dropout = bool(mass), float(gamma), conditioning_dropout
-        self.rep_specs = representations
-        self.band_names = list(band_names) if band_names else (
+        # thesis defaults: euclidean std below the last cut, dr norm (against the mean) above it
+        self.rep_specs = list(representations) if representations is not None else (
+            [low_representation] * (n_bands - 1) + [high_representation])
+        self.assembler_spec = assembler
+        self._band_names = list(band_names) if band_names else (
             ["low", "high"] if n_bands == 2 else [*(f"band{i}" for i in range(n_bands - 1)), "high"])
         self.kl_weight, self.train_overrides = kl_weight, dict(train or {})
         self.reps = self.assembler = self.net = self.template = None
@@ -259,6 +214,11 @@ class DSM:
     def n_bands(self) -> int:
         return len(self.cuts_param) + 1
 
+    @property
+    def band_names(self) -> list[str]:
+        """The bands' names, low to high (``low``/``high``, or ``band0``, ... ``high``)."""
+        return self._band_names
+
     def _net_model(self, b: int):
         if self._net_models is None:
             specs = self.networks or [self.network] * self.n_bands
@@ -266,18 +226,22 @@ class DSM:
             for i, s in enumerate(specs):
                 key = id(s)
                 if key not in cache:  # one instance per distinct spec: its hierarchy is built once
-                    m = _spec("model", s, f"networks[{i}]" if self.networks else "network").build()
-                    if not hasattr(m, "build_encoder") or not hasattr(m, "build_decoder"):
-                        raise RecipeError(f"network: model {getattr(m, 'name', s)!r} has no build_encoder/"
-                                          "build_decoder (use ae or vae)")
+                    m = s.build()
+                    if not isinstance(m, NetworkFactory):
+                        where = f"networks[{i}]" if self.networks else "network"
+                        raise RecipeError(f"{where}: model {s.name!r} lends no networks (it does not play "
+                                          "fwk.protocols.NetworkFactory: build_encoder, build_decoder, "
+                                          "latent_size, variational)")
                     cache[key] = m
                 models.append(cache[key])
             self._net_models = models
         return self._net_models[b]
 
     def _make_reps(self):
-        specs = self.rep_specs or [_default_rep(b, self.n_bands) for b in range(self.n_bands)]
-        return [_spec("representation", s, f"representations[{b}]").build() for b, s in enumerate(specs)]
+        return [s.build() for s in self.rep_specs]
+
+    def _make_assembler(self, cuts):
+        return self.assembler_spec.build(k=cuts if len(cuts) > 1 else cuts[0], mass=self.mass)
 
     def _fit_assembler(self, template, mean, cache=None, log=None):
         n = template.n_vertices
@@ -289,19 +253,15 @@ class DSM:
             raise RecipeError(f"k: cut points {self.cuts_param} collapse on a template of {n} vertices; "
                               f"give cut points below {n}")
         self.cuts = cuts
-        cls = _registry().get("assembler", "spectral")
-        a = cls(k=cuts if len(cuts) > 1 else cuts[0], mass=self.mass)
-        if "cache" in inspect.signature(a.fit).parameters:
-            a.fit(template, mean, cache=cache)
-        else:
-            a.fit(template, mean)
+        a = self._make_assembler(cuts)
+        a.fit(template, mean, cache=cache)
         self.assembler = a
 
     def _make_net(self, template, ctx=None) -> DSMNet:
         encs, decs, latents = [], [], []
         for b in range(self.n_bands):
             m = self._net_model(b)
-            latents.append(int(getattr(m, "latent")))
+            latents.append(int(m.latent_size))
         total = sum(latents)
         for b, c in enumerate(self.channels):
             m = self._net_model(b)
@@ -320,20 +280,23 @@ class DSM:
         return out
 
     def latent_slice(self, band: str | int) -> slice:
+        """The entries of Z that band ``band`` (its name or index) owns."""
         if isinstance(band, int):
             band = self.band_names[band]
         if band not in self.slices:
-            from fwk.errors import DataError
-
             raise DataError(f"band {band!r}: unknown; the model's bands are {', '.join(self.band_names)}")
         return self.slices[band]
 
     @property
-    def latent(self) -> int:
+    def latent_size(self) -> int:
+        """|Z|: the sum of the bands' latent sizes (each band network's ``latent_size``)."""
+        if self.latents is None:
+            return int(sum(self._net_model(b).latent_size for b in range(self.n_bands)))
         return int(sum(self.latents))
 
     # ------------------------------------------------------------------ data
     def split(self, P) -> list[np.ndarray]:
+        """The bands of meshes P (b, n, 3) (the assembler's split, eq. 4.11), each centred on the mean."""
         return self.assembler.split(np.asarray(P, dtype=np.float64))
 
     def features(self, P) -> list[np.ndarray]:
@@ -344,18 +307,25 @@ class DSM:
         """Eq. 4.15 for per-band position predictions."""
         return self.assembler.assemble(bands)
 
+    def band_shares(self, D) -> np.ndarray:
+        """(..., n, 3) displacements -> (..., bands): the share of their energy in each band
+        (the assembler's ``band_shares``; they sum to 1)."""
+        return self.assembler.band_shares(D)
+
     def decode_features(self, feats) -> np.ndarray:
         """Per-band features -> positions -> assembled mesh (no ground truth involved)."""
         return self.assemble([rep.decode(np.asarray(F)) for rep, F in zip(self.reps, feats)])
 
     # ------------------------------------------------------------------ fitting
     def fit(self, data, ctx) -> None:
-        from fwk.engine import fit, seed_everything
+        """Fit the assembler and the bands' representations on the training shapes, then train
+        the bands' networks (``DSMModule``)."""
+        from .module import DSMModule  # deferred: Lightning's import (2-5 s, see .module) only when training
 
         P, V = data.stack("train"), data.stack("val")
         self.template = data.template
         mean = P.mean(axis=0)
-        self._fit_assembler(data.template, mean, getattr(ctx, "cache", None), ctx.log)
+        self._fit_assembler(data.template, mean, ctx.cache, ctx.log)
         self.reps = self._make_reps()
         bands = self.split(P)
         for rep, band in zip(self.reps, bands):
@@ -370,9 +340,9 @@ class DSM:
         config = ctx.train.replace(**self.train_overrides)
         kl = config.kl_weight if self.kl_weight is None else self.kl_weight
         ctx.log(f"[dsm] {self.n_bands} bands {self.band_names} at k = {self.cuts}, "
-                f"representations {[getattr(r, 'name', '?') for r in self.reps]}, |Z| = {self.latents}, "
+                f"representations {[r.name for r in self.reps]}, |Z| = {self.latents}, "
                 f"gamma = {self.gamma}")
-        fit(lightning_module(self.net, [r.unscale for r in self.reps], kl, self.band_names), tuple(F), Fv, ctx,
+        fit(DSMModule(self.net, [r.unscale for r in self.reps], kl, self.band_names), tuple(F), Fv, ctx,
             self.name, config)
         self.net.eval()
 
@@ -408,32 +378,31 @@ class DSM:
         return self.assemble(self.decode_bands(z))
 
     def reconstruct(self, P) -> np.ndarray:
+        """Encode (posterior means) and decode: eq. 4.15, never registered to the input."""
         return self.decode(self.encode(P))
 
     def sample(self, n: int, seed: int = 0) -> np.ndarray:
         """n meshes decoded from Z ~ N(0, I) (deterministic for a seed)."""
-        return self.decode(np.random.default_rng(seed).standard_normal((n, self.latent)))
+        return self.decode(np.random.default_rng(seed).standard_normal((n, self.latent_size)))
 
     # ------------------------------------------------------------------ saving
     def state_dict(self) -> dict:
         self._check()
-        return {"kind": "dsm", "net": self.net.state_dict(), "reps": [r.state_dict() for r in self.reps],
+        return {"kind": self.name, "net": self.net.state_dict(), "reps": [r.state_dict() for r in self.reps],
                 "assembler": self.assembler.state_dict(), "cuts": list(self.cuts), "channels": list(self.channels),
                 "band_names": list(self.band_names), "gamma": self.gamma,
                 "template_vertices": self.template.vertices, "template_triangles": self.template.triangles}
 
     def load_state_dict(self, d: dict, ctx=None) -> None:
-        from fwk.data import Template
-
+        """Restore a fitted model; ``ctx`` (optional) lends the run's cache to the networks' hierarchies."""
         self.template = Template(np.asarray(d["template_vertices"]), np.asarray(d["template_triangles"]))
         self.cuts, self.channels = [int(c) for c in d["cuts"]], [int(c) for c in d["channels"]]
-        self.band_names = list(d["band_names"])
+        self._band_names = list(d["band_names"])
         self.reps = self._make_reps()
         for r, s in zip(self.reps, d["reps"]):
-            r.load_state_dict(s)
-        cls = _registry().get("assembler", "spectral")
-        self.assembler = cls(k=self.cuts if len(self.cuts) > 1 else self.cuts[0], mass=self.mass)
-        self.assembler.load_state_dict(d["assembler"])
+            r.load_state_dict(s, ctx=ctx)
+        self.assembler = self._make_assembler(self.cuts)
+        self.assembler.load_state_dict(d["assembler"], ctx=ctx)
         self.net = self._make_net(self.template, ctx)
         self.net.load_state_dict(d["net"])
         self.net.eval()
