@@ -16,8 +16,12 @@ from __future__ import annotations
 from typing import Annotated
 
 import numpy as np
+from scipy.sparse.linalg import svds
 
+from fwk.errors import DataError, RecipeError
 from fwk.hookspecs import hookimpl
+from fwk.plugins import get_registry
+from fwk.protocols import RECONSTRUCT
 from fwk.recipes import Kind, Spec
 
 GRAM_MAX = 4000  # samples up to which the (m x m) Gram matrix is eigendecomposed densely
@@ -39,8 +43,6 @@ def top_singular(X: np.ndarray, k: int):
         s = np.sqrt(np.clip(evals[order], 0, None))
         keep = s > (s.max() if len(s) else 0) * 1e-10
         return s[keep], evecs[:, order][:, keep].T
-    from scipy.sparse.linalg import svds
-
     k = min(k, min(m, d) - 1)
     _, s, Wt = svds(X, k=k, random_state=0)
     order = np.argsort(s)[::-1]
@@ -53,13 +55,11 @@ class PCA:
     """Linear 3DMM: principal components of the training shapes."""
 
     name = "pca"
-    task_family = "reconstruct"
+    task_family = RECONSTRUCT
 
     def __init__(self, n_components: int = 64,
                  representation: Annotated[Spec, Kind("representation")] | None = None):
         if not isinstance(n_components, int) or isinstance(n_components, bool) or n_components < 0:
-            from fwk.errors import RecipeError
-
             raise RecipeError(f"n_components: expected an integer >= 0 (0: the mean shape), got {n_components!r}")
         self.n_components = n_components
         self.representation_spec = representation
@@ -69,20 +69,24 @@ class PCA:
 
     def _make_rep(self, ctx=None):
         if self.representation_spec is None:
-            from fwk.plugins import get_registry
-
-            cls = get_registry().get("representation", "euclidean")
+            # TODO(architecture): a recipe default {name: euclidean, scaling: none} once recipes resolve mapping defaults
+            cls = get_registry().get("representation", "euclidean")  # name-ok: until then
             return cls(scaling="none")
         return self.representation_spec.build()
 
-    def fit(self, data, ctx=None) -> None:
-        P = data.stack("train") if hasattr(data, "stack") else np.asarray(data)
-        if len(P) == 0:
-            from fwk.errors import DataError
+    @property
+    def latent_size(self) -> int:
+        """The number of components kept: ``n_components`` until fit, then at most the number of
+        training shapes - 1 (components of zero variance are dropped)."""
+        return self.n_components if self.components is None else int(len(self.components))
 
+    def fit(self, data, ctx=None) -> None:
+        """Principal components of ``data.stack("train")`` (a ``FitData``)."""
+        P = data.stack("train")
+        if len(P) == 0:
             raise DataError("pca: the training split holds no shapes")
         self.rep = self._make_rep(ctx)
-        self.rep.fit(P, None, getattr(data, "template", None))
+        self.rep.fit(P, None, data.template)
         F = self.rep.encode(P).astype(np.float64).reshape(len(P), -1)
         self.mean = F.mean(axis=0)
         X = F - self.mean
@@ -97,10 +101,12 @@ class PCA:
         self._channels = F.shape[1] // P.shape[1]
 
     def encode(self, P) -> np.ndarray:
+        """(b, n, 3) -> (b, latent_size) coefficients W (x - mu)."""
         F = self.rep.encode(np.asarray(P, dtype=np.float64)).astype(np.float64).reshape(len(P), -1)
         return (F - self.mean) @ self.components.T
 
     def decode(self, z) -> np.ndarray:
+        """(b, latent_size) -> (b, n, 3): mu + W^T z, decoded by the representation."""
         F = self.mean + np.asarray(z, dtype=np.float64) @ self.components
         return self.rep.decode(F.reshape(len(F), self._shape[0], self._channels))
 
@@ -110,6 +116,7 @@ class PCA:
         return self.rep.decode(F.reshape(len(F), self._shape[0], self._channels), None, P)
 
     def sample(self, n: int, seed: int = 0) -> np.ndarray:
+        """n meshes decoded from z ~ N(0, diag(s^2 / (m - 1))) (deterministic for a seed)."""
         rng = np.random.default_rng(seed)
         sd = self.singular_values / np.sqrt(max(self.n_train - 1, 1))
         return self.decode(rng.standard_normal((n, len(sd))) * sd)
@@ -119,9 +126,10 @@ class PCA:
                 "n_train": self.n_train, "shape": self._shape, "channels": self._channels,
                 "rep": self.rep.state_dict(), "rep_name": self.rep.name}
 
-    def load_state_dict(self, d: dict) -> None:
+    def load_state_dict(self, d: dict, ctx=None) -> None:
+        """Restore a fitted model (``ctx`` is passed on to the representation)."""
         self.rep = self._make_rep()
-        self.rep.load_state_dict(d["rep"])
+        self.rep.load_state_dict(d["rep"], ctx=ctx)
         self.mean, self.components = np.asarray(d["mean"]), np.asarray(d["components"])
         self.singular_values, self.n_train = np.asarray(d["singular_values"]), int(d["n_train"])
         self._shape, self._channels = tuple(d["shape"]), int(d["channels"])
