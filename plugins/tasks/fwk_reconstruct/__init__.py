@@ -3,10 +3,12 @@
 The data flow of DESIGN.md: dataset -> split by subject (saved as ``split.json``) ->
 preprocessing fitted on the training neutrals (centring, rigid registration to the mean
 neutral, one uniform scale into [-1, 1]; thesis 3.3.8; saved under ``stats/``) -> each model
-learns from the training shapes (``model.fit``) -> ``model.reconstruct`` on every split ->
-metrics against the ground truth in the evaluation space (the thesis's space) and in the
-dataset's own units -> ``metrics.json``, ``report.md`` with tables, renders with error maps
-and the L1/DAME scatter with its Pareto front.
+(a ``fwk.protocols.ReconstructionModel``) learns from the training shapes, or with ``--resume``
+is reloaded (``fwk.lifecycle.build_model``, ``fit_or_resume``: ``models/<label>.pt``) ->
+``model.reconstruct`` on every split -> metrics (default ``fwk.evaluation.default_metrics``)
+against the ground truth in the evaluation space (the thesis's space) and in the dataset's own
+units -> ``metrics.json``, ``report.md`` with tables, renders with error maps and the standard
+scatters (L1 against DAME and FMPD) with their Pareto fronts.
 """
 from __future__ import annotations
 
@@ -15,14 +17,18 @@ from typing import Annotated
 
 import numpy as np
 
+from fwk import evaluation as ev
+from fwk.data.io import write_obj
 from fwk.data.preprocess import PreprocessConfig, split_and_preprocess
 from fwk.data.split import SplitConfig
 from fwk.errors import RecipeError
+from fwk.evaluation import default_metrics
+from fwk.evaluation.report import standard_scatters
 from fwk.hookspecs import hookimpl
-from fwk.protocols import FitData
+from fwk.lifecycle import build_model, fit_or_resume
+from fwk.protocols import RECONSTRUCT, FitData
 from fwk.recipes import Kind, Spec
 
-DEFAULT_METRICS = ["l1", "l2", "euclidean", "dame", "fmpd"]
 SPLITS = ("train", "val", "test")
 
 
@@ -56,10 +62,6 @@ class Reconstruct:
         self.write_obj = write_obj
 
     def run(self, ctx):
-        import torch
-
-        from fwk import evaluation as ev
-
         ctx.log(f"loading dataset {getattr(self.dataset, 'name', self.dataset)}")
         col = ctx.build("dataset", self.dataset).load(ctx.cache)
         for s in self.shapes:
@@ -67,7 +69,7 @@ class Reconstruct:
         split, pre, cols, transforms = split_and_preprocess(col, self.split, self.preprocess, ctx.seed, ctx)
         template = col.template.with_vertices(pre.mean_neutral)
         data = FitData(template, cols["train"], cols["val"], list(self.shapes))
-        metrics = [ctx.build("metric", m) for m in (self.metrics or DEFAULT_METRICS)]
+        metrics = [ctx.build("metric", m) for m in (self.metrics or default_metrics(ctx.registry))]
         ctx.log(f"{len(col.subjects)} subjects ({', '.join(f'{k} {len(v)}' for k, v in split.items())}), "
                 f"{template.n_vertices} vertices, shapes {', '.join(self.shapes)}")
 
@@ -76,21 +78,8 @@ class Reconstruct:
                          "units": col.units, "scale": float(pre.scale), "subjects": {k: len(v) for k, v in split.items()}}}
         predictions = {}
         for label, spec in self.models.items():
-            model = ctx.build("model", spec)
-            family = getattr(model, "task_family", "reconstruct")
-            if family != "reconstruct":
-                raise RecipeError(f"models.{label}: {model.name} is a {family} model, not a reconstruction model")
-            mctx = ctx.scoped(label)
-            state_path = ctx.run_dir / "models" / f"{label}.pt"
-            t0 = time.perf_counter()
-            if ctx.resume and state_path.exists():
-                ctx.log(f"[{label}] loading the finished model from {state_path}")
-                model.load_state_dict(torch.load(state_path, weights_only=False))
-            else:
-                ctx.log(f"[{label}] fitting {model.name}")
-                model.fit(data, mctx)
-                ctx.save_torch(f"models/{label}.pt", model.state_dict())
-            fit_s = time.perf_counter() - t0
+            model = build_model(spec, label, RECONSTRUCT, ctx)
+            fit_s = fit_or_resume(model, label, data, ctx)
             results["models"][label] = {}
             predictions[label] = {}
             t0 = time.perf_counter()
@@ -110,12 +99,7 @@ class Reconstruct:
             for label, d in predictions.items():
                 ctx.save_npz(f"predictions/{label}.npz", **d)
         figures = ev.reconstruction_figures(ctx, template, stacks, predictions, metrics, n_rows=self.renders)
-        from fwk.evaluation.report import scatter_figure
-
-        for y in ("dame", "fmpd"):
-            f = scatter_figure(ctx, results, "test", "l1", y)
-            if f is not None:
-                figures[f"L1 against {y.upper()} (test), Pareto front dashed"] = f
+        figures.update(standard_scatters(ctx, results, "test", registry=ctx.registry))
         if self.write_obj:
             self._write_objs(ctx, col.template, pre, transforms, predictions, stacks)
         ev.write_report(ctx, f"Reconstruction: {ctx.recipe.get('name', 'run')}", results, figures,
@@ -123,8 +107,6 @@ class Reconstruct:
                                f"evaluation space: registered and scaled into [-1, 1] (scale {pre.scale:.6g} per {col.units})"])
 
     def _write_objs(self, ctx, template, pre, transforms, predictions, stacks):
-        from fwk.data.io import write_obj
-
         n = min(self.write_obj, len(stacks["test"]))
         for label, d in predictions.items():
             if "test" not in d:
