@@ -3,12 +3,17 @@
 Where the models come from (both tasks):
 
 * ``run: PATH`` names a finished ``reconstruct`` run (its ``models/<label>.pt``, ``split.json``
-  and ``stats/preprocess.npz``; reopened with ``fwk.runs.load_run``; the dataset is rebuilt from
-  that run's recipe to get the topology with the user's polygons and UVs);
+  and ``stats/preprocess.npz``; reopened with ``fwk.lifecycle.open_run``; the dataset is rebuilt
+  from that run's recipe to get the topology with the user's polygons and UVs);
 * otherwise the task trains inline: the recipe's ``dataset``, ``split``, ``preprocess``,
   ``models``, ``metrics``, ``renders`` and ``train`` form a ``reconstruct`` recipe that runs as a
   sub-run in ``<run>/reconstruct/`` (its own report, metrics and saved models; a later recipe
   can point ``run:`` at it). ``fwk run --resume`` reuses a finished sub-run.
+
+Models are chosen by role (``fwk.protocols``): the band models (``BandModel``: dsm) are edited
+and interpolated (``dsm``: their labels, default every band model of the run); the comparison
+models are the other generative models (``GenerativeModel``: vae, ae, mlp-vae, pca; ``compare``:
+their labels).
 
 ``interpolate`` (4.7.2): two subjects of the test split (``subjects``) are encoded by each dsm
 model, Z_1 = [Z_1l | Z_1h], Z_2 likewise, and decoded on a grid (eq. 4.16)
@@ -25,44 +30,48 @@ the mean head).
 ``edit`` (4.7.3): for one test subject, latent entries (``directions``: indices within a
 band's slice of Z) are moved by ``amounts`` (in units of the prior's standard deviation) in one
 band at a time and decoded; the picture shows, per band, every dsm model's edits side by side
-with the same edits of each single-band comparison model's latent (``compare``: ``vae``/``ae``
-labels of the run), each mesh coloured by its displacement from the unedited decode. Beyond the
-thesis, disentanglement: for an edit of band b, the share of the output change inside band b,
+with the same edits of each single-band comparison model's latent (``compare``), each mesh
+coloured by its displacement from the unedited decode. Beyond the thesis, disentanglement: for
+an edit of band b, the share of the output change inside band b,
 
     share_b = ||X_b D||_M^2 / ||D||_M^2,   D = decode(Z + a e_{b,d}) - decode(Z)
 
 (X_b the band-b spectral projector of the dsm model's assembler, M the mass matrix; the bands
-are M-orthogonal, so the shares of all bands sum to 1), averaged over up to ``max_subjects``
-test subjects, the directions and the non-zero amounts. A single-band model's edits are
-measured with the same projectors: its per-band shares say where a latent edit lands when
-nothing separates the bands. Reported in a table and in ``metrics.json`` (``disentanglement``).
+are M-orthogonal, so the shares of all bands sum to 1; the band model's ``band_shares``),
+averaged over up to ``max_subjects`` test subjects, the directions and the non-zero amounts. A
+single-band model's edits are measured with the same projectors: its per-band shares say where a
+latent edit lands when nothing separates the bands. Reported in a table and in ``metrics.json`` (``disentanglement``).
 
 Each task can chain the other on the same models: ``interpolate: {...}`` inside an ``edit``
-recipe (or ``edit: {...}`` inside ``interpolate``), so one run gives both pictures.
+recipe (or ``edit: {...}`` inside ``interpolate``), so one run gives both pictures; the chained
+settings are the other task's study settings (``InterpolateSettings``, ``EditSettings``).
 """
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 import yaml
 
+from fwk.data.io import write_obj as write_mesh_obj
 from fwk.data.preprocess import PreprocessConfig, Preprocessor, Transforms
 from fwk.data.split import SplitConfig
 from fwk.errors import DataError, FwkError, RecipeError
+from fwk.evaluation import write_report
+from fwk.evaluation.render import colour_limits, render_grid
+from fwk.evaluation.report import markdown_table
 from fwk.hookspecs import hookimpl
-from fwk.recipes import Kind, Spec
+from fwk.lifecycle import open_run
+from fwk.protocols import RECONSTRUCT, BandModel, GenerativeModel
+from fwk.recipes import Kind, Spec, resolve
+from fwk.runs import RunContext, run_task
 
 INLINE_KEYS = ("dataset", "split", "preprocess", "shapes", "models", "metrics", "renders")
-COMPARE_NAMES = ("vae", "ae", "mlp-vae", "pca")
-
-
-def _registry():
-    from fwk.plugins import get_registry
-
-    return get_registry()
+# the recipe key that lists the band models' labels, and the metrics.json key of their results
+BAND_KEY = "dsm"  # name-ok: a recipe / metrics.json key (unchanged), not a lookup of the dsm model
 
 
 # ---------------------------------------------------------------------------------------- models
@@ -82,42 +91,21 @@ class Env:
         return self.pre.inverse(X, T)
 
     def write_obj(self, path, X) -> Path:
-        from fwk.data.io import write_obj
-
-        return write_obj(path, self.to_input_units(np.asarray(X)[None])[0], self.template)
+        """Write one mesh (evaluation space) as OBJ in the dataset's units with its polygons and UVs."""
+        return write_mesh_obj(path, self.to_input_units(np.asarray(X)[None])[0], self.template)
 
 
 def load_models(run_dir, ctx=None, registry=None) -> Env:
-    """Reopen a finished reconstruct run (``fwk.runs.load_run``) with its trained models."""
-    import torch
-
-    from fwk.runs import load_run
-
+    """Reopen a finished reconstruct run (``fwk.lifecycle.open_run``) with its trained models."""
     run_dir = Path(run_dir)
-    loaded = load_run(run_dir, registry)
-    task = loaded.resolved.task
-    if task.name != "reconstruct":
-        raise FwkError(f"run: {run_dir} is a {task.name} run; interpolate/edit need a reconstruct run")
-    params = task.params
+    run = open_run(run_dir, registry, task=RECONSTRUCT)
     for p in (run_dir / "split.json", run_dir / "stats" / "preprocess.npz"):
         if not p.exists():
             raise FwkError(f"run: {p} is missing; is {run_dir} a finished reconstruct run?")
-    models = {}
-    for label, spec in (params.get("models") or {}).items():
-        state = run_dir / "models" / f"{label}.pt"
-        if not state.exists():
-            raise FwkError(f"run: {state} is missing; is {run_dir} a finished reconstruct run?")
-        m = spec.build()
-        d = torch.load(state, weights_only=False)
-        try:
-            m.load_state_dict(d, ctx=loaded.ctx)
-        except TypeError:
-            m.load_state_dict(d)
-        models[label] = m
-    with np.load(run_dir / "stats" / "preprocess.npz") as z:
-        pre = Preprocessor.from_state({k: z[k] for k in z.files})
-    cache = ctx.cache if ctx is not None else loaded.ctx.cache
-    col = params["dataset"].build().load(cache)
+    models = {label: run.model(label) for label in run.specs}
+    pre = run.preprocessor
+    cache = ctx.cache if ctx is not None else run.ctx.cache
+    col = run.params["dataset"].build().load(cache)
     split = json.loads((run_dir / "split.json").read_text())
     index = {s: i for i, s in enumerate(col.subjects)}
     j = col.shape_index("neutral")
@@ -129,19 +117,16 @@ def load_models(run_dir, ctx=None, registry=None) -> Env:
             continue
         N = np.asarray(col.positions[idx, j])
         splits[name], _ = pre.transform(N, N)
-    return Env(run_dir, models, col.template.with_vertices(pre.mean_neutral), pre, splits, loaded.metrics)
+    return Env(run_dir, models, col.template.with_vertices(pre.mean_neutral), pre, splits, run.metrics)
 
 
 def train_inline(ctx, recipe: dict) -> Path:
     """Run the recipe's training keys as a reconstruct sub-run in ``<run>/reconstruct/``."""
-    from fwk.recipes import resolve
-    from fwk.runs import RunContext, run_task
-
-    sub = ctx.run_dir / "reconstruct"
+    sub = ctx.run_dir / RECONSTRUCT  # the task of the reconstruct family trains and evaluates the models
     if (sub / "metrics.json").exists() and all((sub / "models" / f"{k}.pt").exists() for k in recipe.get("models", {})):
         ctx.log(f"reconstruct sub-run {sub} finished before: its models are reused")
         return sub
-    data = {"task": "reconstruct", "name": f"{recipe.get('name', 'run')}-reconstruct", "seed": ctx.seed,
+    data = {"task": RECONSTRUCT, "name": f"{recipe.get('name', 'run')}-reconstruct", "seed": ctx.seed,
             **({"train": recipe["train"]} if recipe.get("train") else {}),
             **{k: recipe[k] for k in INLINE_KEYS if k in recipe}}
     if ctx.source:
@@ -159,7 +144,7 @@ def train_inline(ctx, recipe: dict) -> Path:
 
 def _resolve_run(path: str, ctx) -> Path:
     p = Path(path).expanduser()
-    if not p.is_absolute() and not p.exists() and getattr(ctx, "source", None):
+    if not p.is_absolute() and not p.exists() and ctx.source:
         q = Path(ctx.source).parent / p
         if q.exists():
             p = q
@@ -168,26 +153,21 @@ def _resolve_run(path: str, ctx) -> Path:
     return p
 
 
-def is_dsm(m) -> bool:
-    return getattr(m, "name", "") == "dsm" or (hasattr(m, "latent_slice") and hasattr(m, "assembler"))
-
-
-def _pick(env: Env, labels, want_dsm: bool, what: str) -> list[str]:
+def _pick(env: Env, labels, role, what: str, exclude=None) -> list[str]:
+    """``labels`` (each a model of the run playing ``role``), else every model of the run that
+    plays ``role`` and not ``exclude``, in the recipe's order."""
     if labels:
         for l in labels:
             if l not in env.models:
                 raise RecipeError(f"{what}: {l!r} is not a model of {env.run_dir} (models: {', '.join(env.models)})")
+            if not isinstance(env.models[l], role):
+                raise RecipeError(f"{what}: {l!r} ({env.models[l].name}) does not play the {role.__name__} role")
         return list(labels)
-    if want_dsm:
-        return [l for l, m in env.models.items() if is_dsm(m)]
-    return [l for l, m in env.models.items() if not is_dsm(m) and getattr(m, "name", "") in COMPARE_NAMES
-            and hasattr(m, "encode") and hasattr(m, "decode")]
+    return [l for l, m in env.models.items() if isinstance(m, role) and not (exclude and isinstance(m, exclude))]
 
 
 def _renders(ctx, rows, template, path, cell=(240, 270)):
     try:
-        from fwk.evaluation.render import render_grid
-
         return render_grid(rows, template, path, view="front", cell_size=cell)
     except Exception as exc:  # no OpenGL at all: keep the numbers, say so
         ctx.log(f"warning: render {Path(path).name} skipped ({type(exc).__name__}: {exc})")
@@ -196,7 +176,7 @@ def _renders(ctx, rows, template, path, cell=(240, 270)):
 
 # ------------------------------------------------------------------------------------ studies
 
-def _interp(ctx, env: Env, p: "Interpolate") -> tuple[dict, dict, list]:
+def _interp(ctx, env: Env, p: "InterpolateSettings") -> tuple[dict, dict, list]:
     P = env.splits.get(p.subjects_from)
     if P is None or len(P) == 0:
         raise DataError(f"subjects_from: the {p.subjects_from} split has no subjects")
@@ -204,7 +184,7 @@ def _interp(ctx, env: Env, p: "Interpolate") -> tuple[dict, dict, list]:
     if max(i1, i2) >= len(P):
         raise RecipeError(f"subjects: {p.subjects} out of range for the {len(P)} subjects of {p.subjects_from}")
     P1, P2 = P[i1], P[i2]
-    labels = _pick(env, p.dsm, True, "dsm")
+    labels = _pick(env, p.dsm, BandModel, BAND_KEY)
     if not labels:
         raise RecipeError(f"the run {env.run_dir} has no dsm model to interpolate with")
     figures, results = {}, {"subjects": [int(i1), int(i2)], "split": p.subjects_from, "alphas": p.alphas,
@@ -247,38 +227,22 @@ def _interp(ctx, env: Env, p: "Interpolate") -> tuple[dict, dict, list]:
     return results, figures, notes
 
 
-def _energy(D, m):
-    w = np.ones(D.shape[-2]) if m is None else np.asarray(m).reshape(-1)
-    return np.einsum("...ni,...ni,n->...", D, D, w)
-
-
-def band_shares(assembler, D) -> np.ndarray:
-    """(..., n, 3) differences -> (..., bands) share of the M-weighted energy in each band."""
-    mass = getattr(getattr(assembler, "proj", None), "m", None)
-    D = np.asarray(D, dtype=np.float64)
-    flat = D.reshape(-1, *D.shape[-2:])
-    parts = np.stack([_energy(assembler.project(flat + assembler.mean, j), mass)
-                      for j in range(assembler.n_bands)], -1)
-    total = np.maximum(_energy(flat, mass), 1e-300)
-    return (parts / total[:, None]).reshape(*D.shape[:-2], assembler.n_bands)
-
-
-def _edit(ctx, env: Env, p: "Edit") -> tuple[dict, dict, list]:
+def _edit(ctx, env: Env, p: "EditSettings") -> tuple[dict, dict, list]:
     P = env.splits.get("test")
     if P is None or len(P) == 0:
         raise DataError("edit: the test split has no subjects")
     if p.subject >= len(P):
         raise RecipeError(f"subject: {p.subject} out of range for the {len(P)} test subjects")
-    dsm_labels = _pick(env, p.dsm, True, "dsm")
+    dsm_labels = _pick(env, p.dsm, BandModel, BAND_KEY)
     if not dsm_labels:
         raise RecipeError(f"the run {env.run_dir} has no dsm model to edit")
-    cmp_labels = _pick(env, p.compare, False, "compare")
+    cmp_labels = _pick(env, p.compare, GenerativeModel, "compare", exclude=BandModel)
     ref = env.models[dsm_labels[0]]
     bands = p.bands or list(ref.band_names)
     amounts = [float(a) for a in p.amounts]
     nz = [a for a in amounts if a != 0.0]
     S = P[: max(p.max_subjects, p.subject + 1)]
-    results = {"directions": p.directions, "amounts": amounts, "n_subjects": int(len(S)), "dsm": {}, "compare": {}}
+    results = {"directions": p.directions, "amounts": amounts, "n_subjects": int(len(S)), BAND_KEY: {}, "compare": {}}
     figures = {}
 
     def edited(z0, sl, zeros):
@@ -295,15 +259,15 @@ def _edit(ctx, env: Env, p: "Edit") -> tuple[dict, dict, list]:
         m = env.models[label]
         z0 = m.encode(S)
         base = m.decode(z0)
-        results["dsm"][label] = {"gamma": getattr(m, "gamma", None)}
+        results[BAND_KEY][label] = {"gamma": getattr(m, "gamma", None)}
         for b in bands:
             Z = edited(z0, m.latent_slice(b), amounts)
             out = m.decode(Z.reshape(-1, Z.shape[-1])).reshape(*Z.shape[:3], -1, 3)
             D = out - base[:, None, None]
             keep = [i for i, a in enumerate(amounts) if a != 0.0]
-            sh = band_shares(m.assembler, D[:, :, keep])  # (s, dirs, amounts, bands)
+            sh = m.band_shares(D[:, :, keep])  # (s, dirs, amounts, bands)
             mean = sh.reshape(-1, sh.shape[-1]).mean(0)
-            results["dsm"][label][b] = {"own_share": float(mean[m.band_names.index(b)]),
+            results[BAND_KEY][label][b] = {"own_share": float(mean[m.band_names.index(b)]),
                                         "shares": {n: float(x) for n, x in zip(m.band_names, mean)}}
             decoded[(label, b)] = (out[p.subject, 0], base[p.subject])
     for label in cmp_labels:
@@ -315,7 +279,7 @@ def _edit(ctx, env: Env, p: "Edit") -> tuple[dict, dict, list]:
         out = np.asarray(m.decode(Z.reshape(-1, Z.shape[-1]))).reshape(*Z.shape[:3], -1, 3)
         D = out - base[:, None, None]
         keep = [i for i, a in enumerate(amounts) if a != 0.0]
-        sh = band_shares(ref.assembler, D[:, :, keep])
+        sh = ref.band_shares(D[:, :, keep])
         mean = sh.reshape(-1, sh.shape[-1]).mean(0)
         results["compare"][label] = {"shares": {n: float(x) for n, x in zip(ref.band_names, mean)}}
         decoded[(label, None)] = (out[p.subject, 0], base[p.subject])
@@ -324,8 +288,6 @@ def _edit(ctx, env: Env, p: "Edit") -> tuple[dict, dict, list]:
         rows_src = [(f"{l} {b}", decoded[(l, b)]) for l in dsm_labels]
         rows_src += [(f"{l}", decoded[(l, None)]) for l in cmp_labels]
         mags = [np.linalg.norm(out - base[None], axis=-1) for _, (out, base) in rows_src]
-        from fwk.evaluation.render import colour_limits
-
         clim = colour_limits(mags)  # one far larger change saturates; the others stay readable
         rows = []
         for (name, (out, _)), mag in zip(rows_src, mags):
@@ -341,13 +303,11 @@ def _edit(ctx, env: Env, p: "Edit") -> tuple[dict, dict, list]:
     tab = []
     for l in dsm_labels:
         for b in bands:
-            r = results["dsm"][l][b]
-            tab.append([f"{l} (gamma {results['dsm'][l]['gamma']})", b,
+            r = results[BAND_KEY][l][b]
+            tab.append([f"{l} (gamma {results[BAND_KEY][l]['gamma']})", b,
                         *[f"{r['shares'][n]:.3f}" for n in ref.band_names]])
     for l in cmp_labels:
         tab.append([l, "latent", *[f"{results['compare'][l]['shares'][n]:.3f}" for n in ref.band_names]])
-    from fwk.evaluation.report import markdown_table
-
     text = ("Share of the M-weighted energy of the output change that falls in each spectral band "
             f"(the band projectors of {dsm_labels[0]}), averaged over {len(S)} test subjects, "
             f"directions {p.directions} and amounts {nz}. For a dsm edit of band b, the share in b is its "
@@ -384,8 +344,6 @@ class _Study:
         return load_models(run_dir, ctx, ctx.registry)
 
     def _report(self, ctx, env, title, results, figures, notes, sections):
-        from fwk.evaluation import write_report
-
         res = dict(results)
         if env.metrics.get("models"):
             res["models"] = env.metrics["models"]
@@ -395,15 +353,66 @@ class _Study:
         write_report(ctx, title, res, figures, notes=[n for n in notes if n], sections=sections)
 
 
-def _validate_chain(cls, d, key):
-    from fwk.recipes import validate_params
+@dataclass
+class InterpolateSettings:
+    """What ``interpolate`` computes: the keys of an ``interpolate`` recipe beyond where the models
+    come from, and the ``interpolate: {...}`` chained in an ``edit`` recipe.
 
-    if d is None:
-        return None
-    bad = [k for k in d if k in ("run", *INLINE_KEYS, "edit", "interpolate")]
-    if bad:
-        raise RecipeError(f"{key}.{bad[0]}: a chained study uses this run's models; give only its study settings")
-    return cls(**validate_params(cls, d, key, _registry(), label=cls.name))
+    dsm            labels of the band models to interpolate with (default: every band model)
+    subjects       two subject indices of ``subjects_from`` (default [0, 1])
+    subjects_from  train, val or test (default test)
+    alphas, betas  the grid of eq. 4.16 (alpha: the high band, beta: the others; default 0 .. 1 by 0.25)
+    write_obj      write every grid mesh as OBJ under ``interpolation/``
+    """
+
+    dsm: list[str] | None = None
+    subjects: list[int] | None = None
+    subjects_from: str = "test"
+    alphas: list[float] | None = None
+    betas: list[float] | None = None
+    write_obj: bool = True
+
+    def __post_init__(self):
+        self.subjects = list(self.subjects) if self.subjects is not None else [0, 1]
+        if len(self.subjects) != 2:
+            raise RecipeError(f"subjects: give two subject indices, got {self.subjects}")
+        if self.subjects_from not in ("train", "val", "test"):
+            raise RecipeError(f"subjects_from: one of train, val, test, got {self.subjects_from!r}")
+        self.alphas = [float(a) for a in (self.alphas if self.alphas is not None else [0, 0.25, 0.5, 0.75, 1])]
+        self.betas = [float(b) for b in (self.betas if self.betas is not None else [0, 0.25, 0.5, 0.75, 1])]
+
+
+@dataclass
+class EditSettings:
+    """What ``edit`` computes: the keys of an ``edit`` recipe beyond where the models come from,
+    and the ``edit: {...}`` chained in an ``interpolate`` recipe.
+
+    dsm, compare   labels of the band models and of the comparison models (default: every band
+                   model; every other generative model)
+    bands          the bands to edit (default: every band of the first band model)
+    directions     latent entries within a band's slice of Z (default [0, 1, 2])
+    amounts        moves in units of the prior's standard deviation (default [-3, -1.5, 0, 1.5, 3])
+    subject        the test subject pictured; ``max_subjects`` test subjects are measured
+    """
+
+    dsm: list[str] | None = None
+    compare: list[str] | None = None
+    bands: list[str] | None = None
+    directions: list[int] | None = None
+    amounts: list[float] | None = None
+    subject: int = 0
+    max_subjects: int = 20
+
+    def __post_init__(self):
+        self.directions = [int(d) for d in (self.directions if self.directions is not None else [0, 1, 2])]
+        self.amounts = [float(a) for a in (self.amounts if self.amounts is not None else [-3, -1.5, 0, 1.5, 3])]
+        if not self.directions or any(d < 0 for d in self.directions):
+            raise RecipeError(f"directions: non-negative latent entry indices, got {self.directions}")
+        if not any(a != 0 for a in self.amounts):
+            raise RecipeError("amounts: give at least one non-zero amount")
+        if self.max_subjects < 1:
+            raise RecipeError(f"max_subjects: at least 1, got {self.max_subjects}")
+        self.subject, self.max_subjects = int(self.subject), int(self.max_subjects)
 
 
 class Interpolate(_Study):
@@ -418,22 +427,14 @@ class Interpolate(_Study):
                  metrics: Annotated[list[Spec], Kind("metric")] | None = None, renders: int = 2,
                  dsm: list[str] | None = None, subjects: list[int] | None = None, subjects_from: str = "test",
                  alphas: list[float] | None = None, betas: list[float] | None = None, write_obj: bool = True,
-                 edit: dict | None = None):
+                 edit: EditSettings | None = None):
         self._init_source(run, dataset, models, split, preprocess, shapes, metrics, renders)
-        self.dsm = dsm
-        self.subjects = list(subjects) if subjects is not None else [0, 1]
-        if len(self.subjects) != 2:
-            raise RecipeError(f"subjects: give two subject indices, got {self.subjects}")
-        if subjects_from not in ("train", "val", "test"):
-            raise RecipeError(f"subjects_from: one of train, val, test, got {subjects_from!r}")
-        self.subjects_from = subjects_from
-        self.alphas = [float(a) for a in (alphas if alphas is not None else [0, 0.25, 0.5, 0.75, 1])]
-        self.betas = [float(b) for b in (betas if betas is not None else [0, 0.25, 0.5, 0.75, 1])]
-        self.write_obj = write_obj
-        self.edit = _validate_chain(Edit, edit, "edit")
+        self.settings = InterpolateSettings(dsm, subjects, subjects_from, alphas, betas, write_obj)
+        self.edit = edit
 
     def run_study(self, ctx, env):
-        results, figures, notes = _interp(ctx, env, self)
+        """Interpolate (and edit, when chained) with the models of ``env``."""
+        results, figures, notes = _interp(ctx, env, self.settings)
         sections = []
         out = {"interpolation": results}
         if self.edit is not None:
@@ -456,22 +457,14 @@ class Edit(_Study):
                  metrics: Annotated[list[Spec], Kind("metric")] | None = None, renders: int = 2,
                  dsm: list[str] | None = None, compare: list[str] | None = None, bands: list[str] | None = None,
                  directions: list[int] | None = None, amounts: list[float] | None = None, subject: int = 0,
-                 max_subjects: int = 20, interpolate: dict | None = None):
+                 max_subjects: int = 20, interpolate: InterpolateSettings | None = None):
         self._init_source(run, dataset, models, split, preprocess, shapes, metrics, renders)
-        self.dsm, self.compare, self.bands = dsm, compare, bands
-        self.directions = [int(d) for d in (directions if directions is not None else [0, 1, 2])]
-        self.amounts = [float(a) for a in (amounts if amounts is not None else [-3, -1.5, 0, 1.5, 3])]
-        if not self.directions or any(d < 0 for d in self.directions):
-            raise RecipeError(f"directions: non-negative latent entry indices, got {self.directions}")
-        if not any(a != 0 for a in self.amounts):
-            raise RecipeError("amounts: give at least one non-zero amount")
-        if max_subjects < 1:
-            raise RecipeError(f"max_subjects: at least 1, got {max_subjects}")
-        self.subject, self.max_subjects = int(subject), int(max_subjects)
-        self.interpolate = _validate_chain(Interpolate, interpolate, "interpolate")
+        self.settings = EditSettings(dsm, compare, bands, directions, amounts, subject, max_subjects)
+        self.interpolate = interpolate
 
     def run_study(self, ctx, env):
-        r, figures, sections = _edit(ctx, env, self)
+        """Edit (and interpolate, when chained) with the models of ``env``."""
+        r, figures, sections = _edit(ctx, env, self.settings)
         out, notes = {"disentanglement": r}, []
         if self.interpolate is not None:
             r2, f2, n2 = _interp(ctx, env, self.interpolate)
