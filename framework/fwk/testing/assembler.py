@@ -1,35 +1,45 @@
-"""AssemblerContract: what every assembler plugin must satisfy.
+"""AssemblerContract: what every assembler plugin must satisfy (``fwk.protocols.Assembler``).
 
-Subclass it and set ``component`` and ``params``. Checked on a fitted assembler (an ellipsoid,
-162 vertices): ``split`` gives at least two bands of the input's shape, each centred on the mean
-(the mean mesh splits into copies of the mean), linear in P - mean and independent across the
-batch; ``assemble(split(P)) == P``; ``state_dict`` restores the same split.
+Subclass it and set ``component`` and ``params``; ``ks`` are the cut points ``assemble_many`` is
+checked at (each within the fitted basis). Checked on an assembler fitted (``fit(template, mean,
+cache=...)``) on an ellipsoid of 162 vertices: the class defines every member of the role;
+``split`` gives at least two bands of the input's shape, each centred on the mean (the mean mesh
+splits into copies of the mean), linear in P - mean and independent across the batch;
+``assemble(split(P)) == P``; ``assemble_many([low, high], ks)`` has shape (len(ks), b, n, 3),
+returns the input for two equal sources and the high source at k = 0, and equals its cut points
+computed one at a time; ``state_dict`` / ``load_state_dict(d, ctx=None)`` restore the same split.
 """
 from __future__ import annotations
 
 import numpy as np
+import trimesh
+
+from fwk.cache import Cache
+from fwk.data import Template
+from fwk.protocols import Assembler, plays
 
 
 class AssemblerContract:
     component: type = None
     params: dict = {}
+    ks: list = [0, 1, 5, 10]
 
-    def fitted(self):
-        import trimesh
-
-        from fwk.data import Template
-
+    def fitted(self, cache=None):
         m = trimesh.creation.icosphere(subdivisions=2)
         V = np.asarray(m.vertices) * [1.0, 1.3, 0.8]
         t = Template(V, np.asarray(m.faces))
         a = self.component(**self.params)
-        a.fit(t, V)
+        a.fit(t, V, cache=cache)
         rng = np.random.default_rng(0)
         P = np.stack([V + rng.normal(0, 0.02, V.shape) for _ in range(3)])
         return a, P, V
 
-    def test_declares_name(self):
+    def test_declares_name_and_plays_the_role(self, tmp_path):
         assert isinstance(self.component.name, str) and self.component.name
+        assert plays(self.component, Assembler), "the class must define every member of Assembler"
+        a, P, V = self.fitted(Cache(tmp_path / "cache"))
+        assert isinstance(a, Assembler)
+        assert np.allclose(a.assemble(a.split(P)), P, atol=1e-10)
 
     def test_split_assemble_exact(self):
         a, P, V = self.fitted()
@@ -55,9 +65,21 @@ class AssemblerContract:
             for b, w in zip(a.split(P[i:i + 1]), whole):
                 assert np.allclose(b, w[i:i + 1], atol=1e-12)
 
+    def test_assemble_many(self):
+        a, P, V = self.fitted()
+        Q = P[::-1].copy()
+        out = a.assemble_many([P, Q], self.ks)
+        assert out.shape == (len(self.ks), *P.shape)
+        assert np.allclose(a.assemble_many([P, P], self.ks), np.broadcast_to(P, out.shape), atol=1e-10)
+        if 0 in self.ks:
+            assert np.allclose(out[self.ks.index(0)], Q, atol=1e-10)
+        for i, k in enumerate(self.ks):
+            assert np.allclose(a.assemble_many([P, Q], [k])[0], out[i], atol=1e-10)
+
     def test_state_round_trip(self):
         a, P, V = self.fitted()
         b = self.component(**self.params)
-        b.load_state_dict(a.state_dict())
+        b.load_state_dict(a.state_dict(), ctx=None)
         assert np.allclose(b.assemble(b.split(P)), P, atol=1e-10)
         assert all(np.allclose(x, y) for x, y in zip(a.split(P), b.split(P)))
+        assert np.allclose(b.assemble_many([P, P[::-1]], self.ks), a.assemble_many([P, P[::-1]], self.ks))

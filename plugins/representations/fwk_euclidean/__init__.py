@@ -22,6 +22,7 @@ class Euclidean:
     channels = 3
     places_rigidly = False  # positions come back where they were
     relative_option = True  # `relative: true` takes the features against ref (an offset)
+    relative = False  # the constructor's `relative` sets it per instance
 
     def __init__(self, scaling: str = "std", granularity: str = "vertex", a: float = 1.0, relative: bool = False,
                  eps: float = 1e-8):
