@@ -1,14 +1,36 @@
-"""Deep Spectral Meshes: exact assembly with perfect decoders, the conditioning mask, one
-optimiser per band, deterministic sampling, three bands."""
+"""Deep Spectral Meshes: the reconstruction and band-model contracts, exact assembly with perfect
+decoders, the conditioning mask, one optimiser per band, deterministic sampling, three bands, the
+nested components as recipe parameters."""
 import numpy as np
 import pytest
 import torch
 
 from fwk.data.preprocess import Preprocessor
+from fwk.errors import RecipeError
+from fwk.plugins import get_registry
 from fwk.protocols import FitData
+from fwk.recipes import make_spec
 from fwk.runs import make_test_context
+from fwk.testing.generative import BandModelContract
+from fwk.testing.model import ModelContract
 
+REG = get_registry()
 NET = {"name": "vae", "channels": [8], "latent": 4, "sampler": {"name": "quadric", "factors": [4]}}
+
+
+def _dsm(**params):
+    """A dsm model built as a recipe builds it (nested components resolved to specs)."""
+    return make_spec("model", {"name": "dsm", **params}, "dsm", REG).build()
+
+
+class TestDSMContract(ModelContract):
+    component = REG.get("model", "dsm")
+    params = {"network": NET, "k": 20, "gamma": 0.5}
+
+
+class TestDSMBands(BandModelContract):
+    component = REG.get("model", "dsm")
+    params = {"network": NET, "k": [10, 40]}
 
 
 def _data(n_subjects=12, n_vertices=250):
@@ -31,10 +53,8 @@ def data():
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory, data):
-    from fwk_dsm import DSM
-
     ctx = make_test_context(tmp_path_factory.mktemp("dsm"), epochs=1, batch_size=4)
-    m = DSM(network=NET, k=20, gamma=0.5)
+    m = _dsm(network=NET, k=20, gamma=0.5)
     m.fit(data, ctx)
     return m
 
@@ -52,9 +72,7 @@ def _perfect(m, P, exact: bool = True):
 
 @pytest.mark.parametrize("scalings", [("std", "std"), ("none", "norm")])
 def test_perfect_decoders_assemble_the_input_exactly(tmp_path, data, scalings):
-    from fwk_dsm import DSM
-
-    m = DSM(network=NET, k=20, representations=[{"name": "euclidean", "scaling": s} for s in scalings])
+    m = _dsm(network=NET, k=20, representations=[{"name": "euclidean", "scaling": s} for s in scalings])
     P = data.stack("train")
     m.template = data.template
     m._fit_assembler(data.template, P.mean(0), make_test_context(tmp_path).cache)
@@ -107,11 +125,12 @@ def test_conditioning_mask_rate_in_training_never_at_inference(gamma, mode):
 
 
 def test_each_optimiser_changes_only_its_own_band(trained, data):
-    from fwk_dsm import band_losses, lightning_module
+    from fwk_dsm import band_losses
+    from fwk_dsm.module import DSMModule
     from fwk.engine import TrainConfig
 
     net = trained.net
-    module = lightning_module(net, [r.unscale for r in trained.reps], 1e-6, trained.band_names)
+    module = DSMModule(net, [r.unscale for r in trained.reps], 1e-6, trained.band_names)
     module.train_config = TrainConfig(lr=1e-2)
     opts = [c["optimizer"] for c in module.configure_optimizers()]
     band_params = [list(net.encoders[b].parameters()) + list(net.decoders[b].parameters()) for b in range(2)]
@@ -143,8 +162,6 @@ def test_sample_is_deterministic_for_a_seed(trained):
 
 
 def test_latent_slices_and_round_trip_of_state(trained, data, tmp_path):
-    from fwk_dsm import DSM
-
     assert trained.slices == {"low": slice(0, 4), "high": slice(4, 8)}
     V = data.stack("val")
     z = trained.encode(V)
@@ -152,18 +169,16 @@ def test_latent_slices_and_round_trip_of_state(trained, data, tmp_path):
     rec = trained.reconstruct(V)
     assert rec.shape == V.shape and np.all(np.isfinite(rec))
     torch.save(trained.state_dict(), tmp_path / "m.pt")
-    m2 = DSM(network=NET, k=20, gamma=0.5)
-    m2.load_state_dict(torch.load(tmp_path / "m.pt", weights_only=False))
+    m2 = _dsm(network=NET, k=20, gamma=0.5)
+    m2.load_state_dict(torch.load(tmp_path / "m.pt", weights_only=False), ctx=make_test_context(tmp_path))
     assert np.allclose(m2.reconstruct(V), rec, atol=1e-10)
 
 
 def test_three_bands_train_and_assemble(tmp_path, data):
-    from fwk_dsm import DSM
-
     ctx = make_test_context(tmp_path, epochs=1, batch_size=4)
-    m = DSM(network=NET, k=[10, 40])
+    m = _dsm(network=NET, k=[10, 40])
     m.fit(data, ctx)
-    assert m.band_names == ["band0", "band1", "high"] and m.latent == 12
+    assert m.band_names == ["band0", "band1", "high"] and m.latent_size == 12
     assert [r.name for r in m.reps] == ["euclidean", "euclidean", "dr"]
     V = data.stack("val")
     assert len(m.split(V)) == 3
@@ -177,9 +192,23 @@ def test_three_bands_train_and_assemble(tmp_path, data):
 
 
 def test_k_above_n_is_clamped_with_a_message(tmp_path, data):
-    from fwk_dsm import DSM
-
     msgs = []
-    m = DSM(network=NET)  # k = 500 > 250 vertices
+    m = _dsm(network=NET)  # k = 500 > 250 vertices
     m._fit_assembler(data.template, data.template.vertices, make_test_context(tmp_path).cache, msgs.append)
     assert m.cuts == [data.template.n_vertices] and "clamped" in msgs[0]
+
+
+def test_nested_components_are_recipe_parameters_with_defaults(tmp_path, data):
+    """The assembler (built with dsm's k and mass) and the representations are specs like any
+    other: the defaults are the thesis's, and a recipe can replace each of them."""
+    m = _dsm(network=NET, k=20)
+    assert m.assembler_spec.name == "spectral" and [s.name for s in m.rep_specs] == ["euclidean", "dr"]
+    assert [s.params for s in m.rep_specs] == [{}, {}]  # euclidean's default scaling is std, dr's norm
+    m = _dsm(network=NET, k=[10, 40], mass=False, low_representation={"name": "euclidean", "scaling": "none"},
+             high_representation={"name": "euclidean", "scaling": "std"}, assembler={"eigen_k": 60})
+    assert [(s.name, s.params) for s in m.rep_specs] == [("euclidean", {"scaling": "none"})] * 2 + [
+        ("euclidean", {"scaling": "std"})]
+    m._fit_assembler(data.template, data.template.vertices, make_test_context(tmp_path).cache)
+    assert m.assembler.cuts == [10, 40] and not m.assembler.mass and m.assembler.eigen_k == 60
+    with pytest.raises(RecipeError, match="network.*NetworkFactory"):
+        _dsm(network={"name": "pca"}, k=20)._net_model(0)

@@ -78,6 +78,21 @@ def test_both_run_and_models_is_a_recipe_error(tmp_path):
         Edit(run="x", models={"a": "pca"})
 
 
+def test_chained_settings_are_validated_by_the_recipe(tmp_path):
+    """`interpolate: {...}` in an edit recipe holds interpolation settings only (not models)."""
+    from fwk.errors import RecipeError
+    from fwk.plugins import get_registry
+    from fwk.recipes import resolve
+
+    base = {"task": "edit", "run": str(tmp_path), "interpolate": {"alphas": [0, 1]}}
+    task = resolve(base, get_registry()).task.build()
+    assert task.interpolate.alphas == [0.0, 1.0] and task.interpolate.subjects == [0, 1]
+    for bad, match in (({"run": "x"}, "interpolate.run: unknown parameter"),
+                       ({"subjects": [0]}, "subjects: give two")):
+        with pytest.raises(RecipeError, match=match):
+            resolve({**base, "interpolate": bad}, get_registry())
+
+
 def test_sample_writes_deterministic_objs(run, tmp_path):
     from fwk.data.io import read_obj
     from fwk.generate import run_sample
@@ -90,3 +105,16 @@ def test_sample_writes_deterministic_objs(run, tmp_path):
     B, _ = read_obj(tmp_path / "b" / "sample_001.obj")
     assert A.shape == (250, 3) or A.shape[0] == tA.n_vertices
     assert np.array_equal(A, B) and np.all(np.isfinite(A))
+
+
+def test_sample_chooses_the_model_by_role(run):
+    """Without --model, the first band model (dsm) samples; --model picks any generative model."""
+    from fwk.errors import FwkError
+    from fwk.generate import sample_meshes
+
+    label, P, t = sample_meshes(run, 1, seed=0)
+    assert label == "dsm" and P.shape == (1, t.n_vertices, 3)
+    label, P, _ = sample_meshes(run, 2, seed=0, model="vae-euclidean-std")
+    assert label == "vae-euclidean-std" and P.shape[0] == 2 and np.all(np.isfinite(P))
+    with pytest.raises(FwkError, match="not a model"):
+        sample_meshes(run, 1, model="nope")

@@ -2,10 +2,14 @@ import numpy as np
 import pytest
 
 from fwk.plugins import get_registry
+from fwk.recipes import make_spec
+from fwk.testing.generative import GenerativeModelContract
 from fwk.testing.model import ModelContract, tiny_fit_data
 from fwk.testing.representation import RepresentationContract, small_batch
 
 REG = get_registry()
+# a small graph autoencoder (the ae/vae reconstruction contract lives in tests/autoencoders)
+SMALL_AE = {"channels": [8, 16], "latent": 8, "sampler": {"name": "quadric", "factors": [4, 4]}}
 
 
 @pytest.mark.parametrize("scaling", ["none", "std", "norm"])
@@ -46,6 +50,41 @@ class TestPCAContract(ModelContract):
 class TestMLPVAEContract(ModelContract):
     component = REG.get("model", "mlp-vae")
     params = {"latent": 8, "hidden": [64]}
+
+
+class TestVAEContract(ModelContract):
+    component = REG.get("model", "vae")
+    params = SMALL_AE
+
+
+# the generative role (fwk sample, edit's comparison models) of every built-in that plays it
+# (dsm's, with the band role, in tests/dsm)
+
+class TestPCAGenerative(GenerativeModelContract):
+    component = REG.get("model", "pca")
+    params = {"n_components": 5}
+
+
+class TestMLPVAEGenerative(GenerativeModelContract):
+    component = REG.get("model", "mlp-vae")
+    params = {"latent": 8, "hidden": [64]}
+
+
+class TestAEGenerative(GenerativeModelContract):
+    component = REG.get("model", "ae")
+    params = SMALL_AE
+
+
+class TestVAEGenerative(GenerativeModelContract):
+    component = REG.get("model", "vae")
+    params = SMALL_AE
+
+
+class TestVAEDRGenerative(GenerativeModelContract):
+    """dr places its decodes onto the mean (no target when sampling)."""
+
+    component = REG.get("model", "vae")
+    params = {**SMALL_AE, "representation": {"name": "dr"}}
 
 
 def test_pca_matches_numpy_svd():
@@ -123,7 +162,7 @@ def test_mlp_vae_training_loss_decreases(tmp_path):
 
     data = tiny_fit_data(n_subjects=24)
     ctx = make_test_context(tmp_path, epochs=15, batch_size=8, lr=1e-3)
-    m = REG.get("model", "mlp-vae")(latent=8, hidden=[128])
+    m = make_spec("model", {"name": "mlp-vae", "latent": 8, "hidden": [128]}, "mlp-vae", REG).build()
     m.fit(data, ctx)
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
