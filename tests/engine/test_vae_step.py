@@ -42,7 +42,7 @@ def _step(variational, training):
     m.train(training)
     F = torch.randn(4, 6)
     torch.manual_seed(3)
-    loss = m._loss((F,), "train")
+    loss = m.loss((F,), "train")
     # naive: the same draws, written out
     torch.manual_seed(3)
     mu = net.enc(F)

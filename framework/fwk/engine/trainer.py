@@ -1,0 +1,158 @@
+"""``fit``: train a LightningModule the way every fwk run does; seeding, the optimiser, batched
+prediction."""
+from __future__ import annotations
+
+import logging
+import random
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import DataError
+from .config import TrainConfig
+from .loading import make_loader
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python's, NumPy's and torch's global RNGs (initialisation is drawn from them)."""
+    random.seed(seed)
+    np.random.seed(seed % (2**32))
+    torch.manual_seed(seed)
+
+
+def make_optimizer(params, config: TrainConfig):
+    """Adam(lr, betas 0.9/0.999) with ExponentialLR(gamma = lr_decay) stepped once per epoch, as
+    the dict ``configure_optimizers`` returns (a list of them for several optimisers)."""
+    opt = torch.optim.Adam(params, lr=config.lr, betas=(0.9, 0.999), weight_decay=config.weight_decay)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=config.lr_decay)
+    return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+
+
+def _quiet_lightning():
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric", "pytorch_lightning"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+    for pat in (".*does not have many workers.*", ".*num_workers.*", ".*LeafSpec.*", ".*is deprecated.*",
+                ".*TensorBoard.*", ".*smaller than the logging interval.*", ".*Checkpoint directory.*exists.*",
+                ".*predict_dataloader.*", ".*sync_dist.*", ".*GPU available but not used.*", ".*_pytree.*",
+                ".*Precision.*", ".*treespec.*", ".*litlogger.*", ".*does not have a deterministic implementation.*",
+                ".*lr_scheduler.step.*", ".*weights_only.*"):
+        warnings.filterwarnings("ignore", message=pat)
+
+
+def _loadable(path: Path):
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception:
+        return None
+
+
+def _resume_point(ckdir: Path):
+    """The newest readable checkpoint (a run killed while writing ``last.ckpt`` leaves it
+    truncated; the previous epoch's file then serves): (path, checkpoint dict) or (None, None)."""
+    def epoch_of(p):
+        digits = "".join(ch for ch in p.stem if ch.isdigit())
+        return int(digits) if digits else -1
+
+    cands = [ckdir / "last.ckpt"] + sorted(ckdir.glob("epoch*.ckpt"), key=epoch_of, reverse=True)
+    for p in cands:
+        if p.exists():
+            ck = _loadable(p)
+            if ck is not None and "state_dict" in ck:
+                return p, ck
+    return None, None
+
+
+def _epochs_done(ck: dict) -> int:
+    try:
+        return int(ck["loops"]["fit_loop"]["epoch_progress"]["current"]["processed"])
+    except (KeyError, TypeError):
+        return int(ck.get("epoch", -1)) + 1
+
+
+def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
+    """Train ``module`` (a LightningModule) on ``train`` (tensors or a Dataset), validating on
+    ``val`` (or None) every epoch; checkpoints under ``ctx.path('checkpoints', name)``.
+    Returns the module, in eval mode.
+
+    The module reads its settings from ``module.train_config`` (set here) in
+    ``configure_optimizers`` (use ``make_optimizer``; return a list of them, one per optimiser,
+    with ``automatic_optimization = False`` for several). Parameters are initialised by the
+    caller (seed first: ``seed_everything(ctx.seed)``); shuffling and sampling noise are seeded
+    here from ``ctx.seed``.
+
+    With ``ctx.resume`` and a checkpoint of this name, training continues from it and ends with
+    the weights an uninterrupted run gives; a finished training is loaded, not repeated. Without
+    ``ctx.resume`` old checkpoints of this name are discarded and training starts afresh.
+    """
+    # deferred: Lightning costs ~2.2 s of import time on top of torch's ~1 s (measured with
+    # python -X importtime); plugins import `fit` at their top and `fwk list` imports every plugin
+    import lightning.pytorch as pl
+    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
+    from lightning.pytorch.loggers import TensorBoardLogger
+
+    from .callbacks import ManualSchedulers, RNGState
+
+    _quiet_lightning()
+    config = config or ctx.train
+    module.train_config = config
+    ckdir = ctx.path("checkpoints", name, "x").parent
+    tbdir = ctx.path("tb", name, "x").parent
+    ckpt_path = None
+    if ctx.resume:
+        ckpt_path, ck = _resume_point(ckdir)
+        if ck is not None and _epochs_done(ck) >= config.epochs:
+            module.on_load_checkpoint(ck)  # a LightningModule hook: no-op unless the module overrides it
+            module.load_state_dict(ck["state_dict"])
+            module.eval()
+            return module
+    else:
+        for p in list(ckdir.glob("*.ckpt")):
+            p.unlink()
+    seed_everything(ctx.seed)
+    train_loader = make_loader(train, config.batch_size, ctx.seed, True, config.num_workers)
+    if train_loader is None:
+        raise DataError(f"{name}: no training samples")
+    val_loader = make_loader(val, config.batch_size, ctx.seed, False, config.num_workers)
+    accelerator = config.accelerator
+    if accelerator == "auto" and ctx.device == "cpu":
+        accelerator = "cpu"
+    on_cpu = accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
+    checkpoint = ModelCheckpoint(dirpath=ckdir, filename="epoch{epoch:03d}", auto_insert_metric_name=False,
+                                 save_last=True, save_top_k=max(1, config.keep_checkpoints), monitor="epoch",
+                                 mode="max", every_n_epochs=1, save_on_train_epoch_end=val_loader is None)
+    show_bar = not ctx.quiet and sys.stderr.isatty()
+    det = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
+    try:
+        with warnings.catch_warnings():
+            _quiet_lightning()
+            trainer = pl.Trainer(
+                max_epochs=config.epochs, accelerator=accelerator, devices=config.devices,
+                strategy=config.strategy, precision=config.precision,
+                # bit-exact on CPU; on GPUs some scatter kernels have no deterministic variant
+                deterministic=True if on_cpu else "warn",
+                logger=TensorBoardLogger(str(tbdir), name="", version=""),
+                callbacks=[checkpoint, LearningRateMonitor("epoch"), RNGState(), ManualSchedulers()],
+                enable_progress_bar=show_bar, enable_model_summary=False,
+                log_every_n_steps=config.log_every_n_steps, num_sanity_val_steps=0, default_root_dir=str(ckdir),
+                use_distributed_sampler=False,
+            )
+            trainer.fit(module, train_loader, val_loader, ckpt_path=str(ckpt_path) if ckpt_path else None,
+                        weights_only=False)
+    finally:
+        torch.use_deterministic_algorithms(det[0], warn_only=det[1])
+    module.eval()
+    return module
+
+
+@torch.no_grad()
+def predict_batches(fn, X, batch_size: int = 64, device: str | torch.device = "cpu", dtype=torch.float32) -> np.ndarray:
+    """Apply ``fn`` to X (numpy or tensor, first dim = samples) in batches without gradients."""
+    outs = []
+    X = X if torch.is_tensor(X) else torch.as_tensor(np.asarray(X), dtype=dtype)
+    for i in range(0, len(X), batch_size):
+        y = fn(X[i:i + batch_size].to(device))
+        outs.append(y.detach().cpu().numpy() if torch.is_tensor(y) else np.asarray(y))
+    return np.concatenate(outs, axis=0) if outs else np.zeros((0,))
