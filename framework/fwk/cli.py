@@ -5,36 +5,36 @@ A user's mistake (an FwkError) prints one line and exits 2; ``--debug`` shows th
 from __future__ import annotations
 
 import argparse
-import importlib
 import inspect
 import os
+import select
 import sys
 import textwrap
 
+from .apply import add_apply_parser, run_apply
 from .errors import FwkError
+from .evaluation.cli_eval import add_eval_parser, run_eval
+from .evaluation.cli_report import add_report_parser, run_report
+from .generate import add_sample_parser, run_sample
 from .hookspecs import KINDS
+from .plugins import get_registry
+from .registry import did_you_mean
+from .runs import execute
 
-# Subcommands whose logic lives in their own modules: (module, add_parser, run).
+#: Subcommands whose logic lives in their own modules: name -> (add its parser, run it).
 EXTRA_COMMANDS = {
-    "eval": ("fwk.evaluation.cli_eval", "add_eval_parser", "run_eval"),
-    "report": ("fwk.evaluation.cli_report", "add_report_parser", "run_report"),
-    "sample": ("fwk.generate", "add_sample_parser", "run_sample"),
-    "apply": ("fwk.apply", "add_apply_parser", "run_apply"),
+    "eval": (add_eval_parser, run_eval),
+    "report": (add_report_parser, run_report),
+    "sample": (add_sample_parser, run_sample),
+    "apply": (add_apply_parser, run_apply),
 }
 
 
-def _registry():
-    from .plugins import get_registry
-
-    return get_registry()
-
-
 def cmd_list(args) -> int:
-    reg = _registry()
+    """``fwk list [--kind KIND]``: one row per registered component, broken plugins on stderr."""
+    reg = get_registry()
     kinds = [args.kind] if args.kind else list(KINDS)
     if args.kind and args.kind not in KINDS:
-        from .registry import did_you_mean
-
         raise FwkError(f"--kind {args.kind}: unknown kind{did_you_mean(args.kind, KINDS)} (kinds: {', '.join(KINDS)})")
     rows = []
     for kind in kinds:
@@ -53,13 +53,14 @@ def cmd_list(args) -> int:
 
 
 def describe(kind: str, name: str) -> str:
-    reg = _registry()
+    """What ``fwk show KIND NAME`` prints: summary, constructor parameters, the module's docs."""
+    reg = get_registry()
     entry = reg.entry(kind, name)
     cls = entry.component
     lines = [f"{kind} {name}  (plugin {entry.plugin} {entry.version})".rstrip(), ""]
     doc = inspect.getdoc(cls) or ""
     lines += [doc, ""] if doc else []
-    sig = inspect.signature(cls.__init__)
+    sig = inspect.signature(cls.__init__)  # the constructor is the recipe schema (fwk.hookspecs)
     lines.append("parameters:")
     any_p = False
     for pname, p in sig.parameters.items():
@@ -79,17 +80,15 @@ def describe(kind: str, name: str) -> str:
 
 
 def cmd_show(args) -> int:
+    """``fwk show KIND NAME``."""
     if args.kind not in KINDS:
-        from .registry import did_you_mean
-
         raise FwkError(f"unknown kind {args.kind!r}{did_you_mean(args.kind, KINDS)} (kinds: {', '.join(KINDS)})")
     print(describe(args.kind, args.name))
     return 0
 
 
 def cmd_run(args) -> int:
-    from .runs import execute
-
+    """``fwk run RECIPE [key=value ...] [--resume RUN_DIR]``: prints the run directory."""
     if not args.recipe and not args.resume:
         raise FwkError("fwk run: give a recipe file, or --resume RUN_DIR")
     recipe = args.recipe
@@ -103,6 +102,7 @@ def cmd_run(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``fwk`` argument parser with every subcommand."""
     p = argparse.ArgumentParser(prog="fwk", description="Deep 3D morphable models of registered face meshes.")
     p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     p.add_argument("--quiet", action="store_true", help="no progress bars or messages")
@@ -122,19 +122,28 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--runs-dir", help="where run directories go (default ./runs or $FWK_RUNS_DIR)")
     sp.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda when available")
     sp.set_defaults(func=cmd_run)
-    for name, (mod, add, run) in EXTRA_COMMANDS.items():
-        try:
-            m = importlib.import_module(mod)
-        except ImportError as exc:
-            if getattr(exc, "name", "") and not str(getattr(exc, "name")).startswith("fwk"):
-                raise
-            continue
-        sp = getattr(m, add)(sub)
-        sp.set_defaults(func=getattr(m, run))
+    for add, run in EXTRA_COMMANDS.values():
+        add(sub).set_defaults(func=run)
     return p
 
 
+def _reader_gone() -> bool:
+    """Whether stdout is a pipe whose reader has gone away (``fwk list | head``; POSIX poll); if
+    so, stdout is pointed at /dev/null, so that the flush at exit does not fail again."""
+    try:
+        fd = sys.stdout.fileno()
+        poll = select.poll()
+        poll.register(fd, select.POLLOUT)
+        if not any(event & select.POLLERR for _, event in poll.poll(0)):
+            return False
+        os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+        return True
+    except (OSError, ValueError):  # stdout is no file descriptor (captured, embedded)
+        return False
+
+
 def main(argv=None) -> int:
+    """Run ``fwk`` with ``argv`` (default: the command line); returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     if "--quiet" in argv and argv.index("--quiet") > 0:  # accept --quiet anywhere
@@ -145,10 +154,16 @@ def main(argv=None) -> int:
         argv.insert(0, "--debug")
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, "quiet", False):
+    if args.quiet:
         os.environ["FWK_QUIET"] = "1"
     try:
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()  # a reader that went away shows here, not at exit
+        return status
+    except BrokenPipeError:
+        if not _reader_gone():  # another pipe broke: a bug, shown as such
+            raise
+        return 1  # `fwk list | head`: the reader has what it wanted
     except FwkError as exc:
         if debug:
             raise

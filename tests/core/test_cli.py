@@ -64,3 +64,28 @@ def test_example_plugin_listed(capsys):
     assert main(["list", "--kind", "metric"]) == 0
     out = capsys.readouterr().out
     assert "chamfer" in out and "example" in out
+
+
+def test_help_lists_every_subcommand(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for command in ("list", "show", "run", "eval", "report", "sample", "apply"):
+        assert command in out
+
+
+def test_a_subcommand_that_fails_to_import_fails_fwk():
+    # None in sys.modules makes `import fwk.generate` raise ImportError, as a broken module would
+    code = "import sys; sys.modules['fwk.generate'] = None; import fwk.cli"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode != 0 and "ModuleNotFoundError: import of fwk.generate halted" in r.stderr
+
+
+def test_a_reader_that_goes_away_is_not_an_error():
+    """`fwk list | head`: no traceback when the pipe closes before fwk has written everything."""
+    p = subprocess.Popen([sys.executable, "-m", "fwk", "list"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.close()  # before fwk writes its first line
+    err = p.stderr.read().decode()
+    assert p.wait() == 1
+    assert "Traceback" not in err and "BrokenPipe" not in err, err
