@@ -13,9 +13,19 @@ import os
 import pickle
 import tempfile
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
+
+
+@runtime_checkable
+class ContentHashed(Protocol):
+    """A value that states its own key (``fwk.data.Template``: topology and positions)."""
+
+    def content_hash(self) -> str: ...
+
+
+_PLAIN = (str, bytes, int, float, complex, type(None), np.generic)  # values keyed by their repr
 
 
 def _feed(h, obj) -> None:
@@ -34,7 +44,7 @@ def _feed(h, obj) -> None:
             _feed(h, k)
             _feed(h, obj[k])
         h.update(b")")
-    elif hasattr(obj, "content_hash"):
+    elif not isinstance(obj, _PLAIN) and isinstance(obj, ContentHashed):  # the protocol check is slow
         h.update(f"obj{type(obj).__name__}{obj.content_hash()}".encode())
     else:
         h.update(f"{type(obj).__name__}:{obj!r}".encode())
@@ -49,6 +59,8 @@ def content_key(*parts: Any) -> str:
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file and a rename: readers see the old file or
+    the new one, never a part."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -65,6 +77,9 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 
 
 class Cache:
+    """Derived data on disk under ``root``, keyed by the content of its inputs (see the module
+    docstring)."""
+
     def __init__(self, root: str | os.PathLike | None = None, enabled: bool = True):
         root = root or os.environ.get("FWK_CACHE") or Path.home() / ".cache" / "fwk"
         self.root = Path(root).expanduser()
@@ -75,6 +90,7 @@ class Cache:
         return d / f"{key}.bin", d / f"{key}.sha256"
 
     def load(self, namespace: str, key: str) -> Any | None:
+        """The value stored under ``key``, or None when missing, corrupt or disabled."""
         data_p, sum_p = self._paths(namespace, key)
         if not self.enabled or not data_p.exists() or not sum_p.exists():
             return None
@@ -87,6 +103,7 @@ class Cache:
             return None
 
     def store(self, namespace: str, key: str, value: Any) -> None:
+        """Store ``value`` under ``key`` (pickled, with its SHA-256); a write error is ignored."""
         if not self.enabled:
             return
         data = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
@@ -139,6 +156,8 @@ _DEFAULT: Cache | None = None
 
 
 def default_cache() -> Cache:
+    """The process-wide cache at ``$FWK_CACHE`` (or ``~/.cache/fwk``), renewed when the variable
+    changes."""
     global _DEFAULT
     if _DEFAULT is None or str(_DEFAULT.root) != str(Path(os.environ.get("FWK_CACHE") or Path.home() / ".cache" / "fwk").expanduser()):
         _DEFAULT = Cache()

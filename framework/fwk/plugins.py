@@ -19,10 +19,13 @@ ENTRYPOINT_GROUP = "fwk"
 
 
 def autoload_disabled() -> bool:
+    """Whether ``FWK_NO_ENTRYPOINTS`` turns entry-point loading off."""
     return os.environ.get("FWK_NO_ENTRYPOINTS", "").strip() not in ("", "0", "false", "no")
 
 
 def make_plugin_manager(load_entrypoints: bool | None = None, plugins=()) -> pluggy.PluginManager:
+    """A pluggy manager with fwk's hooks, the entry-point plugins (unless disabled) and ``plugins``;
+    plugins that fail to load are recorded in ``fwk_broken``, versions in ``fwk_versions``."""
     pm = pluggy.PluginManager(hookspecs.PROJECT)
     pm.add_hookspecs(hookspecs)
     pm.fwk_broken = []
@@ -39,8 +42,7 @@ def make_plugin_manager(load_entrypoints: bool | None = None, plugins=()) -> plu
             except Exception as exc:
                 pm.fwk_broken.append(BrokenPlugin(ep.name, f"{type(exc).__name__}: {exc}"))
                 continue
-            dist = getattr(ep, "dist", None)
-            pm.fwk_versions[ep.name] = getattr(dist, "version", "") if dist else ""
+            pm.fwk_versions[ep.name] = ep.dist.version if ep.dist else ""
     for plugin in plugins:
         name = getattr(plugin, "__name__", None)
         if not pm.is_registered(plugin):

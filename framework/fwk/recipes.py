@@ -29,6 +29,7 @@ from typing import Annotated, Any, get_args, get_origin
 
 import yaml
 
+from .engine.config import TrainConfig
 from .errors import RecipeError
 from .registry import Registry, did_you_mean
 
@@ -56,11 +57,14 @@ class Spec:
     path: str = ""
 
     def build(self, *args, **extra):
+        """The component: its class called with ``args`` and the recipe's parameters updated by
+        ``extra``."""
         if self.cls is None:
             raise RuntimeError(f"{self.path}: spec of {self.kind} {self.name!r} is not resolved")
         return self.cls(*args, **{**self.params, **extra})
 
     def to_dict(self) -> dict:
+        """The recipe form: ``{name: ..., parameters...}``."""
         return {"name": self.name, **{k: to_plain(v) for k, v in self.params.items()}}
 
 
@@ -94,6 +98,8 @@ def _read_yaml(path: Path) -> dict:
 
 
 def deep_merge(base: dict, over: dict) -> dict:
+    """``base`` updated by ``over``, recursively; a mapping that names another component replaces
+    the old one instead of merging into it."""
     out = copy.deepcopy(base)
     for k, v in over.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict) and "name" not in v:
@@ -121,6 +127,7 @@ def _load_with_extends(path: Path, seen: tuple = ()) -> dict:
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
+    """``a.b.c=value`` -> (['a', 'b', 'c'], the value read as YAML)."""
     if "=" not in text:
         raise RecipeError(f"override {text!r}: expected key.path=value")
     key, _, raw = text.partition("=")
@@ -135,6 +142,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 
 def apply_overrides(data: dict, overrides: list[str]) -> dict:
+    """A copy of ``data`` with each ``key.path=value`` override set (mappings created on the way)."""
     data = copy.deepcopy(data)
     for text in overrides or []:
         keys, value = parse_override(text)
@@ -189,7 +197,7 @@ def validate_params(cls: type, params: dict, path: str, registry: Registry, labe
         raise RecipeError(f"{path}: expected a mapping of parameters, got {params!r}")
     label = label or getattr(cls, "name", cls.__name__)
     init = cls.__init__ if not dataclasses.is_dataclass(cls) else cls
-    sig = inspect.signature(init)
+    sig = inspect.signature(init)  # the constructor is the recipe schema (fwk.hookspecs), not an API probe
     hints = _hints(cls.__init__) if not dataclasses.is_dataclass(cls) else _hints(cls)
     supplied = set(getattr(cls, "build_args", ()))  # given by the framework at build time, not the recipe
     ps = {n: p for n, p in sig.parameters.items()
@@ -221,6 +229,8 @@ def _is_component(tp) -> bool:
 
 
 def make_spec(kind: str, value, path: str, registry: Registry) -> Spec:
+    """A validated Spec of ``kind`` from a name or a mapping with ``name`` (``path`` names the
+    recipe key in errors)."""
     if isinstance(value, Spec):
         return value
     if isinstance(value, str):
@@ -238,6 +248,8 @@ def make_spec(kind: str, value, path: str, registry: Registry) -> Spec:
 
 
 def convert(value, tp, path: str, registry: Registry):
+    """``value`` checked against the annotation ``tp`` and converted (components to Specs, dataclass
+    mappings to instances); a RecipeError names ``path``."""
     if tp is inspect.Parameter.empty or tp is Any:
         return value
     if get_origin(tp) is Annotated:
@@ -343,8 +355,6 @@ class Resolved:
 
 def resolve(data: dict, registry: Registry) -> Resolved:
     """Validate a loaded recipe against the registry (raises RecipeError with the key path)."""
-    from .engine import TrainConfig
-
     data = dict(data)
     source = data.pop("_source", None) or data.get("source")
     if "task" not in data:

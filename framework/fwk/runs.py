@@ -22,12 +22,26 @@ from typing import Any, Iterable
 
 import numpy as np
 import yaml
+from tqdm.auto import tqdm
 
+from . import __version__
 from .cache import Cache, atomic_write_bytes
+from .engine.config import TrainConfig
 from .errors import FwkError, RecipeError
+from .plugins import get_registry
+from .recipes import Spec, load_recipe, make_spec, resolve, to_plain
 from .registry import Registry
 
 SCOPED = ("checkpoints", "tb")
+
+
+def _default_device() -> str:
+    """``cuda`` when available, else ``cpu``."""
+    # deferred: torch costs ~1 s of import time (measured with python -X importtime) that
+    # `fwk --help` and `fwk report`, which load this module, need not pay
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
 
 
 def _json_default(o):
@@ -39,12 +53,12 @@ def _json_default(o):
         return o.tolist()
     if isinstance(o, Path):
         return str(o)
-    from .recipes import to_plain
-
     return to_plain(o)
 
 
 def write_json(path: Path, obj) -> None:
+    """Write ``obj`` as indented JSON (NumPy values, paths, specs and dataclasses converted),
+    atomically."""
     atomic_write_bytes(Path(path), (json.dumps(obj, indent=2, default=_json_default, allow_nan=True) + "\n").encode())
 
 
@@ -54,22 +68,13 @@ class RunContext:
     def __init__(self, run_dir: Path, registry: Registry, cache: Cache | None = None, seed: int = 0,
                  recipe: dict | None = None, train=None, device: str | None = None, quiet: bool = False,
                  resume: bool = False, scope: str | None = None, log_file: Path | None = None):
-        from .engine import TrainConfig
-
         self.run_dir = Path(run_dir)
         self.registry = registry
         self.cache = cache or Cache()
         self.seed = int(seed)
         self.recipe = recipe or {}
         self.train = train if train is not None else TrainConfig()
-        if device is None:
-            try:
-                import torch
-
-                device = "cuda" if torch.cuda.is_available() else "cpu"
-            except Exception:  # pragma: no cover
-                device = "cpu"
-        self.device = device
+        self.device = device if device is not None else _default_device()
         self.quiet = quiet
         self.resume = resume
         self.scope = scope
@@ -78,6 +83,8 @@ class RunContext:
 
     # files -------------------------------------------------------------------------
     def path(self, *parts) -> Path:
+        """``run_dir/parts...`` (checkpoints and TensorBoard events under the scope), its folder
+        created."""
         parts = [str(p) for p in parts]
         if self.scope and parts and parts[0] in SCOPED:
             parts = [parts[0], self.scope, *parts[1:]]
@@ -86,16 +93,20 @@ class RunContext:
         return p
 
     def write_json(self, rel, obj) -> Path:
+        """Write ``obj`` as JSON to ``rel`` in the run directory (atomic); returns the path."""
         p = self.path(rel)
         write_json(p, obj)
         return p
 
     def write_text(self, rel, text: str) -> Path:
+        """Write ``text`` to ``rel`` in the run directory (atomic); returns the path."""
         p = self.path(rel)
         atomic_write_bytes(p, text.encode())
         return p
 
     def save_npz(self, rel, **arrays) -> Path:
+        """Save ``arrays`` as an .npz file at ``rel`` in the run directory (atomic); returns the
+        path."""
         p = self.path(rel)
         buf = io.BytesIO()
         np.savez(buf, **arrays)
@@ -103,7 +114,8 @@ class RunContext:
         return p
 
     def save_torch(self, rel, obj) -> Path:
-        import torch
+        """``torch.save`` of ``obj`` to ``rel`` in the run directory (atomic); returns the path."""
+        import torch  # deferred: see _default_device
 
         p = self.path(rel)
         buf = io.BytesIO()
@@ -113,6 +125,7 @@ class RunContext:
 
     # output ------------------------------------------------------------------------
     def log(self, msg: str) -> None:
+        """Print ``msg`` (unless quiet) and append it to the run's log file."""
         if not self.quiet:
             print(msg, flush=True)
         try:
@@ -123,20 +136,20 @@ class RunContext:
             pass
 
     def progress(self, iterable: Iterable, desc: str = "", total: int | None = None, **kw):
-        from tqdm.auto import tqdm
-
+        """A progress bar over ``iterable``, shown on a terminal unless quiet."""
         disable = self.quiet or not sys.stderr.isatty()
         return tqdm(iterable, desc=desc, total=total, disable=disable, leave=False, dynamic_ncols=True, **kw)
 
     # components --------------------------------------------------------------------
     def build(self, kind: str, spec, *args, **extra):
-        from .recipes import Spec, make_spec
-
+        """Build a component of ``kind`` from a Spec, a name or a mapping with ``name``; ``args``
+        and ``extra`` go to its constructor."""
         if not isinstance(spec, Spec):
             spec = make_spec(kind, spec, kind, self.registry)
         return spec.build(*args, **extra)
 
     def child(self, name: str) -> "RunContext":
+        """A context for a sub-run in ``run_dir/name`` (its own files and scope, the same log)."""
         c = copy.copy(self)
         c.run_dir = self.run_dir / name
         c.log_file = self.log_file  # one log for the whole run
@@ -153,9 +166,6 @@ class RunContext:
 
 def make_test_context(tmp_path, seed: int = 0, registry: Registry | None = None, **train_overrides) -> RunContext:
     """A real RunContext for tests: quiet, CPU, its own cache under tmp_path."""
-    from .engine import TrainConfig
-    from .plugins import get_registry
-
     train = TrainConfig(**train_overrides) if train_overrides else TrainConfig(epochs=2, batch_size=8)
     tmp_path = Path(tmp_path)
     return RunContext(tmp_path / "run", registry or get_registry(), Cache(tmp_path / "cache"), seed=seed,
@@ -165,10 +175,13 @@ def make_test_context(tmp_path, seed: int = 0, registry: Registry | None = None,
 # ----------------------------------------------------------------------------- run dirs
 
 def runs_root(runs_dir: str | None = None) -> Path:
+    """Where run directories go: ``runs_dir``, else ``$FWK_RUNS_DIR``, else ``./runs``."""
     return Path(runs_dir or os.environ.get("FWK_RUNS_DIR") or "runs")
 
 
 def new_run_dir(root: Path, name: str) -> Path:
+    """A new directory ``root/<name>-<UTC yyyymmdd-HHMMSS>`` (suffixed -2, -3... if taken), never an
+    existing one."""
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%S")
     root.mkdir(parents=True, exist_ok=True)
     base = root / f"{name}-{stamp}"
@@ -183,9 +196,8 @@ def new_run_dir(root: Path, name: str) -> Path:
 
 
 def versions(registry: Registry) -> dict:
-    import fwk
-
-    out = {"python": sys.version.split()[0], "platform": platform.platform(), "fwk": fwk.__version__}
+    """Python, platform, library and plugin versions and the git commit, for ``versions.json``."""
+    out = {"python": sys.version.split()[0], "platform": platform.platform(), "fwk": __version__}
     for mod in ("numpy", "scipy", "torch", "lightning", "torch_geometric", "trimesh", "pyvista", "open3d"):
         try:
             m = __import__(mod)
@@ -215,9 +227,6 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             resume: str | None = None, quiet: bool = False, registry: Registry | None = None,
             cache: Cache | None = None, device: str | None = None) -> Path:
     """``fwk run``: validate everything first, then create the run directory and run."""
-    from .plugins import get_registry
-    from .recipes import load_recipe, resolve, to_plain
-
     registry = registry or get_registry()
     if resume:
         run_dir = Path(resume)
@@ -268,9 +277,7 @@ class LoadedRun:
 
 
 def load_run(run_dir, registry: Registry | None = None, quiet: bool = True) -> LoadedRun:
-    from .plugins import get_registry
-    from .recipes import resolve
-
+    """Reopen a finished run: its validated recipe, a context writing into it, its metrics."""
     run_dir = Path(run_dir)
     if not (run_dir / "recipe.yaml").exists():
         raise FwkError(f"{run_dir}: not a run directory (no recipe.yaml)")

@@ -19,6 +19,10 @@ Both are stored as one affine map, ``transform(F) = (F - shift) / div`` with ``s
 from __future__ import annotations
 
 import numpy as np
+import torch
+
+from .errors import DataError, RecipeError
+from .registry import did_you_mean
 
 KINDS = ("none", "std", "norm")
 GRANULARITIES = ("vertex", "channel")
@@ -29,9 +33,6 @@ class Scaler:
     features, then ``transform`` / ``inverse`` (NumPy, float64) and ``inverse_torch``."""
 
     def __init__(self, kind: str = "std", granularity: str = "vertex", a: float = 1.0, eps: float = 1e-8):
-        from .errors import RecipeError
-        from .registry import did_you_mean
-
         if kind not in KINDS:
             raise RecipeError(f"scaling: unknown scaling {kind!r}{did_you_mean(kind, KINDS)} (choices: {', '.join(KINDS)})")
         if granularity not in GRANULARITIES:
@@ -44,12 +45,11 @@ class Scaler:
         self._torch: dict = {}  # (dtype, device) -> (div, shift) tensors for inverse_torch
 
     def fit(self, F: np.ndarray) -> "Scaler":
+        """Fit the scaling on training features F (b, n, c); returns self."""
         F = np.asarray(F, dtype=np.float64)
         if F.ndim != 3 or len(F) == 0:
             raise ValueError(f"Scaler.fit expects (b, n, c) features with b > 0, got shape {F.shape}")
         if not np.all(np.isfinite(F)):
-            from .errors import DataError
-
             raise DataError("scaling: the training features contain NaN or infinite values")
         c = F.shape[-1]
         if self.kind == "none":
@@ -73,16 +73,17 @@ class Scaler:
             raise RuntimeError("Scaler used before fit() or load_state_dict()")
 
     def transform(self, F: np.ndarray) -> np.ndarray:
+        """(F - shift) / div, float64."""
         self._check()
         return (np.asarray(F, dtype=np.float64) - self.shift) / self.div
 
     def inverse(self, G: np.ndarray) -> np.ndarray:
+        """G * div + shift, float64."""
         self._check()
         return np.asarray(G, dtype=np.float64) * self.div + self.shift
 
     def inverse_torch(self, G):
-        import torch
-
+        """The inverse on a tensor, differentiable, in G's dtype and device."""
         self._check()
         key = (G.dtype, G.device)
         if key not in self._torch:
@@ -92,10 +93,12 @@ class Scaler:
         return G * div + shift
 
     def state_dict(self) -> dict:
+        """Kind, granularity, a, eps and the fitted shift and div."""
         return {"kind": self.kind, "granularity": self.granularity, "a": self.a, "eps": self.eps,
                 "shift": self.shift, "div": self.div}
 
     def load_state_dict(self, d: dict) -> "Scaler":
+        """Restore the state written by ``state_dict``; returns self."""
         self.kind, self.granularity = str(d["kind"]), str(d["granularity"])
         self.a, self.eps = float(d["a"]), float(d["eps"])
         self.shift, self.div = np.asarray(d["shift"]), np.asarray(d["div"])

@@ -19,10 +19,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry.kabsch import kabsch
+from .split import split_subjects
 
 
 @dataclass
 class PreprocessConfig:
+    """Which steps run (centring, rigid registration, scale), the registration's iterations and
+    tolerance, and the margin of the scale."""
+
     centre: bool = True
     register: bool = True
     scale: bool = True
@@ -40,6 +44,7 @@ class Transforms:
     scale: float
 
     def select(self, idx) -> "Transforms":
+        """The transforms of the subjects ``idx``."""
         idx = np.asarray(idx)
         return Transforms(self.rotation[idx], self.centre[idx], self.scale)
 
@@ -48,6 +53,9 @@ class Transforms:
 
 
 class Preprocessor:
+    """The fitted preprocessing (mean registered neutral and scale) and its application and inverse
+    per subject."""
+
     def __init__(self, config: PreprocessConfig | None = None):
         self.config = config or PreprocessConfig()
         self.mean_centred: np.ndarray | None = None  # mean training neutral after centring and registration
@@ -98,6 +106,8 @@ class Preprocessor:
 
     # applying --------------------------------------------------------------------
     def transform_neutrals(self, N: np.ndarray, _scale: float | None = None):
+        """(X, Transforms): neutrals (S, n, 3) or (n, 3) centred, registered to the fitted mean and
+        scaled."""
         N = np.asarray(N, dtype=np.float64)
         single = N.ndim == 2
         if single:
@@ -114,6 +124,7 @@ class Preprocessor:
         return self.apply(P, T), T
 
     def apply(self, P: np.ndarray, T: Transforms) -> np.ndarray:
+        """Shapes P (S, E, n, 3) or (S, n, 3) moved by their subjects' transforms: X = s R (P - c)."""
         P = np.asarray(P, dtype=np.float64)
         if P.ndim == 4:
             return T.scale * np.einsum("sij,senj->seni", T.rotation, P - T.centre[:, None, None])
@@ -133,12 +144,14 @@ class Preprocessor:
 
     # saving ----------------------------------------------------------------------
     def state_dict(self) -> dict:
+        """The fitted state and configuration as NumPy values (saved as ``stats/preprocess.npz``)."""
         c = self.config
         return {"mean_centred": self.mean_centred, "scale": np.float64(self.scale),
                 "config": np.array([c.centre, c.register, c.scale], dtype=bool),
                 "iterations": np.int64(c.iterations), "tol": np.float64(c.tol), "margin": np.float64(c.margin)}
 
     def load_state_dict(self, d) -> "Preprocessor":
+        """Restore the state written by ``state_dict``."""
         cfg = np.asarray(d["config"])
         self.config = PreprocessConfig(bool(cfg[0]), bool(cfg[1]), bool(cfg[2]), int(d["iterations"]),
                                        float(d["tol"]), float(d["margin"]))
@@ -148,6 +161,7 @@ class Preprocessor:
 
     @classmethod
     def from_state(cls, d) -> "Preprocessor":
+        """A Preprocessor restored from ``state_dict``'s output."""
         return cls().load_state_dict(d)
 
 
@@ -158,8 +172,6 @@ def split_and_preprocess(collection, split_cfg, pre_cfg, seed: int, ctx, neutral
 
     Returns (split dict, Preprocessor, preprocessed collection per split, transforms per split).
     """
-    from .split import split_subjects
-
     split = split_subjects(collection.subjects, split_cfg, seed)
     ctx.write_json("split.json", split)
     index = {s: i for i, s in enumerate(collection.subjects)}

@@ -1,11 +1,16 @@
 """Template (one shared topology) and MeshCollection (shapes by subject x shape name)."""
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
+
+from ..errors import DataError
+from ..geometry.topology import connected_components, edges
+from ..registry import did_you_mean
 
 
 @dataclass(eq=False)
@@ -49,34 +54,27 @@ class Template:
 
     @property
     def n_vertices(self) -> int:
+        """The number of vertices."""
         return int(self.vertices.shape[0])
 
     @property
     def n_polygons(self) -> int:
+        """The number of polygons of the original file (before triangulation)."""
         return int(len(self.poly_offsets) - 1)
 
     @cached_property
     def edges(self) -> np.ndarray:
         """(e, 2) unique undirected edges of the triangulation, i < j, sorted."""
-        t = self.triangles
-        e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-        e.sort(axis=1)
-        return np.unique(e, axis=0)
+        return edges(self.triangles, self.n_vertices).copy()  # a copy: the topology cache keeps its own
 
     @cached_property
     def components(self) -> np.ndarray:
         """(n,) int64 connected-component label of every vertex (isolated vertices get their own)."""
-        import scipy.sparse as sp
-        from scipy.sparse.csgraph import connected_components
-
-        n = self.n_vertices
-        e = self.edges
-        A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-        _, labels = connected_components(A, directed=False)
-        return labels.astype(np.int64)
+        return connected_components(self.triangles, self.n_vertices)
 
     @property
     def n_components(self) -> int:
+        """The number of connected components."""
         return int(self.components.max()) + 1 if self.n_vertices else 0
 
     def topology_hash(self) -> str:
@@ -94,8 +92,6 @@ class Template:
 
     def with_vertices(self, vertices: np.ndarray) -> "Template":
         """The same topology and metadata on other positions."""
-        import dataclasses
-
         return dataclasses.replace(self, vertices=np.asarray(vertices, dtype=np.float64))
 
 
@@ -126,12 +122,11 @@ class MeshCollection:
 
     @property
     def units(self) -> str:
+        """The input units of the meshes (the template's)."""
         return self.template.units
 
     def shape_index(self, shape: str) -> int:
-        from ..errors import DataError
-        from ..registry import did_you_mean
-
+        """The index of shape ``shape`` in ``shape_names`` (a DataError naming the choices if none)."""
         try:
             return self.shape_names.index(shape)
         except ValueError:
@@ -145,6 +140,7 @@ class MeshCollection:
         return self.positions[:, self.shape_index(shape)]
 
     def select(self, subject_idx) -> "MeshCollection":
+        """The collection of the subjects ``subject_idx`` (positions copied into memory)."""
         idx = np.asarray(subject_idx, dtype=np.int64)
         return MeshCollection(
             self.template,

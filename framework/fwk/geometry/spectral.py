@@ -22,11 +22,20 @@ U (U^T (M P)) to all meshes and coordinates at once as one (n, 3b) block.
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+import scipy.linalg as la
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import eigsh, splu, LinearOperator
 
 from .operators import cotangent_laplacian, mass_matrix
+
+try:  # optional (pip install scikit-sparse); a build against another NumPy fails with other errors
+    from sksparse.cholmod import CholmodError, analyze
+except Exception:
+    CholmodError, analyze = None, None
 
 ARPACK_TOL = 1e-12   # relative accuracy of the Ritz values of each slice
 NCV_FACTOR = 1.5     # Lanczos basis size per slice: NCV_FACTOR x nev + 1 (1.5 measured faster than 2 here)
@@ -41,11 +50,7 @@ def _fix_signs(U: np.ndarray) -> np.ndarray:
 
 def has_cholmod() -> bool:
     """Whether scikit-sparse's CHOLMOD is importable (optional: ``pip install scikit-sparse``)."""
-    try:
-        import sksparse.cholmod  # noqa: F401
-    except Exception:
-        return False
-    return True
+    return analyze is not None
 
 
 class ShiftedFactors:
@@ -63,6 +68,8 @@ class ShiftedFactors:
             backend = "cholmod" if has_cholmod() else "splu"
         if backend not in ("cholmod", "splu"):
             raise ValueError(f"backend must be auto, cholmod or splu, got {backend!r}")
+        if backend == "cholmod" and not has_cholmod():
+            raise ValueError("backend cholmod: scikit-sparse is not installed (pip install scikit-sparse)")
         self.backend = backend
         self._sym = None
         self._probe = np.random.default_rng(1).standard_normal(L.shape[0])
@@ -72,8 +79,6 @@ class ShiftedFactors:
         (None when unknown)."""
         A = (self.L - sigma * self.M).tocsc()
         if self.backend == "cholmod":
-            from sksparse.cholmod import CholmodError, analyze
-
             try:
                 if self._sym is None:
                     self._sym = analyze(A, mode="simplicial")
@@ -118,8 +123,6 @@ def generalized_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0,
     first gets a share of k proportional to its mass (Weyl's law: eigenvalue counts grow with
     area), plus a margin; a component whose largest computed eigenvalue lies below the k-th
     smallest of the union is asked for more until none does. ``backend``: see ShiftedFactors."""
-    from scipy.sparse.csgraph import connected_components
-
     L = sp.csr_matrix(L)
     M = sp.csr_matrix(M)
     n_comp, labels = connected_components(L, directed=False)
@@ -172,8 +175,6 @@ def _connected_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0, backend: 
     """The k smallest eigenpairs by spectrum slicing (one connected component or any mesh)."""
     n = L.shape[0]
     if k >= n - 2 or n <= 400:
-        import scipy.linalg as la
-
         w, U = la.eigh(L.toarray(), M.toarray() if sp.issparse(M) else M)
         return w[:k], U[:, :k]
     if k <= 0:
@@ -243,8 +244,6 @@ def _connected_eigs(L, M, k: int, slice_size: int = 60, seed: int = 0, backend: 
                 keep_U = [rU] + keep_U
                 have += len(rw)
         if below is not None and below != have:
-            import warnings
-
             warnings.warn(f"eigenbasis: {below} eigenvalues lie below {c:.6g} but {have} were found "
                           "(Sylvester inertia); the basis may miss copies of a repeated eigenvalue")
         kw = np.asarray(keep_w)
@@ -293,12 +292,15 @@ class SpectralProjector:
         self.UtM = (self.U * self.m[:, None]).T.copy() if self.m is not None else self.U.T.copy()
 
     def coefficients(self, P):
+        """(K, 3b) spectral coefficients U^T M P of P (n, 3) or (b, n, 3), the batch in the columns."""
         P = np.asarray(P, dtype=np.float64)
         b = P.reshape(-1, P.shape[-2], 3) if P.ndim == 3 else P[None]
         cols = b.transpose(1, 0, 2).reshape(b.shape[1], -1)  # (n, 3b): one product for the batch
         return self.UtM @ cols  # (K, 3b)
 
     def project(self, P, lo: int = 0, hi: int | None = None):
+        """The part of P (n, 3) or (b, n, 3) in eigenvectors lo..hi-1: U[:, lo:hi] U[:, lo:hi]^T M
+        P."""
         P = np.asarray(P, dtype=np.float64)
         single = P.ndim == 2
         b = P[None] if single else P

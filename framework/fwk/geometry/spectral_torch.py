@@ -38,9 +38,11 @@ class TorchSpectralProjector(torch.nn.Module):
         return out.reshape(n, b, c).permute(1, 0, 2)
 
     def low(self, P, k: int):
+        """The first k eigenvectors' part of P (b, n, 3)."""
         return self.project(P, 0, k)
 
     def high(self, P, k: int):
+        """P minus its low part."""
         return P - self.project(P, 0, k)
 
     def assemble(self, bands, cuts, mean):

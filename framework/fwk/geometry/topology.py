@@ -6,12 +6,16 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components as _components
 
 _CACHE: dict = {}
 
 
 @dataclass
 class EdgeTopology:
+    """The edge structures of one triangle list (see the fields); built and cached by
+    ``edge_topology``."""
+
     n_vertices: int
     edges: np.ndarray            # (e, 2) unique undirected edges, i < j
     face_edges: np.ndarray       # (m, 3) edge index of the edge opposite corner k of each face
@@ -26,14 +30,18 @@ class EdgeTopology:
 
     @property
     def border(self) -> np.ndarray:
+        """Indices of the border edges (one face)."""
         return np.flatnonzero(self.edge_count == 1)
 
     @property
     def non_manifold(self) -> np.ndarray:
+        """Indices of the non-manifold edges (more than two faces)."""
         return np.flatnonzero(self.edge_count > 2)
 
 
 def edge_topology(F: np.ndarray, n_vertices: int | None = None) -> EdgeTopology:
+    """The EdgeTopology of triangles F (m, 3) on ``n_vertices`` vertices (default: F.max() + 1),
+    cached per topology."""
     F = np.ascontiguousarray(F, dtype=np.int64)
     n = int(n_vertices if n_vertices is not None else F.max() + 1)
     key = (n, F.shape, hash(F.tobytes()))
@@ -84,9 +92,7 @@ def one_ring(F: np.ndarray, n_vertices: int | None = None) -> sp.csr_matrix:
 
 def connected_components(F: np.ndarray, n_vertices: int | None = None) -> np.ndarray:
     """(n,) component label of every vertex (an isolated vertex is a component of its own)."""
-    from scipy.sparse.csgraph import connected_components as cc
-
-    return cc(one_ring(F, n_vertices), directed=False)[1].astype(np.int64)
+    return _components(one_ring(F, n_vertices), directed=False)[1].astype(np.int64)
 
 
 def edges(F: np.ndarray, n_vertices: int | None = None) -> np.ndarray:
