@@ -1,4 +1,6 @@
-"""An example third-party plugin: the symmetric Chamfer distance as an fwk metric.
+"""An example third-party plugin: the symmetric Chamfer distance as an fwk metric (this module,
+entry point ``example``) and a Chebyshev graph convolution (``fwk_example_plugin.cheb``, entry
+point ``example-cheb``).
 
 For prediction P' and target P (both (n, 3)), the per-vertex value is the distance from each
 predicted vertex to its nearest target vertex, d_i = min_j ||P'_i - P_j||, and the score is
@@ -17,7 +19,12 @@ class Chamfer:
     """Symmetric Chamfer distance (ignores vertex correspondence)."""
 
     name = "chamfer"
-    units = "input"
+    label = "Chamfer"       # the column header of report tables
+    units = "input"         # the positions' own units
+    power = 1               # scaling positions by s scales the score by s**power
+    display_scale = 1e-3    # tables show value / display_scale
+    default = False         # not in the default metric list: ask for it with `metrics: [..., chamfer]`
+    default_rank = 100
     rigid_invariant = False
 
     def __init__(self, workers: int = 1):
