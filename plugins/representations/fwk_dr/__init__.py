@@ -46,9 +46,12 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
+from fwk.cache import content_key
+from fwk.errors import DataError, RecipeError
 from fwk.geometry import kabsch
 from fwk.geometry.operators import cotangent_laplacian
 from fwk.hookspecs import hookimpl
@@ -122,8 +125,6 @@ class DR:
     def __init__(self, scaling: str = "norm", granularity: str = "vertex", a: float = 1.0, ref: str = "mean",
                  align: str = "reference", normal_weight: float = 0.1, weight_floor: float = 1e-3,
                  eps: float = 1e-8):
-        from fwk.errors import RecipeError
-
         if align not in ALIGN:
             raise RecipeError(f"align: expected one of {', '.join(ALIGN)}, got {align!r}")
         if ref not in REFS:
@@ -132,12 +133,10 @@ class DR:
         self.ref_mode = ref
         self.align, self.normal_weight, self.weight_floor = align, normal_weight, weight_floor
         self.mean = self.F = None
-        self._ops = None
+        self._ops = self._mean_terms = None
 
     # ------------------------------------------------------------------ operators
     def _setup(self, mean, F):
-        from fwk.cache import content_key
-
         self._mean_terms = None
         self.mean = np.asarray(mean, dtype=np.float64)
         self.F = np.asarray(F, dtype=np.int64)
@@ -158,8 +157,6 @@ class DR:
         inc = sp.csr_matrix((np.ones(len(hi)), (hi, np.arange(len(hi)))), shape=(n, len(hi)))
         W = sp.coo_matrix((hc, (hi, hj)), shape=(n, n)).tocsr()
         Lc = (sp.diags(np.asarray(W.sum(1)).ravel()) - W).tolil()
-        from scipy.sparse.csgraph import connected_components
-
         _, labels = connected_components(W, directed=False)
         pins = np.array([np.flatnonzero(labels == k)[0] for k in range(labels.max() + 1)])
         for p in pins:
@@ -178,7 +175,7 @@ class DR:
         """What depends on the reference only: its edges e (r, h, 3), normals n0, the one-ring
         sums den = sum c |e|^2, the guard weight lam and the inverse of
         A = sum c e e^T + lam n0 n0^T (r, n, 3, 3); r = 1 for the fitted mean (cached)."""
-        if ref is None and getattr(self, "_mean_terms", None) is not None:
+        if ref is None and self._mean_terms is not None:
             return self._mean_terms
         o = self._ops
         R0 = self.mean[None] if ref is None else ref
@@ -230,8 +227,6 @@ class DR:
         if self._ops is None:
             raise RuntimeError("dr representation used before fit()")
         if ref is None and self.ref_mode == "sample":
-            from fwk.errors import RecipeError
-
             raise RecipeError("ref: this dr representation has ref: sample, so encode/decode need a per-sample "
                               "reference (e.g. each subject's neutral)")
         if ref is None:
@@ -279,8 +274,6 @@ class DR:
         cols = rhs.transpose(1, 0, 2).reshape(rhs.shape[1], -1)
         X = o["lu"].solve(cols).reshape(rhs.shape[1], b, 3).transpose(1, 0, 2)
         if target is None and self.align == "target":
-            from fwk.errors import RecipeError
-
             raise RecipeError("align: this dr representation has align: target, so decode needs the ground truth "
                               "as target")
         goal = R0 if target is None else np.asarray(target, dtype=np.float64).reshape(X.shape)
@@ -291,12 +284,8 @@ class DR:
     def fit(self, P, ref=None, template=None) -> None:
         P = np.asarray(P, dtype=np.float64)
         if P.ndim != 3 or P.shape[1:] != (template.n_vertices, 3):
-            from fwk.errors import DataError
-
             raise DataError(f"dr.fit: expected meshes of shape (b, {template.n_vertices}, 3), got {P.shape}")
         if ref is None and self.ref_mode == "sample":
-            from fwk.errors import RecipeError
-
             raise RecipeError("ref: this dr representation has ref: sample, so fit needs the per-sample references")
         r = None if ref is None else np.asarray(ref, dtype=np.float64)
         self._setup(P.mean(axis=0) if r is None else (r.mean(axis=0) if r.ndim == 3 else r), template.triangles)

@@ -27,6 +27,8 @@ import numpy as np
 
 from fwk.data.preprocess import PreprocessConfig, Preprocessor
 from fwk.errors import RecipeError
+from fwk.evaluation.plots import line_plot
+from fwk.evaluation.report import markdown_table, write_report
 from fwk.geometry.operators import mass_matrix
 from fwk.geometry.spectral import SpectralProjector, eigenbasis
 from fwk.hookspecs import hookimpl
@@ -49,9 +51,7 @@ class SpectralStudy:
         self.preprocess = preprocess or PreprocessConfig()
 
     def run(self, ctx):
-        from fwk.evaluation.plots import line_plot
-        from fwk.evaluation.report import markdown_table, write_report
-
+        """Filter the meshes at every k with and without M; the report, its figures and the verdict."""
         col = self.dataset.build().load(ctx.cache)
         P = np.asarray(col.shape(self.shape), dtype=np.float64)
         if self.n_meshes:
