@@ -25,7 +25,7 @@ Modules:
 * ``callbacks``: ``RNGState``, ``ManualSchedulers`` (the Lightning callbacks ``fit`` adds);
 * ``modules``: ``LossModule``, ``AutoencoderModule`` (the LightningModules of the built-in models);
 * ``factories``: ``loss_module``, ``autoencoder_module`` (their call forms for plugins);
-* ``vae``: ``kl_divergence``, ``reparameterize``.
+* ``variational``: ``kl_divergence``, ``reparameterize``.
 
 Every name is importable from ``fwk.engine``. Only ``TrainConfig`` is imported with the package;
 the others load their module on first access (PEP 562): torch costs ~1 s and Lightning ~2.2 s
@@ -45,7 +45,7 @@ if TYPE_CHECKING:  # what the lazy names below are, for type checkers and editor
     from .loading import EpochSampler, make_loader
     from .modules import AutoencoderModule, LossModule
     from .trainer import fit, make_optimizer, predict_batches, seed_everything
-    from .vae import kl_divergence, reparameterize
+    from .variational import kl_divergence, reparameterize
 
 #: exported name -> the module of this package that defines it (loaded on first access)
 _HOME = {
@@ -54,7 +54,7 @@ _HOME = {
     "RNGState": "callbacks", "ManualSchedulers": "callbacks",
     "LossModule": "modules", "AutoencoderModule": "modules",
     "loss_module": "factories", "autoencoder_module": "factories",
-    "kl_divergence": "vae", "reparameterize": "vae",
+    "kl_divergence": "variational", "reparameterize": "variational",
 }
 
 __all__ = ["TrainConfig", "fit", "make_optimizer", "seed_everything", "predict_batches", "make_loader", "EpochSampler",

@@ -7,7 +7,7 @@ import lightning.pytorch as pl
 import torch
 
 from .trainer import make_optimizer
-from .vae import kl_divergence, reparameterize
+from .variational import kl_divergence, reparameterize
 
 
 class LossModule(pl.LightningModule):
