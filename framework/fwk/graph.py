@@ -1,13 +1,16 @@
 """Graph utilities shared by samplers and convolutions: sparse operators on (b, n, c) batches,
 the symmetric adjacency of an edge list, ordered one-rings and spirals on triangle meshes, and an
-in-process memo for data a conv derives from a hierarchy level."""
+in-process memo for data a conv derives from a hierarchy level.
+
+torch is imported inside the three functions that use it: the adjacency helpers serve
+``fwk.geometry``, which ``fwk --help`` loads without torch (torch costs ~1 s of import time,
+measured with ``python -X importtime``)."""
 from __future__ import annotations
 
 from typing import Any, Callable
 
 import numpy as np
 import scipy.sparse as sp
-import torch
 from scipy.sparse.csgraph import shortest_path
 
 from .cache import content_key
@@ -42,6 +45,8 @@ def symmetric_adjacency(edges, n: int, weights=None) -> sp.csr_matrix:
 
 def torch_sparse(M):
     """A scipy sparse matrix as a torch sparse COO tensor (float32)."""
+    import torch  # deferred: see the module docstring
+
     M = sp.coo_matrix(M)
     idx = torch.as_tensor(np.vstack([M.row, M.col]), dtype=torch.long)
     return torch.sparse_coo_tensor(idx, torch.as_tensor(M.data, dtype=torch.float32), M.shape,
@@ -50,6 +55,8 @@ def torch_sparse(M):
 
 def sparse_apply(M, x):
     """(m, n) sparse torch matrix applied to every sample of x (b, n, c) -> (b, m, c)."""
+    import torch  # deferred: see the module docstring
+
     b, n, c = x.shape
     y = torch.sparse.mm(M, x.transpose(0, 1).reshape(n, b * c))
     return y.reshape(M.shape[0], b, c).transpose(0, 1)
@@ -182,6 +189,8 @@ def neighbourhoods(edges: np.ndarray, n: int, k: int, include_self: bool = True)
 
 def edge_index(edges: np.ndarray, n: int, self_loops: bool = True):
     """torch_geometric edge_index (2, E) with both directions (and self loops)."""
+    import torch  # deferred: see the module docstring
+
     e = np.r_[edges, edges[:, ::-1]]
     if self_loops:
         e = np.r_[e, np.stack([np.arange(n), np.arange(n)], 1)]
