@@ -46,6 +46,7 @@ import torch
 from torch import nn
 
 from fwk.data import Template
+from fwk.engine import autoencoder_module, fit, seed_everything
 from fwk.errors import RecipeError
 from fwk.graph import sparse_apply, torch_sparse
 from fwk.hookspecs import hookimpl
@@ -237,10 +238,6 @@ class AE:
 
     # ---- the model roles
     def fit(self, data, ctx) -> None:
-        # deferred: these load Lightning (~2.2 s of import time, measured in fwk.engine) that
-        # `fwk list` and every command loading the plugins would otherwise pay
-        from fwk.engine import autoencoder_module, fit, seed_everything
-
         P, V = data.stack("train"), data.stack("val")
         self.rep = self.representation.build()
         self.rep.fit(P, None, data.template)

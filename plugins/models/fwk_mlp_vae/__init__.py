@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from fwk.engine import TrainConfig
+from fwk.engine import TrainConfig, autoencoder_module, fit, predict_batches, seed_everything
 from fwk.errors import RecipeError
 from fwk.hookspecs import hookimpl
 from fwk.protocols import RECONSTRUCT
@@ -83,10 +83,6 @@ class MLPVAE:
         return self.latent
 
     def fit(self, data, ctx) -> None:
-        # deferred: these load Lightning (~2.2 s of import time, measured in fwk.engine) that
-        # `fwk list` and every command loading the plugins would otherwise pay
-        from fwk.engine import autoencoder_module, fit, seed_everything
-
         P, V = data.stack("train"), data.stack("val")
         self.rep = self.representation.build()
         self.rep.fit(P, None, data.template)
@@ -109,15 +105,11 @@ class MLPVAE:
 
     def encode(self, P) -> np.ndarray:
         """The posterior mean of q(z | P), (b, latent)."""
-        from fwk.engine import predict_batches  # deferred: see fit
-
         self._check()
         self.net.eval()
         return predict_batches(lambda F: self.net.encode(F)[0], self.rep.encode(P), 256).astype(np.float64)
 
     def _features(self, z) -> np.ndarray:
-        from fwk.engine import predict_batches  # deferred: see fit
-
         self._check()
         self.net.eval()
         return predict_batches(lambda x: self.net.decode(x, self.shape), np.asarray(z, dtype=np.float32), 256)
