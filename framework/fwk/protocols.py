@@ -25,7 +25,7 @@ model           :class:`Model`, and one family: :class:`ReconstructionModel` or
                 :class:`BandModel` (latent split by frequency band), :class:`NetworkFactory`
                 (lends its encoder / decoder to other models), :class:`CutSelectingModel`
                 (chooses a spectral cut on validation), :class:`CompositeModel` (reports
-                its parts alone)
+                its parts alone), :class:`TrainingModes` (end-to-end or two-step)
 metric          :class:`Metric` (carries its display scale, unit and label)
 assembler       :class:`Assembler`
 task            :class:`Task`
@@ -43,7 +43,6 @@ if TYPE_CHECKING:  # pragma: no cover
 
     from .cache import Cache
     from .data import MeshCollection, Template
-    from .recipes import Spec
     from .runs import RunContext
 
 #: The two model families; a task accepts the models of its own family only.
@@ -208,6 +207,8 @@ class Assembler(Protocol):
         """(b, n, 3) -> bands, each (b, n, 3) and centred on the mean as in DESIGN.md (band_j - mean
         sum to P - mean), so that ``assemble(split(P)) == P`` exactly."""
     def assemble(self, bands: list[np.ndarray]) -> np.ndarray: ...
+    def band_shares(self, D: np.ndarray) -> np.ndarray:
+        """(b, n, 3) displacements -> (b, bands): each band's share of the M-weighted energy."""
     def assemble_many(self, bands: list[np.ndarray], ks: list[int]) -> np.ndarray:
         """Two bands [low source, high source], each (b, n, 3), assembled at every cut k of
         ``ks``: (len(ks), b, n, 3), the low frequencies (k smallest eigenvectors) of the first
@@ -261,14 +262,18 @@ class GenerativeModel(Protocol):
 class BandModel(GenerativeModel, Protocol):
     """A generative model whose latent code is split by frequency band (Deep Spectral Meshes):
     ``band_names`` (low to high), ``latent_slice(band)`` the part of Z that band owns,
-    ``split(P)`` the bands of a mesh (its assembler's), ``decode_bands(Z)`` each band decoded
-    alone. The ``edit`` and ``interpolate`` tasks work on every model playing this role."""
+    ``split(P)`` the bands of a mesh (its assembler's), ``assemble(bands)`` its inverse,
+    ``decode_bands(Z)`` each band decoded alone, ``band_shares(D)`` each band's share of a
+    displacement's energy. The ``edit`` and ``interpolate`` tasks work on every model playing
+    this role."""
 
     band_names: list[str]
 
     def latent_slice(self, band: "str | int") -> slice: ...
     def split(self, P: np.ndarray) -> list[np.ndarray]: ...
+    def assemble(self, bands: list[np.ndarray]) -> np.ndarray: ...
     def decode_bands(self, Z: np.ndarray) -> list[np.ndarray]: ...
+    def band_shares(self, D: np.ndarray) -> np.ndarray: ...
 
 
 @runtime_checkable
@@ -302,6 +307,17 @@ class BlendshapeModel(Model, Protocol):
     def predict(self, neutrals: np.ndarray, expression: str, target: np.ndarray | None = None) -> np.ndarray: ...
     def predict_all(self, neutrals: np.ndarray, expressions: list[str],
                     target: dict | None = None) -> dict[str, np.ndarray]: ...
+
+
+@runtime_checkable
+class TrainingModes(Protocol):
+    """A blendshape model trained ``end-to-end`` or ``two-step`` (pb, thesis 5.2.2), whose output
+    representation does or does not lose the rigid placement (``places_rigidly``: dr). The
+    blendshapes task's end-to-end against two-step table (thesis table 5.1) pairs the two modes
+    of one kind of representation."""
+
+    mode: str
+    places_rigidly: bool
 
 
 @runtime_checkable

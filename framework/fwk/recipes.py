@@ -31,6 +31,7 @@ import yaml
 
 from .engine.config import TrainConfig
 from .errors import RecipeError
+from .plugins import get_registry
 from .registry import Registry, did_you_mean
 
 RESERVED = ("task", "extends", "name", "seed", "train", "description", "source")
@@ -212,14 +213,19 @@ def validate_params(cls: type, params: dict, path: str, registry: Registry, labe
                 continue
             raise RecipeError(f"{kp}: unknown parameter of {label}{did_you_mean(key, ps)}")
         default = ps[key].default
-        if isinstance(value, dict) and "name" not in value and isinstance(default, str) and _is_component(hints.get(key)):
-            value = {"name": default, **value}  # `conv: {length: 3}` keeps the default conv
+        if isinstance(value, dict) and "name" not in value and _is_component(hints.get(key)):
+            if isinstance(default, str):
+                value = {"name": default, **value}  # `conv: {length: 3}` keeps the default conv
+            elif _is_spec_mapping(default):
+                value = {**default, **value}  # `representation: {scaling: std}` keeps the default's name
         out[key] = convert(value, hints.get(key, ps[key].annotation), kp, registry)
     for name, p in ps.items():
         if p.default is p.empty and name not in out:
             raise RecipeError(f"{path + '.' if path else ''}{name}: missing required parameter of {label}")
-        if name not in out and isinstance(p.default, str) and _is_component(hints.get(name)):
-            # a default component given by name becomes a Spec like a recipe's would
+        if name not in out and (isinstance(p.default, str) or _is_spec_mapping(p.default)) \
+                and _is_component(hints.get(name)):
+            # a default component (a name, or a mapping with `name` and parameters) becomes a
+            # Spec like a recipe's would
             out[name] = convert(p.default, hints[name], f"{path + '.' if path else ''}{name}", registry)
     return out
 
@@ -228,11 +234,17 @@ def _is_component(tp) -> bool:
     return get_origin(tp) is Annotated and any(isinstance(m, Kind) for m in get_args(tp)[1:])
 
 
-def make_spec(kind: str, value, path: str, registry: Registry) -> Spec:
+def _is_spec_mapping(value) -> bool:
+    return isinstance(value, dict) and isinstance(value.get("name"), str)
+
+
+def make_spec(kind: str, value, path: str, registry: Registry | None = None) -> Spec:
     """A validated Spec of ``kind`` from a name or a mapping with ``name`` (``path`` names the
-    recipe key in errors)."""
+    recipe key in errors). A component built in Python rather than from a recipe normalises its
+    nested components with this (``registry`` defaults to the process-wide one)."""
     if isinstance(value, Spec):
         return value
+    registry = registry or get_registry()
     if isinstance(value, str):
         name, params = value, {}
     elif isinstance(value, dict):

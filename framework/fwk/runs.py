@@ -16,9 +16,8 @@ import platform
 import shutil
 import subprocess
 import sys
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Iterable
 
 import numpy as np
 import yaml
@@ -27,7 +26,7 @@ from tqdm.auto import tqdm
 from . import __version__
 from .cache import Cache, atomic_write_bytes
 from .engine.config import TrainConfig
-from .errors import FwkError, RecipeError
+from .errors import FwkError
 from .plugins import get_registry
 from .recipes import Spec, load_recipe, make_spec, resolve, to_plain
 from .registry import Registry
@@ -263,32 +262,3 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             shutil.rmtree(run_dir, ignore_errors=True)
         raise
     return run_dir
-
-
-@dataclass
-class LoadedRun:
-    """A finished run reopened: its recipe, context (writing into the same run directory) and files."""
-
-    run_dir: Path
-    recipe: dict
-    resolved: Any
-    ctx: RunContext
-    metrics: dict = field(default_factory=dict)
-
-
-def load_run(run_dir, registry: Registry | None = None, quiet: bool = True) -> LoadedRun:
-    """Reopen a finished run: its validated recipe, a context writing into it, its metrics."""
-    run_dir = Path(run_dir)
-    if not (run_dir / "recipe.yaml").exists():
-        raise FwkError(f"{run_dir}: not a run directory (no recipe.yaml)")
-    registry = registry or get_registry()
-    data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
-    try:
-        resolved = resolve(data, registry)
-    except RecipeError as exc:
-        raise FwkError(f"{run_dir}/recipe.yaml no longer validates: {exc}") from None
-    ctx = RunContext(run_dir, registry, None, resolved.seed, recipe=data, train=resolved.train, quiet=quiet)
-    metrics = {}
-    if (run_dir / "metrics.json").exists():
-        metrics = json.loads((run_dir / "metrics.json").read_text())
-    return LoadedRun(run_dir, data, resolved, ctx, metrics)

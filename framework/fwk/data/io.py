@@ -14,8 +14,6 @@ seen before reuses the parsed Template (the ~158 ICT files share one).
 from __future__ import annotations
 
 import hashlib
-import io
-import os
 import re
 from pathlib import Path
 

@@ -14,7 +14,7 @@ are registered to the fitted mean with the same steps (``transform_neutrals``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 

@@ -66,7 +66,6 @@ from fwk.engine import autoencoder_module, kl_divergence, loss_module, reparamet
 from fwk.errors import DataError, RecipeError
 from fwk.evaluation import evaluate, pareto_front
 from fwk.hookspecs import hookimpl
-from fwk.plugins import get_registry
 from fwk.protocols import BLENDSHAPES, NetworkFactory
 from fwk.recipes import Kind, Spec, make_spec
 
@@ -96,12 +95,6 @@ def knee(x, y) -> int:
     # signed distance below the chord (positive: the front bulges towards the origin)
     dist = (d[0] * (yn - a[1]) - d[1] * (xn - a[0])) / (np.hypot(*d) or 1.0)
     return int(order[int(np.argmin(dist))])
-
-
-def _as_spec(kind: str, value, path: str) -> Spec:
-    """A nested component as a Spec: a recipe gives Specs already; a model built in Python may
-    give a name or a mapping, resolved against the plugin registry."""
-    return make_spec(kind, value, path, get_registry())
 
 
 def _build_rep(spec: Spec):
@@ -156,8 +149,8 @@ class _Blend:
             raise RecipeError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
         if conditional and mode != "end-to-end":
             raise RecipeError("conditional: only with mode end-to-end")
-        self.network = _as_spec("model", network, "network")
-        self.branch_specs = [_as_spec("representation", s, "representation") for s in branches]
+        self.network = make_spec("model", network, "network")
+        self.branch_specs = [make_spec("representation", s, "representation") for s in branches]
         self.mode, self.conditional = mode, conditional
         self.expressions = list(expressions) if expressions else None
         self.kl_weight, self.train_overrides = kl_weight, dict(train or {})
@@ -398,7 +391,7 @@ class PBS(_Blend):
                  distance_metric: str = "l1", kl_weight: float | None = None, train: dict | None = None):
         self._init(network, [spatial, differential], "end-to-end", expressions, conditional, kl_weight, train)
         self.branch_names = ["spatial", "differential"]
-        self.assembler_spec = _as_spec("assembler", assembler, "assembler")
+        self.assembler_spec = make_spec("assembler", assembler, "assembler")
         self.k_fixed, self.ks_param = k, ks
         self.knee_metric, self.distance_metric = knee_metric, distance_metric
         self.sweep_metrics = list(sweep_metrics)
@@ -494,7 +487,7 @@ class PBS(_Blend):
     def select_k(self, col, ks, ctx=None) -> dict:
         """Sweep ks on the subjects of ``col`` (validation), per expression: metrics, Pareto
         front of (distance_metric, knee_metric), knee. Sets and returns ``self.k``."""
-        metrics = [_as_spec("metric", m, "sweep_metrics").build() for m in self.sweep_metrics]
+        metrics = [make_spec("metric", m, "sweep_metrics").build() for m in self.sweep_metrics]
         dist = self.distance_metric
         j0 = col.shape_index("neutral")
         self.sweep = {}

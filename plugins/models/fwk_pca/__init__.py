@@ -20,9 +20,8 @@ from scipy.sparse.linalg import svds
 
 from fwk.errors import DataError, RecipeError
 from fwk.hookspecs import hookimpl
-from fwk.plugins import get_registry
 from fwk.protocols import RECONSTRUCT
-from fwk.recipes import Kind, Spec
+from fwk.recipes import Kind, Spec, make_spec
 
 GRAM_MAX = 4000  # samples up to which the (m x m) Gram matrix is eigendecomposed densely
 
@@ -58,20 +57,16 @@ class PCA:
     task_family = RECONSTRUCT
 
     def __init__(self, n_components: int = 64,
-                 representation: Annotated[Spec, Kind("representation")] | None = None):
+                 representation: Annotated[Spec, Kind("representation")] = {"name": "euclidean", "scaling": "none"}):
         if not isinstance(n_components, int) or isinstance(n_components, bool) or n_components < 0:
             raise RecipeError(f"n_components: expected an integer >= 0 (0: the mean shape), got {n_components!r}")
         self.n_components = n_components
-        self.representation_spec = representation
+        self.representation_spec = make_spec("representation", representation, "representation")
         self.rep = None
         self.mean = self.components = self.singular_values = None
         self.n_train = 0
 
     def _make_rep(self, ctx=None):
-        if self.representation_spec is None:
-            # TODO(architecture): a recipe default {name: euclidean, scaling: none} once recipes resolve mapping defaults
-            cls = get_registry().get("representation", "euclidean")  # name-ok: until then
-            return cls(scaling="none")
         return self.representation_spec.build()
 
     @property

@@ -29,7 +29,7 @@ else the first model).
 from __future__ import annotations
 
 import time
-from typing import Annotated, Protocol, runtime_checkable
+from typing import Annotated
 
 import numpy as np
 
@@ -43,23 +43,12 @@ from fwk.evaluation.plots import scatter_pareto
 from fwk.evaluation.render import colour_limits, render_grid
 from fwk.hookspecs import hookimpl
 from fwk.lifecycle import build_model, fit_or_resume
-from fwk.protocols import BLENDSHAPES, BlendshapeModel, CompositeModel, CutSelectingModel, FitData
+from fwk.protocols import BLENDSHAPES, BlendshapeModel, CompositeModel, CutSelectingModel, FitData, TrainingModes
 from fwk.recipes import Kind, Spec
 
 #: metrics.json sections (their names are kept from before the roles; they name no component)
 PER_EXPRESSION = "blendshapes"  # name-ok: metrics.json section {expression: {row: metrics}}
 CUTS = "pbs"  # name-ok: metrics.json section {label: {k, sweep}} of the cut-selecting models
-
-
-@runtime_checkable
-class TrainingModes(Protocol):
-    """A blendshape model trained ``end-to-end`` or ``two-step`` (``pb``, thesis 5.2.2), whose
-    output representation does or does not lose the rigid placement (``places_rigidly``: dr).
-    The end-to-end against two-step table (thesis table 5.1) pairs the two modes of one kind of
-    representation."""
-
-    mode: str
-    places_rigidly: bool
 
 
 class Blendshapes:
