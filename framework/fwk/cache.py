@@ -4,6 +4,10 @@ A key covers every input that changes the value (arrays are hashed by dtype, sha
 Entries are written atomically (temporary file + rename) with a SHA-256 of their bytes beside
 them; a read that does not verify, or cannot be parsed, is treated as a miss and rebuilt.
 Location: ``Cache(root)``, else ``$FWK_CACHE``, else ``~/.cache/fwk``.
+
+``memo(namespace, key, build)`` is the in-process counterpart (nothing written): values derived
+from a topology or a level (edge structures, spirals, factorisations, metric stencils) built once
+per process and key, at most ``size`` per namespace.
 """
 from __future__ import annotations
 
@@ -162,3 +166,20 @@ def default_cache() -> Cache:
     if _DEFAULT is None or str(_DEFAULT.root) != str(Path(os.environ.get("FWK_CACHE") or Path.home() / ".cache" / "fwk").expanduser()):
         _DEFAULT = Cache()
     return _DEFAULT
+
+
+_MEMOS: dict[str, dict] = {}
+
+
+def memo(namespace: str, key, build: Callable[[], Any], size: int = 64) -> Any:
+    """The value ``build()`` made for ``key`` (hashable; ``content_key(...)`` for arrays) earlier
+    in this process, else build it now. Each namespace keeps at most ``size`` values, the oldest
+    dropped first. Nothing is written to disk: ``Cache`` is what persists across runs."""
+    table = _MEMOS.setdefault(namespace, {})
+    if key in table:
+        return table[key]
+    value = build()
+    while len(table) >= size:
+        table.pop(next(iter(table)))
+    table[key] = value
+    return value

@@ -1,38 +1,15 @@
 """Graph utilities shared by samplers and convolutions: sparse operators on (b, n, c) batches,
-the symmetric adjacency of an edge list, ordered one-rings and spirals on triangle meshes, and an
-in-process memo for data a conv derives from a hierarchy level.
+the symmetric adjacency of an edge list, ordered one-rings and spirals on triangle meshes.
 
 torch is imported inside the three functions that use it: the adjacency helpers serve
 ``fwk.geometry``, which ``fwk --help`` loads without torch (torch costs ~1 s of import time,
 measured with ``python -X importtime``)."""
 from __future__ import annotations
 
-from typing import Any, Callable
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
-
-from .cache import content_key
-
-_MEMO: dict[str, Any] = {}
-MEMO_SIZE = 64  # entries kept before the memo is cleared (one per level and setting)
-
-
-def memo(namespace: str, key_parts: tuple, build: Callable[[], Any]) -> Any:
-    """The value ``build()`` made for ``key_parts`` earlier in this process, else build it now.
-
-    For data a conv derives from a hierarchy level (spirals, neighbourhoods) that the encoder and
-    decoder would otherwise compute again for the same level. ``key_parts`` must cover every
-    input of ``build`` (arrays are hashed by content, as ``fwk.cache`` keys are). Nothing is
-    written to disk: the sampler's hierarchy itself is what ``fwk.cache`` keeps across runs.
-    """
-    key = content_key(namespace, *key_parts)
-    if key not in _MEMO:
-        if len(_MEMO) >= MEMO_SIZE:
-            _MEMO.clear()
-        _MEMO[key] = build()
-    return _MEMO[key]
 
 
 def symmetric_adjacency(edges, n: int, weights=None) -> sp.csr_matrix:

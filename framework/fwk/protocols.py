@@ -46,8 +46,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from .runs import RunContext
 
 #: The two model families; a task accepts the models of its own family only.
-RECONSTRUCT = "reconstruct"
-BLENDSHAPES = "blendshapes"
+RECONSTRUCT = "reconstruct"  # name-ok: a model family (the task of this name trains it)
+BLENDSHAPES = "blendshapes"  # name-ok: a model family (the task of this name trains it)
 FAMILIES = (RECONSTRUCT, BLENDSHAPES)
 
 
@@ -157,7 +157,7 @@ class Conv(Protocol):
     **Strided role** (``strided = True``): the class also accepts ``mode`` and
     ``residual_rate``: ``mode="down"`` maps level l -> l + 1 ((b, n_l, c_in) ->
     (b, n_{l+1}, c_out)), ``mode="up"`` maps level l + 1 -> l, ``mode="same"`` is the plain
-    convolution; ``residual_rate`` r (or None) mixes sqrt(1 - r) ELU(conv) + sqrt(r) res.
+    convolution; ``residual_rate`` r (or None) mixes sqrt(1 - r) conv + sqrt(r) res.
     A model that needs strided convolutions (``ae fully_convolutional``) composes a conv
     without this role with the sampler's pooling instead (see ``fwk_autoencoder``).
     """

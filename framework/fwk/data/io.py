@@ -19,12 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cache import atomic_write_bytes, default_cache
+from ..cache import atomic_write_bytes, default_cache, memo
 from ..errors import DataError, TopologyError
 from .template import Template
-
-_TOPOLOGY_CACHE: dict[str, Template] = {}
-
 
 _V_LINE = re.compile(rb"(?m)^[ \t]*v[ \t]+([^\r\n]*)")
 _V_LINE_FULL = re.compile(rb"(?m)^[ \t]*v[ \t][^\n]*(\n|$)")
@@ -125,19 +122,16 @@ def read_obj(path, units: str = "unit") -> tuple[np.ndarray, Template]:
     v_lines, face_block = _split_lines(data)
     V = _parse_vertices(v_lines, path)
     key = hashlib.sha256(b"\n".join(face_block) + str(len(V)).encode()).hexdigest()
-    topo = _TOPOLOGY_CACHE.get(key)
-    if topo is None:
-        def build():
-            try:
-                return _parse_topology(face_block, len(V), path)
-            except (ValueError, IndexError) as exc:
-                raise DataError(f"{path}: unreadable face or texture line ({exc})") from None
-        # parsed once per topology: in memory, and on disk in the content-hash cache (files
-        # whose face block is byte-identical share it)
-        topo = default_cache().get_or_build("obj-topology", (key, "v1"), build) if len(face_block) > 2000 else build()
-        if len(_TOPOLOGY_CACHE) > 64:
-            _TOPOLOGY_CACHE.clear()
-        _TOPOLOGY_CACHE[key] = topo
+    def build():
+        try:
+            return _parse_topology(face_block, len(V), path)
+        except (ValueError, IndexError) as exc:
+            raise DataError(f"{path}: unreadable face or texture line ({exc})") from None
+
+    # parsed once per topology: in memory, and on disk in the content-hash cache (files whose
+    # face block is byte-identical share it)
+    topo = memo("obj-topology", key, lambda: default_cache().get_or_build("obj-topology", (key, "v1"), build)
+                if len(face_block) > 2000 else build())
     t = topo.with_vertices(V)
     t.units = units
     return V, t

@@ -20,7 +20,7 @@
 Modules:
 
 * ``config``: ``TrainConfig``, the recipe's ``train:`` section (imports neither torch nor Lightning);
-* ``loading``: ``EpochSampler``, ``make_loader``;
+* ``loading``: ``EpochSampler``, ``make_loader``, ``fit_features`` (a representation fitted, its features);
 * ``trainer``: ``fit``, ``seed_everything``, ``make_optimizer``, ``predict_batches``;
 * ``callbacks``: ``RNGState``, ``ManualSchedulers`` (the Lightning callbacks ``fit`` adds);
 * ``modules``: ``LossModule``, ``AutoencoderModule`` (the LightningModules of the built-in models);
@@ -42,14 +42,14 @@ from .config import TrainConfig
 if TYPE_CHECKING:  # what the lazy names below are, for type checkers and editors
     from .callbacks import ManualSchedulers, RNGState
     from .factories import autoencoder_module, loss_module
-    from .loading import EpochSampler, make_loader
+    from .loading import EpochSampler, fit_features, make_loader
     from .modules import AutoencoderModule, LossModule
     from .trainer import fit, make_optimizer, predict_batches, seed_everything
     from .variational import kl_divergence, reparameterize
 
 #: exported name -> the module of this package that defines it (loaded on first access)
 _HOME = {
-    "EpochSampler": "loading", "make_loader": "loading",
+    "EpochSampler": "loading", "make_loader": "loading", "fit_features": "loading",
     "fit": "trainer", "make_optimizer": "trainer", "seed_everything": "trainer", "predict_batches": "trainer",
     "RNGState": "callbacks", "ManualSchedulers": "callbacks",
     "LossModule": "modules", "AutoencoderModule": "modules",
@@ -57,7 +57,7 @@ _HOME = {
     "kl_divergence": "variational", "reparameterize": "variational",
 }
 
-__all__ = ["TrainConfig", "fit", "make_optimizer", "seed_everything", "predict_batches", "make_loader", "EpochSampler",
+__all__ = ["TrainConfig", "fit", "fit_features", "make_optimizer", "seed_everything", "predict_batches", "make_loader", "EpochSampler",
            "kl_divergence", "reparameterize", "autoencoder_module", "loss_module", "LossModule", "AutoencoderModule",
            "RNGState", "ManualSchedulers"]
 

@@ -69,3 +69,16 @@ def make_loader(data, batch_size: int, seed: int, shuffle: bool, num_workers: in
                                        # its own generator: creating an iterator draws a worker base
                                        # seed, which must not consume the global RNG (exact resume)
                                        generator=torch.Generator().manual_seed(seed))
+
+
+def fit_features(representation, data):
+    """The first step of every model trained on one representation's features (ae, vae,
+    mlp-vae): ``(rep, F, Fv)``, the representation built from its Spec and fitted on the
+    training shapes of ``data`` (FitData), and the train / validation features as float32
+    tensors (b, n, c) (``Fv`` None when the validation split is empty)."""
+    P, V = data.stack("train"), data.stack("val")
+    rep = representation.build()
+    rep.fit(P, None, data.template)
+    F = torch.as_tensor(rep.encode(P))
+    Fv = torch.as_tensor(rep.encode(V)) if len(V) else None
+    return rep, F, Fv

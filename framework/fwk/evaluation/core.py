@@ -5,6 +5,7 @@ import weakref
 
 import numpy as np
 
+from ..cache import memo
 from ..plugins import get_registry
 
 
@@ -33,7 +34,8 @@ class TopologyMemo:
     """``build(template)`` computed once per topology: ``memo(template)`` returns the structure
     built for the first template of the same topology (``template.topology_hash()``: vertex
     count and triangles), and remembers it per template object (weakly), so a template seen
-    before is not hashed again. At most ``size`` topologies are kept (all forgotten when full).
+    before is not hashed again. At most ``size`` topologies are kept (``fwk.cache.memo``, oldest
+    dropped first).
 
     Metric plugins keep their per-topology structures (edge stencils, sparse scatters) in one::
 
@@ -44,19 +46,13 @@ class TopologyMemo:
     def __init__(self, build, size: int = 16):
         self.build = build
         self.size = size
+        self.namespace = f"{build.__module__}.{build.__qualname__}"
         self._by_template: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-        self._by_topology: dict = {}
 
     def __call__(self, template):
         hit = self._by_template.get(template)
         if hit is None:
-            key = template.topology_hash()
-            hit = self._by_topology.get(key)
-            if hit is None:
-                hit = self.build(template)
-                if len(self._by_topology) > self.size:
-                    self._by_topology.clear()
-                self._by_topology[key] = hit
+            hit = memo(self.namespace, template.topology_hash(), lambda: self.build(template), size=self.size)
             self._by_template[template] = hit
         return hit
 

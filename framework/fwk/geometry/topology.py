@@ -8,8 +8,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components as _components
 
-_CACHE: dict = {}
-
+from ..cache import memo
+from ..graph import symmetric_adjacency
 
 @dataclass
 class EdgeTopology:
@@ -44,40 +44,37 @@ def edge_topology(F: np.ndarray, n_vertices: int | None = None) -> EdgeTopology:
     cached per topology."""
     F = np.ascontiguousarray(F, dtype=np.int64)
     n = int(n_vertices if n_vertices is not None else F.max() + 1)
-    key = (n, F.shape, hash(F.tobytes()))
-    hit = _CACHE.get(key)
-    if hit is not None:
-        return hit
-    m = len(F)
-    # directed half-edges opposite corner k: (F[:, k+1], F[:, k+2])
-    he_a = np.concatenate([F[:, 1], F[:, 2], F[:, 0]])
-    he_b = np.concatenate([F[:, 2], F[:, 0], F[:, 1]])
-    he_f = np.tile(np.arange(m), 3)
-    lo, hi = np.minimum(he_a, he_b), np.maximum(he_a, he_b)
-    keys = lo * n + hi
-    uniq, inv, count = np.unique(keys, return_inverse=True, return_counts=True)
-    edges = np.stack([uniq // n, uniq % n], axis=1)
-    face_edges = inv.reshape(3, m).T.copy()
-    # interior manifold edges: two half-edges, opposite directions
-    order = np.argsort(inv, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(count)[:-1]])
-    two = np.flatnonzero(count == 2)
-    h1 = order[starts[two]]
-    h2 = order[starts[two] + 1]
-    consistent = he_a[h1] == he_b[h2]
-    interior = two[consistent]
-    h1, h2 = h1[consistent], h2[consistent]
-    border_vertex = np.zeros(n, dtype=bool)
-    border_vertex[edges[count == 1].ravel()] = True
-    ne = len(interior)
-    rows = np.concatenate([he_a[h1], he_b[h1]])
-    cols = np.concatenate([np.arange(ne), np.arange(ne)])
-    ve = sp.csr_matrix((np.ones(2 * ne), (rows, cols)), shape=(n, ne))
-    topo = EdgeTopology(n, edges, face_edges, count, interior, he_f[h1], he_f[h2], he_a[h1], he_b[h1], border_vertex, ve)
-    if len(_CACHE) > 32:
-        _CACHE.clear()
-    _CACHE[key] = topo
-    return topo
+
+    def build():
+        m = len(F)
+        # directed half-edges opposite corner k: (F[:, k+1], F[:, k+2])
+        he_a = np.concatenate([F[:, 1], F[:, 2], F[:, 0]])
+        he_b = np.concatenate([F[:, 2], F[:, 0], F[:, 1]])
+        he_f = np.tile(np.arange(m), 3)
+        lo, hi = np.minimum(he_a, he_b), np.maximum(he_a, he_b)
+        keys = lo * n + hi
+        uniq, inv, count = np.unique(keys, return_inverse=True, return_counts=True)
+        edges = np.stack([uniq // n, uniq % n], axis=1)
+        face_edges = inv.reshape(3, m).T.copy()
+        # interior manifold edges: two half-edges, opposite directions
+        order = np.argsort(inv, kind="stable")
+        starts = np.concatenate([[0], np.cumsum(count)[:-1]])
+        two = np.flatnonzero(count == 2)
+        h1 = order[starts[two]]
+        h2 = order[starts[two] + 1]
+        consistent = he_a[h1] == he_b[h2]
+        interior = two[consistent]
+        h1, h2 = h1[consistent], h2[consistent]
+        border_vertex = np.zeros(n, dtype=bool)
+        border_vertex[edges[count == 1].ravel()] = True
+        ne = len(interior)
+        rows = np.concatenate([he_a[h1], he_b[h1]])
+        cols = np.concatenate([np.arange(ne), np.arange(ne)])
+        ve = sp.csr_matrix((np.ones(2 * ne), (rows, cols)), shape=(n, ne))
+        return EdgeTopology(n, edges, face_edges, count, interior, he_f[h1], he_f[h2], he_a[h1], he_b[h1],
+                            border_vertex, ve)
+
+    return memo("edge_topology", (n, F.shape, hash(F.tobytes())), build, size=32)
 
 
 def one_ring(F: np.ndarray, n_vertices: int | None = None) -> sp.csr_matrix:
@@ -85,7 +82,7 @@ def one_ring(F: np.ndarray, n_vertices: int | None = None) -> sp.csr_matrix:
     topo = edge_topology(F, n_vertices)
     e = topo.edges
     n = topo.n_vertices
-    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    A = symmetric_adjacency(e, n)
     A.sort_indices()
     return A
 

@@ -27,7 +27,7 @@ def ict_path() -> Path | None:
         return p if (p / "generic_neutral_mesh.obj").exists() else None
     here = Path(__file__).resolve()
     for base in [Path.cwd(), *here.parents]:
-        d = base / ".." / "shared" / "data" / "ict-facekit"
+        d = base / ".." / "shared" / "data" / "ict-facekit"  # name-ok: the data folder beside the repo
         if (d / "FaceXModel" / ".complete").exists():
             return (d / "FaceXModel").resolve()
         if (d / "unpack").exists() and (d / "FaceXModel.tar.xz").exists():

@@ -39,6 +39,7 @@ from ..plugins import get_registry
 from ..protocols import (BLENDSHAPES, BlendshapeModel, CompositeModel, CutSelectingModel, FitData, Model,
                          plays)
 from ..runs import make_test_context
+from .model import same
 
 #: the two expressions of the tiny data
 EXPRESSIONS = ["mouth-wide", "face-compression"]
@@ -57,11 +58,6 @@ def tiny_blendshape_data(n_subjects: int = 10, n_vertices: int = 250, expression
     col.positions = X
     return FitData(col.template.with_vertices(pre.mean_neutral), col.select(np.arange(tr)),
                    col.select(np.arange(tr, n_subjects)), ["neutral", *expressions])
-
-
-def _same(a, b, exact: bool, atol: float) -> bool:
-    a, b = np.asarray(a), np.asarray(b)
-    return a.shape == b.shape and (np.array_equal(a, b) if exact else np.allclose(a, b, atol=atol))
 
 
 class BlendshapeModelContract:
@@ -120,15 +116,15 @@ class BlendshapeModelContract:
         both = m.predict_all(N, EXPRESSIONS)
         assert list(both) == EXPRESSIONS
         for e in EXPRESSIONS:
-            assert _same(both[e], m.predict(N, e), self.exact, self.atol), e
+            assert same(both[e], m.predict(N, e), self.exact, self.atol), e
         # with the ground truth as target (how the blendshapes task scores)
         targets = {e: self._val(data, e)[1] for e in EXPRESSIONS}
         with_t = m.predict_all(N, EXPRESSIONS, target=targets)
         for e in EXPRESSIONS:
             assert with_t[e].shape == N.shape and np.all(np.isfinite(with_t[e]))
-            assert _same(with_t[e], m.predict(N, e, target=targets[e]), self.exact, self.atol), e
+            assert same(with_t[e], m.predict(N, e, target=targets[e]), self.exact, self.atol), e
         # one neutral at a time gives the same as the batch
-        assert _same(m.predict(N[:1], e0), P[:1], False, max(self.atol, 1e-5))
+        assert same(m.predict(N[:1], e0), P[:1], False, max(self.atol, 1e-5))
 
     def test_state_round_trip(self, fitted):
         m, data = fitted
@@ -140,7 +136,7 @@ class BlendshapeModelContract:
         assert list(m2.expressions) == list(m.expressions)
         a, b = self._predictions(m, data), self._predictions(m2, data)
         for e in EXPRESSIONS:
-            assert _same(b[e], a[e], self.exact, self.atol), e
+            assert same(b[e], a[e], self.exact, self.atol), e
         if isinstance(m, CutSelectingModel):
             assert m2.k == m.k and m2.sweep == m.sweep
 
@@ -149,7 +145,7 @@ class BlendshapeModelContract:
         again, _ = self._fit(tmp_path, seed=0)
         a, b = self._predictions(m, data), self._predictions(again, data)
         for e in EXPRESSIONS:
-            assert _same(b[e], a[e], self.exact, self.atol), e
+            assert same(b[e], a[e], self.exact, self.atol), e
 
     # ------------------------------------------------------------------ optional roles
     def test_composite_parts(self, fitted):

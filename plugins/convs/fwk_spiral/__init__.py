@@ -38,7 +38,8 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from fwk.errors import RecipeError
-from fwk.graph import memo, spiral_sequences, symmetric_adjacency
+from fwk.cache import content_key, memo
+from fwk.graph import spiral_sequences, symmetric_adjacency
 from fwk.hookspecs import hookimpl
 from fwk.protocols import CONV_BUILD_ARGS
 
@@ -76,7 +77,7 @@ def anchored_spirals(lv, rings: int, dilation: int = 1, length: int | None = Non
     key = (lv.n_vertices, np.asarray(lv.faces, dtype=np.int64), V, rings, dilation, length,
            None if reference is None else tuple(reference),
            None if template_vertices is None or reference is None else np.asarray(template_vertices))
-    return memo(f"{__name__}.spirals", key,
+    return memo(f"{__name__}.spirals", content_key(*key),
                 lambda: _anchored_spirals(lv, V, rings, dilation, length, reference, template_vertices))
 
 

@@ -22,7 +22,8 @@ import torch
 from torch import nn
 
 from fwk.errors import RecipeError
-from fwk.graph import memo, spirals
+from fwk.cache import content_key, memo
+from fwk.graph import spirals
 from fwk.hookspecs import hookimpl
 from fwk.protocols import CONV_BUILD_ARGS
 
@@ -32,7 +33,7 @@ def level_spirals(hierarchy, level: int, length: int, dilation: int) -> np.ndarr
     lv = hierarchy.levels[level]
     if lv.faces is None:
         raise RecipeError("conv spiral++ needs a sampler whose levels are triangle meshes (quadric)")
-    return memo(f"{__name__}.spirals", (lv.n_vertices, np.asarray(lv.faces), length, dilation),
+    return memo(f"{__name__}.spirals", content_key(lv.n_vertices, np.asarray(lv.faces), length, dilation),
                 lambda: spirals(lv.faces, lv.n_vertices, length, dilation))
 
 

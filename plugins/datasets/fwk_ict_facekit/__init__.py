@@ -68,7 +68,7 @@ def default_path() -> str:
     if env:
         return env
     for base in (Path.cwd(), *Path.cwd().parents):
-        d = base / "shared" / "data" / "ict-facekit"
+        d = base / "shared" / "data" / "ict-facekit"  # name-ok: the data folder beside the repo
         if (d / "FaceXModel").exists() or (d / "FaceXModel.tar.xz").exists():
             return str(d / "FaceXModel") if (d / "FaceXModel").exists() else str(d / "FaceXModel.tar.xz")
     return "../shared/data/ict-facekit/FaceXModel"
@@ -131,7 +131,7 @@ class ICTFaceKit:
         if cache is None:
             return build()
         stamp = [(n, (folder / f"{n}.obj").stat().st_size) for n in names]
-        return cache.memmap_array("ict-facekit", (str(folder.resolve()), stamp), build)
+        return cache.memmap_array(self.name, (str(folder.resolve()), stamp), build)
 
     def _region(self, t: Template, folder: Path):
         off = t.poly_offsets

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fwk.cache import memo
 from fwk.data import MeshCollection, Template
 from fwk.errors import RecipeError
 from fwk.hookspecs import hookimpl
@@ -198,21 +199,17 @@ def build_topology(n_vertices: int):
     return _build_cached(int(n_vertices))
 
 
-_TOPO: dict[int, tuple] = {}
-
-
 def _build_cached(n_vertices: int):
-    if n_vertices not in _TOPO:
+    def build():
         guess = n_vertices / 2.0
         for _ in range(3):  # the refinement adds a fraction of the grid's vertices: aim twice
             n_az = max(12, int(round(np.sqrt(guess * 1.25))))
             n_lat = max(8, int(round((guess - 1) / n_az)))
             res = _build(n_lat, n_az)
             guess *= n_vertices / len(res[0])
-        if len(_TOPO) > 8:
-            _TOPO.clear()
-        _TOPO[n_vertices] = res
-    return _TOPO[n_vertices]
+        return res
+
+    return memo(f"{__name__}.topology", n_vertices, build, size=8)
 
 
 def _loft(theta, t, sx=1.0, sy_up=1.0, sy_down=1.0, sz_back=1.0, jaw=1.0, chin_fwd=0.0):
@@ -275,7 +272,7 @@ class SyntheticHeads:
     def load(self, cache=None) -> MeshCollection:
         key = (self.n_subjects, self.n_vertices, tuple(self.shapes), self.seed, self.wrinkles, VERSION)
         if cache is not None:
-            positions = cache.memmap_array("synthetic-heads", key, self._generate)
+            positions = cache.memmap_array(self.name, key, self._generate)
         else:
             positions = self._generate()
         template = self.template()

@@ -46,7 +46,7 @@ import torch
 from torch import nn
 
 from fwk.data import Template
-from fwk.engine import autoencoder_module, fit, seed_everything
+from fwk.engine import autoencoder_module, fit, fit_features, seed_everything
 from fwk.errors import RecipeError
 from fwk.graph import sparse_apply, torch_sparse
 from fwk.hookspecs import hookimpl
@@ -238,11 +238,7 @@ class AE:
 
     # ---- the model roles
     def fit(self, data, ctx) -> None:
-        P, V = data.stack("train"), data.stack("val")
-        self.rep = self.representation.build()
-        self.rep.fit(P, None, data.template)
-        F = torch.as_tensor(self.rep.encode(P))
-        Fv = torch.as_tensor(self.rep.encode(V)) if len(V) else None
+        self.rep, F, Fv = fit_features(self.representation, data)
         self.shape = tuple(F.shape[1:])
         self._template = data.template
         seed_everything(ctx.seed)

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from fwk.engine import TrainConfig, autoencoder_module, fit, predict_batches, seed_everything
+from fwk.engine import TrainConfig, autoencoder_module, fit, fit_features, predict_batches, seed_everything
 from fwk.errors import RecipeError
 from fwk.hookspecs import hookimpl
 from fwk.protocols import RECONSTRUCT
@@ -83,11 +83,7 @@ class MLPVAE:
         return self.latent
 
     def fit(self, data, ctx) -> None:
-        P, V = data.stack("train"), data.stack("val")
-        self.rep = self.representation.build()
-        self.rep.fit(P, None, data.template)
-        F = torch.as_tensor(self.rep.encode(P))
-        Fv = torch.as_tensor(self.rep.encode(V)) if len(V) else None
+        self.rep, F, Fv = fit_features(self.representation, data)
         self.shape = tuple(F.shape[1:])
         seed_everything(ctx.seed)
         self.net = _Net(int(np.prod(self.shape)), self.hidden, self.latent)

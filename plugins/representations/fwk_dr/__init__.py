@@ -50,7 +50,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
-from fwk.cache import content_key
+from fwk.cache import content_key, memo
 from fwk.errors import DataError, RecipeError
 from fwk.geometry import kabsch
 from fwk.geometry.operators import cotangent_laplacian
@@ -59,7 +59,6 @@ from fwk.scaling import Scaler
 
 ALIGN = ("reference", "target")
 REFS = ("mean", "sample")
-_FACTORS: dict = {}  # content hash of (mean, triangles, weight_floor) -> operators
 
 
 def _cross_into(out, a, b):
@@ -113,6 +112,35 @@ def polar(T, iters: int = 30, tol: float = 1e-14):
     return R, S
 
 
+def _operators(mean: np.ndarray, F: np.ndarray, weight_floor: float) -> dict:
+    """What depends on the fitted mean only: the floored cotangent weights of the directed
+    half-edges, the vertex incidence, the factorised weighted Laplacian with one pin per
+    connected component, the vertex-face incidence and the vertex degrees."""
+    n = len(mean)
+    L = cotangent_laplacian(mean, F).tocoo()
+    off = L.row < L.col
+    i, j, c = L.row[off], L.col[off], -L.data[off]
+    floor = weight_floor * np.abs(c).mean()
+    c = np.maximum(c, floor)
+    # directed half-edges (i -> j) both ways
+    hi = np.concatenate([i, j])
+    hj = np.concatenate([j, i])
+    hc = np.concatenate([c, c])
+    inc = sp.csr_matrix((np.ones(len(hi)), (hi, np.arange(len(hi)))), shape=(n, len(hi)))
+    W = sp.coo_matrix((hc, (hi, hj)), shape=(n, n)).tocsr()
+    Lc = (sp.diags(np.asarray(W.sum(1)).ravel()) - W).tolil()
+    _, labels = connected_components(W, directed=False)
+    pins = np.array([np.flatnonzero(labels == k)[0] for k in range(labels.max() + 1)])
+    for p in pins:
+        Lc.rows[p] = [p]
+        Lc.data[p] = [1.0]
+    lu = splu(Lc.tocsc(), permc_spec="COLAMD")
+    m = len(F)
+    vf = sp.csr_matrix((np.ones(3 * m), (F.ravel(), np.repeat(np.arange(m), 3))), shape=(n, m))
+    deg = np.maximum(np.asarray(inc.sum(1)).ravel(), 1)
+    return {"hi": hi, "hj": hj, "hc": hc, "inc": inc, "lu": lu, "pins": pins, "vf": vf, "deg": deg}
+
+
 class DR:
     """Deformation representation: per-vertex log-rotation and stretch (9 channels)."""
 
@@ -140,36 +168,8 @@ class DR:
         self._mean_terms = None
         self.mean = np.asarray(mean, dtype=np.float64)
         self.F = np.asarray(F, dtype=np.int64)
-        key = content_key(self.mean, self.F, self.weight_floor)
-        if key in _FACTORS:
-            self._ops = _FACTORS[key]
-            return
-        n = len(self.mean)
-        L = cotangent_laplacian(self.mean, self.F).tocoo()
-        off = L.row < L.col
-        i, j, c = L.row[off], L.col[off], -L.data[off]
-        floor = self.weight_floor * np.abs(c).mean()
-        c = np.maximum(c, floor)
-        # directed half-edges (i -> j) both ways
-        hi = np.concatenate([i, j])
-        hj = np.concatenate([j, i])
-        hc = np.concatenate([c, c])
-        inc = sp.csr_matrix((np.ones(len(hi)), (hi, np.arange(len(hi)))), shape=(n, len(hi)))
-        W = sp.coo_matrix((hc, (hi, hj)), shape=(n, n)).tocsr()
-        Lc = (sp.diags(np.asarray(W.sum(1)).ravel()) - W).tolil()
-        _, labels = connected_components(W, directed=False)
-        pins = np.array([np.flatnonzero(labels == k)[0] for k in range(labels.max() + 1)])
-        for p in pins:
-            Lc.rows[p] = [p]
-            Lc.data[p] = [1.0]
-        lu = splu(Lc.tocsc(), permc_spec="COLAMD")
-        m = len(self.F)
-        vf = sp.csr_matrix((np.ones(3 * m), (self.F.ravel(), np.repeat(np.arange(m), 3))), shape=(n, m))
-        deg = np.maximum(np.asarray(inc.sum(1)).ravel(), 1)
-        self._ops = {"hi": hi, "hj": hj, "hc": hc, "inc": inc, "lu": lu, "pins": pins, "vf": vf, "deg": deg}
-        if len(_FACTORS) >= 8:
-            _FACTORS.pop(next(iter(_FACTORS)))
-        _FACTORS[key] = self._ops
+        self._ops = memo(f"{__name__}.operators", content_key(self.mean, self.F, self.weight_floor),
+                         lambda: _operators(self.mean, self.F, self.weight_floor), size=8)
 
     def _ref_terms(self, ref):
         """What depends on the reference only: its edges e (r, h, 3), normals n0, the one-ring
