@@ -109,7 +109,8 @@ def naive_fmpd_roughness(V, F):
             a = math.atan2(np.linalg.norm(np.cross(u, v)), np.dot(u, v))
             ang_sum[i] += a
             key = tuple(sorted((int(j), int(l))))
-            W[key] = W.get(key, 0.0) + 0.5 / math.tan(a)
+            # each corner's cot/2 clamped before the corners of an edge are summed (authors' code)
+            W[key] = W.get(key, 0.0) + min(max(0.5 / math.tan(a), 0.001), 1000)
             edge_faces[key] = edge_faces.get(key, 0) + 1
         A = 0.5 * np.linalg.norm(np.cross(V[f[1]] - V[f[0]], V[f[2]] - V[f[0]]))
         for k in range(3):
@@ -123,7 +124,6 @@ def naive_fmpd_roughness(V, F):
     for i in range(n):
         d = s = 0.0
         for (a, b), w in W.items():
-            w = min(max(w, 0.001), 1000)
             if a == i:
                 d += w
                 s += w * K[b]
