@@ -1,4 +1,5 @@
-"""Metric ``dame``: Dihedral Angle Mesh Error (Váša & Rus 2012; thesis 3.3.10, 4.7.1).
+"""Metric ``dame``: fwk's DAME-style dihedral-angle error, after Váša & Rus's Dihedral Angle
+Mesh Error (2012; thesis 3.3.10, 4.7.1) with a masking of fwk's own (see below).
 
 For meshes sharing one connectivity, on every interior manifold edge e between faces f1, f2
 (the edge running a -> b in f1) the *oriented* dihedral angle is
@@ -30,6 +31,9 @@ nor any implementation. Also ours: the normalisation by the total weight (the pa
 edges with a visibility weight; dividing by the summed areas is what makes the area variant
 scale invariant) and the roughness measured on the target mesh only.
 DAME is invariant to rigid motion and uniform scale, and is zero for identical meshes.
+How much its values and rankings depend on these choices (masking scale and form, weights,
+roughness source) is measured by ``benchmarks/dame_sensitivity.py`` and reported in
+docs/methods/metrics.md: values move by tens of per cent, rankings less.
 
 Implementation: every topology-dependent structure (interior edges, their faces, the sparse
 edge -> edge roughness stencil and vertex <- edge averaging) is built once per topology and
@@ -128,7 +132,7 @@ def wrap(x):
 
 
 class DAME:
-    """Dihedral Angle Mesh Error (perceptual; shared connectivity; radians)."""
+    """DAME-style dihedral angle mesh error (perceptual, fwk's masking; shared connectivity; radians)."""
 
     name = "dame"
     label = "DAME"
