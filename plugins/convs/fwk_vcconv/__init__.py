@@ -19,7 +19,10 @@ otherwise the vertices within ``radius`` hops, and the non-zeros of ``Hierarchy.
   neighbourhood contains i.
 
 With ``residual_rate`` r the block adds a residual path (Zhou et al.'s up/down residual layers):
-y = sqrt(1 - r) conv(x) + sqrt(r) res(x), where res averages the input over the same support
+y = sqrt(1 - r) act(conv(x)) + sqrt(r) res(x), the activation on the conv branch only, as the
+thesis (l. 1787) and Zhou et al.'s reference (MeshConvolution ``graphAE.py``) compute it; without a
+residual path y = act(conv(x)); ``act`` is the ``activation`` module the model supplies (None: the
+identity). res averages the input over the same support
 with learned non-negative weights normalised to sum to one (|w_ij| / sum_j |w_ij|; the identity
 when the vertex count is unchanged) followed by a linear channel map when c_in != c_out.
 Neighbourhoods are padded to a fixed size with a mask; everything is one gather and two matrix
@@ -76,7 +79,8 @@ class VCConv(nn.Module):
 
         y_i = b + sum_{j in N(i)} sum_{m=1}^{M} A_ijm B_m^T x_j
 
-    and with a residual rate r: y = sqrt(1 - r) y + sqrt(r) R(sum_{j in N(i)} w~_ij x_j),
+    then y = act(y) (``activation``, None: the identity), and with a residual rate r:
+    y = sqrt(1 - r) act(y) + sqrt(r) R(sum_{j in N(i)} w~_ij x_j),
     w~_ij = |w_ij| / sum_j |w_ij| (learned; the identity when ``mode="same"``), R a linear
     channel map (no bias) when c_in != c_out, else the identity.
 
@@ -91,6 +95,8 @@ class VCConv(nn.Module):
         mode (str): ``same``, ``down`` (strided) or ``up`` (transposed).
         radius (int): hops of the support where the sampler defines no neighbourhoods.
         residual_rate (float or None): r in [0, 1]; None: no residual path.
+        activation (torch.nn.Module or None): applied to the conv branch before the residual mix;
+            supplied by the model like the build arguments (not a recipe key); None: no activation.
         order (str): evaluation order of the same sum: ``auto`` (fewer multiply-adds), ``sum``
             or ``kernel`` (see ``forward``); the numbers agree to rounding.
 
@@ -108,7 +114,8 @@ class VCConv(nn.Module):
     strided = True
 
     def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0, weight_num: int = 35,
-                 mode: str = "same", radius: int = 2, residual_rate: float | None = None, order: str = "auto"):
+                 mode: str = "same", radius: int = 2, residual_rate: float | None = None, order: str = "auto",
+                 activation: nn.Module | None = None):
         super().__init__()
         if mode not in MODES:
             raise RecipeError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
@@ -117,6 +124,7 @@ class VCConv(nn.Module):
         if residual_rate is not None and not 0.0 <= residual_rate <= 1.0:
             raise RecipeError(f"residual_rate: expected a number in [0, 1], got {residual_rate}")
         self.order = order
+        self.activation = activation  # a module (no parameters: the state_dict is unchanged) or None
         idx, mask, self.n_in, self.n_out = support(hierarchy, level, mode, radius)
         self.register_buffer("index", torch.as_tensor(idx, dtype=torch.long))
         self.register_buffer("mask", torch.as_tensor(mask, dtype=torch.float32))
@@ -167,6 +175,8 @@ class VCConv(nn.Module):
             T = torch.bmm(A.transpose(1, 2), X.reshape(n, K, b * c))
             T = T.reshape(n, M, b, c).permute(2, 0, 1, 3).reshape(b * n, M * c)
             y = (T @ self.basis.reshape(M * c, -1)).reshape(b, n, -1) + self.bias
+        if self.activation is not None:
+            y = self.activation(y)
         if self.r is None:
             return y
         if self.res_w is None:
