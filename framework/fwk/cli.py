@@ -12,6 +12,7 @@ import sys
 import textwrap
 
 from .apply import add_apply_parser, run_apply
+from .engine.threads import ENV_THREADS, register
 from .errors import FwkError
 from .evaluation.cli_eval import add_eval_parser, run_eval
 from .evaluation.cli_report import add_report_parser, run_report
@@ -28,6 +29,17 @@ EXTRA_COMMANDS = {
     "sample": (add_sample_parser, run_sample),
     "apply": (add_apply_parser, run_apply),
 }
+
+
+#: Subcommands that compute: their processes register, so that concurrent fwk processes share
+#: the cores (fwk.engine.threads) instead of oversubscribing them.
+COMPUTING = ("run", "eval", "sample", "apply")
+
+
+def _threads(value: str) -> str:
+    if value != "auto" and not (value.isdigit() and int(value) >= 1):
+        raise argparse.ArgumentTypeError(f"expected a number of threads >= 1 or auto, got {value!r}")
+    return value
 
 
 def cmd_list(args) -> int:
@@ -106,6 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="fwk", description="Deep 3D morphable models of registered face meshes.")
     p.add_argument("--debug", action="store_true", help="show tracebacks of errors")
     p.add_argument("--quiet", action="store_true", help="no progress bars or messages")
+    p.add_argument("--threads", type=_threads, metavar="N",
+                   help=f"threads per process (sets ${ENV_THREADS}); default: the cores shared among the "
+                        "live fwk processes, or $OMP_NUM_THREADS where set")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     sp = sub.add_parser("list", help="list registered components")
@@ -152,10 +167,21 @@ def main(argv=None) -> int:
     if debug:
         argv.remove("--debug")
         argv.insert(0, "--debug")
+    for i, a in enumerate(argv):  # accept --threads N / --threads=N anywhere
+        if a == "--threads" and i > 0 and i + 1 < len(argv):
+            argv[:0] = [argv.pop(i), argv.pop(i)]
+            break
+        if a.startswith("--threads=") and i > 0:
+            argv.insert(0, argv.pop(i))
+            break
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.quiet:
         os.environ["FWK_QUIET"] = "1"
+    if args.threads:
+        os.environ[ENV_THREADS] = args.threads
+    if args.command in COMPUTING:
+        register()  # counted by other fwk processes until this one exits
     try:
         status = int(args.func(args) or 0)
         sys.stdout.flush()  # a reader that went away shows here, not at exit

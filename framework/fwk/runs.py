@@ -26,12 +26,13 @@ from tqdm.auto import tqdm
 from . import __version__
 from .cache import Cache, atomic_write_bytes
 from .engine.config import TrainConfig
+from .engine.threads import register
 from .errors import FwkError
 from .plugins import get_registry
 from .recipes import Spec, load_recipe, make_spec, resolve, to_plain
 from .registry import Registry
 
-SCOPED = ("checkpoints", "tb")
+SCOPED = ("checkpoints", "tb", "curves")  # per network, under the model's label
 
 
 def _default_device() -> str:
@@ -225,8 +226,10 @@ def run_task(resolved, ctx: RunContext) -> None:
 def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str | None = None,
             resume: str | None = None, quiet: bool = False, registry: Registry | None = None,
             cache: Cache | None = None, device: str | None = None) -> Path:
-    """``fwk run``: validate everything first, then create the run directory and run."""
+    """``fwk run``: validate everything first, then create the run directory and run. The process
+    registers among those that share the cores (``fwk.engine.threads``)."""
     registry = registry or get_registry()
+    register()
     if resume:
         run_dir = Path(resume)
         if not (run_dir / "recipe.yaml").exists():

@@ -8,6 +8,10 @@
 * Adam with per-epoch exponential learning-rate decay (``make_optimizer``);
 * validation and a checkpoint every epoch (``checkpoints/<name>/last.ckpt`` plus the newest ``keep_checkpoints`` epoch files);
 * TensorBoard scalars under ``tb/<name>/``; a progress bar on a terminal unless quiet;
+* the per-epoch train and validation losses and why training ended (``max_epochs`` or the
+  optional ``early_stopping`` rule on validation loss, and at which epoch) in
+  ``curves/<name>.json``, written every epoch; the reports draw them;
+* torch's thread count shared among the live fwk processes, re-checked every epoch;
 * CUDA when available (``accelerator: auto``); several devices and DDP are settings
   (``devices``, ``strategy``), not a rewrite;
 * modules with several optimisers (Deep Spectral Meshes: one Adam per band) use Lightning's
@@ -19,15 +23,19 @@
 
 Modules:
 
-* ``config``: ``TrainConfig``, the recipe's ``train:`` section (imports neither torch nor Lightning);
+* ``config``: ``TrainConfig``, the recipe's ``train:`` section, and its ``EarlyStopping`` rule
+  (imports neither torch nor Lightning);
+* ``threads``: how many threads a process computes with (the cores shared by the live fwk
+  processes; ``FWK_THREADS`` / ``OMP_NUM_THREADS`` override), no torch at import;
 * ``loading``: ``EpochSampler``, ``make_loader``, ``fit_features`` (a representation fitted, its features);
 * ``trainer``: ``fit``, ``seed_everything``, ``make_optimizer``, ``predict_batches``;
-* ``callbacks``: ``RNGState``, ``ManualSchedulers`` (the Lightning callbacks ``fit`` adds);
+* ``callbacks``: ``RNGState``, ``ManualSchedulers``, ``ThreadShare``, ``TrainingCurves`` (the
+  Lightning callbacks ``fit`` adds);
 * ``modules``: ``LossModule``, ``AutoencoderModule`` (the LightningModules of the built-in models);
 * ``factories``: ``loss_module``, ``autoencoder_module`` (their call forms for plugins);
 * ``variational``: ``kl_divergence``, ``reparameterize``.
 
-Every name is importable from ``fwk.engine``. Only ``TrainConfig`` is imported with the package;
+Every name is importable from ``fwk.engine``. Only ``TrainConfig`` and ``EarlyStopping`` are imported with the package;
 the others load their module on first access (PEP 562): torch costs ~1 s and Lightning ~2.2 s
 more of import time (measured with ``python -X importtime``), and ``fwk.recipes`` / ``fwk.runs``,
 which ``fwk list`` and ``fwk --help`` load, import ``TrainConfig`` from here.
@@ -37,10 +45,10 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
-from .config import TrainConfig
+from .config import EarlyStopping, TrainConfig
 
 if TYPE_CHECKING:  # what the lazy names below are, for type checkers and editors
-    from .callbacks import ManualSchedulers, RNGState
+    from .callbacks import ManualSchedulers, RNGState, ThreadShare, TrainingCurves
     from .factories import autoencoder_module, loss_module
     from .loading import EpochSampler, fit_features, make_loader
     from .modules import AutoencoderModule, LossModule
@@ -51,7 +59,7 @@ if TYPE_CHECKING:  # what the lazy names below are, for type checkers and editor
 _HOME = {
     "EpochSampler": "loading", "make_loader": "loading", "fit_features": "loading",
     "fit": "trainer", "make_optimizer": "trainer", "seed_everything": "trainer", "predict_batches": "trainer",
-    "RNGState": "callbacks", "ManualSchedulers": "callbacks",
+    "RNGState": "callbacks", "ManualSchedulers": "callbacks", "ThreadShare": "callbacks", "TrainingCurves": "callbacks",
     "LossModule": "modules", "AutoencoderModule": "modules",
     "loss_module": "factories", "autoencoder_module": "factories",
     "kl_divergence": "variational", "reparameterize": "variational",
@@ -59,7 +67,7 @@ _HOME = {
 
 __all__ = ["TrainConfig", "fit", "fit_features", "make_optimizer", "seed_everything", "predict_batches", "make_loader", "EpochSampler",
            "kl_divergence", "reparameterize", "autoencoder_module", "loss_module", "LossModule", "AutoencoderModule",
-           "RNGState", "ManualSchedulers"]
+           "RNGState", "ManualSchedulers", "ThreadShare", "TrainingCurves", "EarlyStopping"]
 
 
 def __getattr__(name: str):

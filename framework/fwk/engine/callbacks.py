@@ -1,11 +1,20 @@
-"""The Lightning callbacks ``fit`` adds to every training: exact resume and manual schedulers."""
+"""The Lightning callbacks ``fit`` adds to every training: exact resume, manual schedulers,
+thread sharing, and the training curves with the optional stopping rule."""
 from __future__ import annotations
 
+import json
+import math
 import random
+import time
+from pathlib import Path
 
 import lightning.pytorch as pl
 import numpy as np
 import torch
+
+from ..cache import atomic_write_bytes
+from ..errors import RecipeError
+from .threads import apply_threads
 
 
 def _rng_state() -> dict:
@@ -52,3 +61,141 @@ class ManualSchedulers(pl.Callback):
         for c, seen in zip(trainer.lr_scheduler_configs, self._seen):
             if c.interval == "epoch" and not c.reduce_on_plateau and c.scheduler.last_epoch == seen:
                 c.scheduler.step()
+
+
+class ThreadShare(pl.Callback):
+    """At the start of every epoch, size torch's threads by ``fwk.engine.threads``' rule (the
+    cores shared among the live fwk processes, or the explicit ``FWK_THREADS`` /
+    ``OMP_NUM_THREADS``); a change is reported through ``log``."""
+
+    def __init__(self, log=None):
+        self.log = log
+
+    def on_train_epoch_start(self, trainer, module):
+        n, why, changed = apply_threads()
+        if changed and self.log is not None:
+            self.log(f"threads: {n} ({why})")
+
+
+def stopping_rule(values, patience: int, min_delta: float) -> dict:
+    """The early-stopping rule over the monitored values of epochs 1..E (in order): the best
+    value so far counts as improved upon when a value falls below it by more than ``min_delta``;
+    training stops at the first epoch after which ``patience`` epochs in a row brought no
+    improvement, or at a non-finite value. Returns {stop, reason, epoch (1-based, where it
+    stopped, else None), wait (epochs without improvement at the end), best (the rule's
+    reference value)}."""
+    best, wait = None, 0
+    for e, v in enumerate(values, start=1):
+        if v is None or not math.isfinite(v):
+            return {"stop": True, "reason": "non-finite", "epoch": e, "wait": wait, "best": best}
+        if best is None or v < best - min_delta:
+            best, wait = v, 0
+        else:
+            wait += 1
+        if wait >= patience:
+            return {"stop": True, "reason": "no improvement", "epoch": e, "wait": wait, "best": best}
+    return {"stop": False, "reason": None, "epoch": None, "wait": wait, "best": best}
+
+
+class TrainingCurves(pl.Callback):
+    """The per-epoch losses of one network, the stopping rule, and their record.
+
+    At the end of every epoch (after validation, before the checkpoint) it records every scalar
+    the module logged whose name starts with ``train_`` or ``val_`` (epoch means where logged
+    per epoch), the epoch's wall time and thread count; applies ``rule`` (an ``EarlyStopping``,
+    or None) to the monitored values of all epochs so far, setting ``trainer.should_stop``; and
+    writes ``path`` (JSON, atomically). The history and the decision are stored in every
+    checkpoint (``fwk_curves``) and restored on resume, so a resumed run stops where an
+    uninterrupted one does and its record is the same (but for wall times).
+    """
+
+    def __init__(self, path, network: str, max_epochs: int, rule=None, note: str | None = None):
+        self.path = Path(path)
+        self.network, self.max_epochs, self.rule, self.note = network, int(max_epochs), rule, note
+        self.history: list[dict] = []
+        self.stop: dict | None = None
+        self._t0 = None
+
+    # state ------------------------------------------------------------------------
+    def state(self) -> dict:
+        """What a checkpoint stores: the history and the rule's decision."""
+        return {"history": [dict(h) for h in self.history], "stop": dict(self.stop) if self.stop else None}
+
+    def restore(self, state: dict) -> "TrainingCurves":
+        """Take the history and decision of a checkpoint's ``fwk_curves``."""
+        self.history = [dict(h) for h in state.get("history", [])]
+        self.stop = dict(state["stop"]) if state.get("stop") else None
+        return self
+
+    def on_save_checkpoint(self, trainer, module, checkpoint):
+        checkpoint["fwk_curves"] = self.state()
+
+    def on_load_checkpoint(self, trainer, module, checkpoint):
+        if checkpoint.get("fwk_curves"):
+            self.restore(checkpoint["fwk_curves"])
+
+    # recording --------------------------------------------------------------------
+    def on_train_epoch_start(self, trainer, module):
+        self._t0 = time.perf_counter()
+
+    def on_train_epoch_end(self, trainer, module):
+        epoch = trainer.current_epoch + 1  # `completed` is incremented after this hook
+        rec = {"epoch": epoch}
+        for key, value in sorted(trainer.callback_metrics.items()):
+            if key.startswith(("train_", "val_")) and (not torch.is_tensor(value) or value.numel() == 1):
+                rec[key] = float(value)
+        rec["seconds"] = round(time.perf_counter() - self._t0, 3) if self._t0 is not None else None
+        rec["threads"] = torch.get_num_threads()
+        # a resumed epoch replaces whatever a killed run had recorded for it
+        self.history = [h for h in self.history if h["epoch"] < epoch] + [rec]
+        if self.rule is not None:
+            if self.rule.monitor not in rec:
+                logged = ", ".join(k for k in rec if k.startswith(("train_", "val_"))) or "nothing"
+                raise RecipeError(f"train.early_stopping.monitor: {self.network} logs no {self.rule.monitor!r} "
+                                  f"(logged: {logged})")
+            d = stopping_rule([h.get(self.rule.monitor) for h in self.history], self.rule.patience,
+                              self.rule.min_delta)
+            if d["stop"]:
+                self.stop = {"epoch": d["epoch"], "reason": d["reason"]}
+                trainer.should_stop = True
+        self.write()
+
+    # the record -------------------------------------------------------------------
+    def summary(self) -> dict:
+        """The JSON record: settings, per-epoch values, why training ended, the best epoch."""
+        monitor = self.rule.monitor if self.rule is not None else "val_loss"
+        values = [(h["epoch"], h.get(monitor)) for h in self.history]
+        finite = [(e, v) for e, v in values if v is not None and math.isfinite(v)]
+        best_epoch, best = min(finite, key=lambda ev: ev[1]) if finite else (None, None)
+        run = len(self.history)
+        if self.stop:
+            stopped_by = "early_stopping"
+        elif run >= self.max_epochs:
+            stopped_by = "max_epochs"
+        else:
+            stopped_by = None  # still training, or killed
+        rule = None
+        if self.rule is not None:
+            rule = {"patience": self.rule.patience, "min_delta": self.rule.min_delta, "monitor": self.rule.monitor}
+        return {
+            "network": self.network,
+            "max_epochs": self.max_epochs,
+            "early_stopping": rule,
+            "note": self.note,
+            "monitor": monitor,
+            "epochs_run": run,
+            "finished": stopped_by is not None,
+            "stopped_by": stopped_by,
+            "stop_reason": self.stop["reason"] if self.stop else None,
+            "stopped_epoch": (self.stop["epoch"] if self.stop else run) if stopped_by else None,
+            "best_epoch": best_epoch,
+            "best_val_loss": best,
+            "epochs": self.history,
+        }
+
+    def write(self) -> Path:
+        """Write the record to ``path`` (atomically)."""
+        text = json.dumps(self.summary(), indent=1, allow_nan=True) + "\n"
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(self.path, text.encode())
+        return self.path

@@ -14,6 +14,7 @@ import torch
 from ..errors import DataError
 from .config import TrainConfig
 from .loading import make_loader
+from .threads import apply_threads, register
 
 
 def seed_everything(seed: int) -> None:
@@ -38,7 +39,7 @@ def _quiet_lightning():
                 ".*TensorBoard.*", ".*smaller than the logging interval.*", ".*Checkpoint directory.*exists.*",
                 ".*predict_dataloader.*", ".*sync_dist.*", ".*GPU available but not used.*", ".*_pytree.*",
                 ".*Precision.*", ".*treespec.*", ".*litlogger.*", ".*does not have a deterministic implementation.*",
-                ".*lr_scheduler.step.*", ".*weights_only.*"):
+                ".*lr_scheduler.step.*", ".*weights_only.*", ".*no `val_dataloader`.*"):
         warnings.filterwarnings("ignore", message=pat)
 
 
@@ -65,6 +66,20 @@ def _resume_point(ckdir: Path):
     return None, None
 
 
+def _stopped_early(ck: dict) -> bool:
+    """Whether the stopping rule ended the training this checkpoint saved."""
+    return bool((ck.get("fwk_curves") or {}).get("stop"))
+
+
+def network_name(ctx, name: str) -> str:
+    """How reports name the network ``fit`` trains as ``name`` in ``ctx``: the context's scope
+    (the model's label) and ``name``, once where they agree (``pca``, ``pbs``, ``pb/pb-step2``)."""
+    scope = ctx.scope
+    if not scope:
+        return name
+    return scope if scope.rsplit("/", 1)[-1] == name else f"{scope}/{name}"
+
+
 def _epochs_done(ck: dict) -> int:
     try:
         return int(ck["loops"]["fit_loop"]["epoch_progress"]["current"]["processed"])
@@ -76,6 +91,12 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     """Train ``module`` (a LightningModule) on ``train`` (tensors or a Dataset), validating on
     ``val`` (or None) every epoch; checkpoints under ``ctx.path('checkpoints', name)``.
     Returns the module, in eval mode.
+
+    ``config.early_stopping`` (an ``EarlyStopping``) ends training before ``config.epochs``
+    once the validation loss stops improving (without validation data it is not applied).
+    The per-epoch losses and why training ended are written to ``curves/<scope>/<name>.json``
+    every epoch (``TrainingCurves``); torch's thread count follows ``fwk.engine.threads``,
+    re-checked every epoch.
 
     The module reads its settings from ``module.train_config`` (set here) in
     ``configure_optimizers`` (use ``make_optimizer``; return a list of them, one per optimiser,
@@ -93,36 +114,56 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
     from lightning.pytorch.loggers import TensorBoardLogger
 
-    from .callbacks import ManualSchedulers, RNGState
+    from .callbacks import ManualSchedulers, RNGState, ThreadShare, TrainingCurves
 
     _quiet_lightning()
     config = config or ctx.train
     module.train_config = config
     ckdir = ctx.path("checkpoints", name, "x").parent
     tbdir = ctx.path("tb", name, "x").parent
+    network = network_name(ctx, name)
+
+    def curves(rule=config.early_stopping, note=None):
+        return TrainingCurves(ctx.path("curves", f"{name}.json"), network, config.epochs, rule, note)
+
     ckpt_path = None
     if ctx.resume:
         ckpt_path, ck = _resume_point(ckdir)
-        if ck is not None and _epochs_done(ck) >= config.epochs:
+        if ck is not None and (_epochs_done(ck) >= config.epochs or _stopped_early(ck)):
             module.on_load_checkpoint(ck)  # a LightningModule hook: no-op unless the module overrides it
             module.load_state_dict(ck["state_dict"])
+            if ck.get("fwk_curves"):  # the record, as the finished training left it
+                curves().restore(ck["fwk_curves"]).write()
             module.eval()
             return module
     else:
         for p in list(ckdir.glob("*.ckpt")):
             p.unlink()
+        ctx.path("curves", f"{name}.json").unlink(missing_ok=True)
+    register()  # this process counts among those that share the cores (fwk.engine.threads)
+    n, why, changed = apply_threads()
+    if changed:
+        ctx.log(f"threads: {n} ({why})")
     seed_everything(ctx.seed)
     train_loader = make_loader(train, config.batch_size, ctx.seed, True, config.num_workers)
     if train_loader is None:
         raise DataError(f"{name}: no training samples")
     val_loader = make_loader(val, config.batch_size, ctx.seed, False, config.num_workers)
+    if config.early_stopping is not None and val_loader is None:
+        note = "no validation data: train.early_stopping not applied"
+        ctx.log(f"{network}: {note}")
+        recorder = curves(None, note)
+    else:
+        recorder = curves()
     accelerator = config.accelerator
     if accelerator == "auto" and ctx.device == "cpu":
         accelerator = "cpu"
     on_cpu = accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
     checkpoint = ModelCheckpoint(dirpath=ckdir, filename="epoch{epoch:03d}", auto_insert_metric_name=False,
                                  save_last=True, save_top_k=max(1, config.keep_checkpoints), monitor="epoch",
-                                 mode="max", every_n_epochs=1, save_on_train_epoch_end=val_loader is None)
+                                 mode="max", every_n_epochs=1,
+                                 # at the end of the epoch, after TrainingCurves' record and decision
+                                 save_on_train_epoch_end=True)
     show_bar = not ctx.quiet and sys.stderr.isatty()
     det = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
     try:
@@ -134,7 +175,8 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
                 # bit-exact on CPU; on GPUs some scatter kernels have no deterministic variant
                 deterministic=True if on_cpu else "warn",
                 logger=TensorBoardLogger(str(tbdir), name="", version=""),
-                callbacks=[checkpoint, LearningRateMonitor("epoch"), RNGState(), ManualSchedulers()],
+                callbacks=[checkpoint, LearningRateMonitor("epoch"), RNGState(), ManualSchedulers(),
+                           ThreadShare(ctx.log), recorder],
                 enable_progress_bar=show_bar, enable_model_summary=False,
                 log_every_n_steps=config.log_every_n_steps, num_sanity_val_steps=0, default_root_dir=str(ckdir),
                 use_distributed_sampler=False,

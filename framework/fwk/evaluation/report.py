@@ -6,6 +6,7 @@ from pathlib import Path
 
 from ..registry import Registry
 from .core import evaluate
+from .curves import training_section, training_summary
 from .plots import scatter_pareto
 from .presentation import bare_unit, display, figure_metrics, format_value
 from .render import colour_limits, render_grid
@@ -98,6 +99,12 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
                  sections: list[tuple[str, str]] | None = None, registry: Registry | None = None) -> Path:
     """Write ``metrics.json`` (``results`` plus figure paths and notes) and ``report.md``.
 
+    Every network the run trained (``curves/`` of the run and its sub-runs, written by
+    ``fwk.engine.fit``) gets a row in the "Training" section, with epochs run, why training
+    ended, the best validation loss and whether it reached a plateau, and the figure of its
+    validation and train losses per epoch; metrics.json holds the same under ``training``
+    (``fwk.evaluation.curves``). Without curves an earlier ``training`` in ``results`` is kept.
+
     ``ctx`` is a run context (or anything with ``run_dir``, ``path``, ``write_json`` and
     ``write_text``); ``registry`` gives the metrics' display attributes (default: the
     process-wide registry)."""
@@ -105,6 +112,9 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
     results = dict(results)
     results["figures"] = {k: _relative(v, ctx.run_dir) for k, v in figures.items()}
     results["notes"] = list(notes or [])
+    training = training_summary(ctx, lambda p: _relative(p, ctx.run_dir))
+    if training is not None:
+        results["training"] = training
     ctx.write_json("metrics.json", results)
     units = results.get("dataset", {}).get("units", "")
     parts = [f"# {title}", ""]
@@ -124,6 +134,8 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
         rows = [[k, *(f"{v:.3g}" for v in t.values())] for k, t in results["timing"].items()]
         cols = ["model", *next(iter(results["timing"].values())).keys()]
         parts.append("\n## Time (seconds)\n\n" + markdown_table(rows, cols))
+    if results.get("training", {}).get("networks"):
+        parts.append("\n## Training\n\n" + training_section(results["training"]))
     for head, text in sections or []:
         parts.append(f"\n## {head}\n\n{text}")
     if figures:

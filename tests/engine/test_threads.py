@@ -1,0 +1,178 @@
+"""fwk.engine.threads: the live fwk processes share the cores (no timing assertions)."""
+import json
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from fwk.engine import threads
+from fwk.engine.threads import apply_threads, live_processes, register, runtime_dir, thread_budget, unregister
+from fwk.errors import FwkError
+
+NOENV = {}  # neither FWK_THREADS nor OMP_NUM_THREADS
+
+
+@pytest.fixture
+def procs(tmp_path, monkeypatch):
+    d = tmp_path / "procs"
+    monkeypatch.setenv("FWK_RUNTIME_DIR", str(d))
+    yield d
+    unregister()
+
+
+@pytest.fixture
+def torch_threads():
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
+def _registered_child(d):
+    """Another process, registered the way fwk registers, alive until killed."""
+    code = ("import sys, time; from pathlib import Path; from fwk.engine.threads import register; "
+            "register(Path(sys.argv[1])); print('ready', flush=True); time.sleep(120)")
+    p = subprocess.Popen([sys.executable, "-c", code, str(d)], stdout=subprocess.PIPE, text=True)
+    assert p.stdout.readline().strip() == "ready"
+    return p
+
+
+def test_two_registrations_halve_the_cores(procs):
+    register()
+    assert live_processes() == [os.getpid()]
+    assert thread_budget(NOENV, cores=4) == (4, "1 fwk process on 4 cores")
+    child = _registered_child(procs)
+    try:
+        assert live_processes() == sorted([os.getpid(), child.pid])
+        assert thread_budget(NOENV, cores=4) == (2, "2 fwk processes on 4 cores")
+        assert thread_budget(NOENV, cores=2)[0] == 1
+        assert thread_budget(NOENV, cores=3)[0] == 1  # 3 // 2
+        assert thread_budget(NOENV, cores=1)[0] == 1  # never 0
+    finally:
+        child.kill()
+        child.wait()
+    # the child died without unregistering: ignored, and its file removed
+    assert thread_budget(NOENV, cores=4)[0] == 4
+    assert sorted(p.name for p in procs.iterdir()) == [str(os.getpid())]
+
+
+def test_an_unregistered_process_counts_itself(procs):
+    child = _registered_child(procs)
+    try:
+        assert thread_budget(NOENV, cores=4)[0] == 2  # the child and this process
+    finally:
+        child.kill()
+        child.wait()
+    assert thread_budget(NOENV, cores=4)[0] == 4
+
+
+def test_dead_and_reused_pids_are_ignored_and_removed(procs):
+    procs.mkdir(parents=True)
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    (procs / str(gone.pid)).write_text(f"{gone.pid} 1\n")  # exited
+    ppid = os.getppid()
+    (procs / str(ppid)).write_text(f"{ppid} 1\n")  # alive, but started later than tick 1: a reused pid
+    (procs / "123abc").write_text("junk")  # not a registration: left alone
+    (procs / "77").write_text("garbage")  # unreadable registration: removed
+    assert live_processes() == []
+    assert thread_budget(NOENV, cores=2, directory=procs)[0] == 2
+    assert sorted(p.name for p in procs.iterdir()) == ["123abc"]
+
+
+def test_register_is_idempotent_and_unregister_removes_the_file(procs):
+    a = register()
+    assert register() == a and a.read_text().split()[0] == str(os.getpid())
+    unregister()
+    assert not a.exists()
+    unregister()  # twice is fine
+
+
+def test_explicit_counts_win():
+    assert thread_budget({"FWK_THREADS": "3", "OMP_NUM_THREADS": "1"}, cores=2, live=2) == (3, "FWK_THREADS=3")
+    assert thread_budget({"OMP_NUM_THREADS": "1"}, cores=8, live=1) == (1, "OMP_NUM_THREADS=1")
+    assert thread_budget({"OMP_NUM_THREADS": "4,2"}, cores=8, live=1)[0] == 4  # one value per nesting level
+    assert thread_budget({"FWK_THREADS": "auto"}, cores=8, live=2)[0] == 4
+    assert thread_budget({"OMP_NUM_THREADS": "nonsense"}, cores=8, live=2)[0] == 4
+    for bad in ("0", "-1", "x"):
+        with pytest.raises(FwkError, match="FWK_THREADS"):
+            thread_budget({"FWK_THREADS": bad}, cores=8, live=1)
+
+
+def test_runtime_dir(monkeypatch, tmp_path):
+    monkeypatch.delenv("FWK_RUNTIME_DIR", raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    assert runtime_dir() == tmp_path / "fwk" / "procs"
+    monkeypatch.delenv("XDG_RUNTIME_DIR")
+    assert runtime_dir().name == "procs" and runtime_dir().parent.name == f"fwk-{os.getuid()}"
+    monkeypatch.setenv("FWK_RUNTIME_DIR", str(tmp_path / "x"))
+    assert runtime_dir() == tmp_path / "x"
+
+
+def test_a_folder_of_another_user_is_not_used(procs, monkeypatch):
+    uid = os.getuid()
+    monkeypatch.setattr(threads.os, "getuid", lambda: uid + 1)
+    assert register() is None
+    assert thread_budget(NOENV, cores=2)[0] == 2
+
+
+def test_apply_threads_and_the_per_epoch_recheck(procs, monkeypatch, torch_threads):
+    from fwk.engine import ThreadShare
+
+    monkeypatch.setattr(threads, "available_cores", lambda: 4)
+    monkeypatch.delenv("FWK_THREADS", raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    register()
+    torch.set_num_threads(1)
+    assert apply_threads() == (4, "1 fwk process on 4 cores", True)
+    assert torch.get_num_threads() == 4 and apply_threads()[2] is False
+    said = []
+    share = ThreadShare(said.append)
+    child = _registered_child(procs)  # a second run starts: the first gives up threads at its next epoch
+    try:
+        share.on_train_epoch_start(None, None)
+        assert torch.get_num_threads() == 2 and said == ["threads: 2 (2 fwk processes on 4 cores)"]
+        share.on_train_epoch_start(None, None)
+        assert len(said) == 1  # no change, nothing said
+    finally:
+        child.kill()
+        child.wait()
+    share.on_train_epoch_start(None, None)  # ... and takes them back when it ends
+    assert torch.get_num_threads() == 4 and said[-1] == "threads: 4 (1 fwk process on 4 cores)"
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    share.on_train_epoch_start(None, None)
+    assert torch.get_num_threads() == 1
+
+
+def test_fit_records_the_thread_count_of_every_epoch(procs, monkeypatch, tmp_path, torch_threads):
+    from test_early_stopping import _ctx, _data, _module
+
+    from fwk.engine import fit
+
+    monkeypatch.setattr(threads, "available_cores", lambda: 4)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setenv("FWK_THREADS", "auto")
+    child = _registered_child(procs)
+    try:
+        train, val = _data()
+        ctx = _ctx(tmp_path, epochs=2)
+        fit(_module(), train, val, ctx, "reg")
+        assert (procs / str(os.getpid())).exists()  # fit registered this process
+    finally:
+        child.kill()
+        child.wait()
+    r = json.loads((ctx.run_dir / "curves" / "reg.json").read_text())
+    assert [e["threads"] for e in r["epochs"]] == [2, 2]
+
+
+def test_fwk_threads_option_sets_the_variable(monkeypatch):
+    from fwk.cli import main
+
+    monkeypatch.delenv("FWK_THREADS", raising=False)
+    assert main(["list", "--kind", "metric", "--threads", "3"]) == 0
+    assert os.environ["FWK_THREADS"] == "3"
+    monkeypatch.delenv("FWK_THREADS")
+    with pytest.raises(SystemExit):
+        main(["--threads", "0", "list"])
