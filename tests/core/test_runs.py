@@ -41,6 +41,11 @@ def test_smoke_run_directory(tmp_path, monkeypatch):
                 assert math.isfinite(v), (model, split, metric)
     versions = json.loads((d / "versions.json").read_text())
     assert "torch" in versions and "plugins" in versions
+    # the trained network's curves, summarised in metrics.json and the report
+    curves = json.loads((d / "curves" / "mlp-vae" / "mlp-vae.json").read_text())
+    assert curves["finished"] and curves["stopped_by"] == "max_epochs" and curves["epochs_run"] == 5
+    assert m["training"]["networks"]["mlp-vae"]["epochs_run"] == 5 and "pca" not in m["training"]["networks"]
+    assert "## Training" in (d / "report.md").read_text()
     split = json.loads((d / "split.json").read_text())
     assert not set(split["train"]) & set(split["test"])
 
