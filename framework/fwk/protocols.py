@@ -154,12 +154,17 @@ class Conv(Protocol):
     recipe gives only ``**params``. ``reset_parameters()`` re-draws the weights (PyG's
     convention).
 
-    **Strided role** (``strided = True``): the class also accepts ``mode`` and
-    ``residual_rate``: ``mode="down"`` maps level l -> l + 1 ((b, n_l, c_in) ->
-    (b, n_{l+1}, c_out)), ``mode="up"`` maps level l + 1 -> l, ``mode="same"`` is the plain
-    convolution; ``residual_rate`` r (or None) mixes sqrt(1 - r) conv + sqrt(r) res.
-    A model that needs strided convolutions (``ae fully_convolutional``) composes a conv
-    without this role with the sampler's pooling instead (see ``fwk_autoencoder``).
+    **Strided role** (``strided = True``): the class also accepts ``mode``,
+    ``residual_rate`` and ``activation``: ``mode="down"`` maps level l -> l + 1
+    ((b, n_l, c_in) -> (b, n_{l+1}, c_out)), ``mode="up"`` maps level l + 1 -> l,
+    ``mode="same"`` is the plain convolution; ``activation`` (a ``torch.nn.Module`` or None
+    for the identity, supplied by the model, not a recipe key) acts on the conv branch, and
+    ``residual_rate`` r (or None) mixes the residual in after it, as the thesis (4.4.3) and
+    Zhou et al.'s reference compute a block:
+    y = sqrt(1 - r) act(conv(x)) + sqrt(r) res(x) (y = act(conv(x)) without r; no activation
+    after the mix). A model that needs strided convolutions (``ae fully_convolutional``)
+    composes a conv without this role with the sampler's pooling instead, the same block
+    (see ``fwk_autoencoder.strided``).
     """
 
     name: ClassVar[str]
@@ -281,9 +286,23 @@ class NetworkFactory(Protocol):
     """Lends its networks to other models (pb, pbs and dsm take ``network:``).
 
     ``build_encoder(template, in_channels, ctx=None)`` returns a module (b, n, c_in) ->
-    (mu (b, latent_size), logvar or None); ``build_decoder(template, out_channels, ctx=None,
-    latent_in=None)`` a module (b, latent_in or latent_size) -> (b, n, c_out).
-    ``variational`` says whether the encoder returns a log-variance."""
+    (mu (b, latent_size), logvar or None); ``variational`` says whether the encoder returns a
+    log-variance. A code may be a latent *map*: n_latent latent vertices x c channels,
+    flattened vertex-major (entry v c + j is channel j of latent vertex v); a flat code is
+    one latent vertex.
+
+    ``build_decoder(template, out_channels, ctx=None, latent_in=None, latent_parts=None)``
+    returns a module (b, d) -> (b, n, c_out) reading
+
+    * its own code (d = latent_size), by default;
+    * ``latent_parts = [d_0, d_1, ...]``: Z = [z_0 | z_1 | ...], codes of networks with this
+      one's latent layout (d = sum d_j), read as one (b, n_latent, sum_j d_j / n_latent) map,
+      the codes' channels concatenated per latent vertex, by the first (transposed)
+      convolution: no dense layer where the code is a map (Deep Spectral Meshes, thesis 4.4.2);
+      a part that is not a whole number of latent vertices is an error;
+    * ``latent_in``: a foreign flat code of d entries (e.g. a code with a one-hot condition),
+      through a linear layer first.
+    """
 
     latent_size: int
     variational: bool

@@ -16,6 +16,9 @@ from fwk.testing.model import ModelContract
 
 REG = get_registry()
 NET = {"name": "vae", "channels": [8], "latent": 4, "sampler": {"name": "quadric", "factors": [4]}}
+# the thesis's layout (4.4.3) in small: vcconv, residual blocks, 5 latent vertices x 4 channels per band
+LATENT_NET = {"name": "vae", "conv": {"name": "vcconv", "weight_num": 6}, "sampler": {"name": "simple", "levels": 2},
+              "channels": [8, 8, 4], "latent_vertices": 5, "residual_rate": 0.5}
 
 
 def _dsm(**params):
@@ -31,6 +34,11 @@ class TestDSMContract(ModelContract):
 class TestDSMBands(BandModelContract):
     component = REG.get("model", "dsm")
     params = {"network": NET, "k": [10, 40]}
+
+
+class TestLatentMapDSMBands(BandModelContract):
+    component = REG.get("model", "dsm")
+    params = {"network": LATENT_NET, "k": 20}
 
 
 def _data(n_subjects=12, n_vertices=250):
@@ -212,3 +220,49 @@ def test_nested_components_are_recipe_parameters_with_defaults(tmp_path, data):
     assert m.assembler.cuts == [10, 40] and not m.assembler.mass and m.assembler.eigen_k == 60
     with pytest.raises(RecipeError, match="network.*NetworkFactory"):
         _dsm(network={"name": "pca"}, k=20)._net_model(0)
+
+
+def test_decoders_read_z_as_a_latent_map_without_a_dense_front_end(data):
+    """Thesis 4.4.2-4.4.3, figure 4.1: Z is read as an (n_latent x sum of the bands' channels) map by
+    each decoder's first transposed convolution; no Linear reads the whole Z, and an edit of one
+    latent vertex of Z_high reaches D_low's first layer only inside that vertex's support."""
+    m = _dsm(network=LATENT_NET, k=20)
+    m.channels = [3, 9]
+    torch.manual_seed(0)
+    net = m._make_net(data.template)
+    d = m.latent_size
+    assert m.latents == [20, 20] and d == 40
+    for dec in net.decoders:
+        assert not any(isinstance(x, torch.nn.Linear) and x.in_features == d for x in dec.modules())
+    net.eval()
+    zs = [torch.randn(3, 20), torch.randn(3, 20)]
+    seen = []
+    first = net.decoders[0].convs[0]  # D_low's first layer
+    hook = first.register_forward_pre_hook(lambda mod, args: seen.append(args[0].detach().clone()))
+    with torch.no_grad():
+        net.decode(zs)
+    hook.remove()
+    (x,) = seen
+    assert x.shape == (3, 5, 8)  # (b, n_latent, c_low + c_high)
+    assert torch.equal(x, torch.cat([zs[0].reshape(3, 5, 4), zs[1].reshape(3, 5, 4)], 2))
+    nb = m._net_model(0).hierarchy.levels[-2].unpool
+    with torch.no_grad():
+        y = first(x)
+        for v in range(5):
+            x2 = x.clone()
+            x2[:, v, 4:] += 1.0  # Z_high's channels at latent vertex v
+            changed = (first(x2) - y).abs().amax(dim=(0, 2)) > 0
+            support = torch.as_tensor([(nb.index[i][nb.mask[i] > 0] == v).any() for i in range(len(nb.index))])
+            assert changed.any() and not (changed & ~support).any()
+
+
+def test_latent_map_dsm_trains_and_reloads(tmp_path, data):
+    ctx = make_test_context(tmp_path, epochs=1, batch_size=4)
+    m = _dsm(network=LATENT_NET, k=20, gamma=0.5)
+    m.fit(data, ctx)
+    V = data.stack("val")
+    rec = m.reconstruct(V)
+    assert rec.shape == V.shape and np.all(np.isfinite(rec))
+    m2 = _dsm(network=LATENT_NET, k=20, gamma=0.5)
+    m2.load_state_dict(m.state_dict())
+    assert np.allclose(m2.reconstruct(V), rec, atol=1e-8)

@@ -17,13 +17,20 @@ the L1 norm in the representation's own unscaled space, plus ``kl_weight`` x KL 
 Thesis defaults: channels [|f|, 16, 32, 64, 128], pooling factor 4, latent 64, ELU.
 
 ``fully_convolutional: true`` builds Zhou et al.'s fully convolutional layout instead (the
-thesis's vcconv VAE: ``conv: vcconv``, ``sampler: {name: simple, levels: 5}``, channels
-[|f|, 32, 64, 128, 128, 8], residual rate 0.5): each encoder level is a strided convolution
-(mode ``down``) with a residual path, each decoder level a transposed one (mode ``up``); no
-separate pooling. A conv playing the strided role (``strided = True``: vcconv) does each step
-itself; any other conv is composed with the sampler's pooling (``fwk_autoencoder.strided.
-PooledConv``: pool, then the conv on the new level, the same residual mix). The last level's
-features (flattened) meet the latent through linear layers.
+thesis's vcconv VAE: ``conv: vcconv``, ``sampler: {name: simple, levels: 4}``, channels
+[|f|, 32, 64, 128, 128, 8], ``latent_vertices: 8``, residual rate 0.5): each encoder level is a
+strided convolution (mode ``down``) with a residual path, each decoder level a transposed one
+(mode ``up``); no separate pooling. Each block is, as in the thesis (4.4.3) and Zhou et al.'s
+reference code,
+
+    y = sqrt(1 - r) ELU(conv(x)) + sqrt(r) res(x)             (the ELU on the conv branch only)
+
+except the encoder's and the decoder's last blocks, which have no ELU. A conv playing the strided
+role (``strided = True``: vcconv) does each step itself (built with ``mode``, ``residual_rate``
+and ``activation``); any other conv is composed with the sampler's pooling
+(``fwk_autoencoder.strided.PooledConv``: pool, then the conv on the new level, the same block).
+Without ``latent_vertices`` the last level's features (flattened) meet the latent through linear
+layers.
 ``latent_vertices: n`` (implies ``fully_convolutional``) makes the latent itself a graph level as in
 the thesis (8 latent vertices x 8 features = 64): the sampler supplies levels 0..L-1 and the last
 strided convolution maps onto a level of exactly n vertices (farthest-point centres, see
@@ -32,10 +39,13 @@ strided convolution maps onto a level of exactly n vertices (farthest-point cent
 Both play ``fwk.protocols.NetworkFactory`` for other models (Deep Spectral Meshes, personalised
 blendshapes): ``m.build_encoder(template, in_channels, ctx)`` returns a module (b, n, c_in) ->
 (mu, logvar) (logvar None for ``ae``: ``variational`` False); ``m.build_decoder(template,
-out_channels, ctx, latent_in=None)`` a module (b, latent_in or latent_size) -> (b, n, c_out). As
-models they play ``ReconstructionModel`` and ``GenerativeModel`` (encode, decode, sample from
-N(0, I)). The representation (default ``euclidean``, whose own default scaling is std) is a
-recipe parameter.
+out_channels, ctx, latent_in=None, latent_parts=None)`` a module (b, d) -> (b, n, c_out), d the
+latent size, or ``latent_in`` (a foreign flat code, through a linear layer), or the sum of
+``latent_parts`` (codes of networks with this latent layout, concatenated: with
+``latent_vertices`` read as one latent map, channels concatenated per latent vertex, no dense
+layer; see ``fwk_autoencoder.latent``). As models they play ``ReconstructionModel`` and
+``GenerativeModel`` (encode, decode, sample from N(0, I)). The representation (default
+``euclidean``, whose own default scaling is std) is a recipe parameter.
 """
 from __future__ import annotations
 
@@ -114,30 +124,36 @@ class Decoder(nn.Module):
         return self.out(x)
 
 
+def _acts(act, L: int) -> list:
+    """The activation of each of L blocks: act() on all but the last (its output is a code or the
+    network's output: no activation, as in the thesis 4.4.3 and Zhou et al.'s reference)."""
+    return [act() if i < L - 1 else None for i in range(L)]
+
+
 class ConvEncoder(nn.Module):
-    """Fully convolutional encoder (Zhou et al. 2020): strided convs with residual blocks."""
+    """Fully convolutional encoder (Zhou et al. 2020): strided convs with residual blocks,
+    y = sqrt(1 - r) ELU(conv(x)) + sqrt(r) res(x) (no ELU on the last block)."""
 
     def __init__(self, conv, hierarchy, channels, latent, variational, act, residual_rate):
         super().__init__()
         L = len(channels) - 1
+        acts = _acts(act, L)
         self.convs = nn.ModuleList(strided_conv(conv, channels[i], channels[i + 1], hierarchy, i, "down",
-                                                residual_rate) for i in range(L))
-        self.act = act()
+                                                residual_rate, acts[i]) for i in range(L))
         d = hierarchy.levels[L].n_vertices * channels[-1]
         self.mu = nn.Linear(d, latent)
         self.logvar = nn.Linear(d, latent) if variational else None
 
     def forward(self, x):
-        for i, conv in enumerate(self.convs):
+        for conv in self.convs:
             x = conv(x)
-            if i < len(self.convs) - 1:
-                x = self.act(x)
         h = x.flatten(1)
         return self.mu(h), (self.logvar(h) if self.logvar is not None else None)
 
 
 class ConvDecoder(nn.Module):
-    """Fully convolutional decoder: transposed convs with residual blocks, mirroring the encoder."""
+    """Fully convolutional decoder: a linear map from the code to the last level, then transposed
+    convs with residual blocks mirroring the encoder (no ELU on the last block)."""
 
     def __init__(self, conv, hierarchy, channels, latent_in, out_channels, act, residual_rate):
         super().__init__()
@@ -145,16 +161,14 @@ class ConvDecoder(nn.Module):
         self.n_last, self.c_last = hierarchy.levels[L].n_vertices, channels[-1]
         self.fc = nn.Linear(latent_in, self.n_last * self.c_last)
         chans = [out_channels, *channels[1:]]
-        self.convs = nn.ModuleList(strided_conv(conv, chans[i + 1], chans[i], hierarchy, i, "up", residual_rate)
-                                   for i in reversed(range(L)))
-        self.act = act()
+        acts = _acts(act, L)
+        self.convs = nn.ModuleList(strided_conv(conv, chans[i + 1], chans[i], hierarchy, i, "up", residual_rate,
+                                                acts[L - 1 - i]) for i in reversed(range(L)))
 
     def forward(self, z):
         x = self.fc(z).reshape(len(z), self.n_last, self.c_last)
-        for i, conv in enumerate(self.convs):
+        for conv in self.convs:
             x = conv(x)
-            if i < len(self.convs) - 1:
-                x = self.act(x)
         return x
 
 
@@ -224,17 +238,28 @@ class AE:
             return ConvEncoder(self.conv, h, ch, self.latent, self.variational, act, self.residual_rate)
         return Encoder(self.conv, h, ch, self.latent, self.variational, act)
 
-    def build_decoder(self, template, out_channels: int, ctx=None, latent_in: int | None = None) -> nn.Module:
-        """A module (b, latent_in or latent_size) -> (b, n, out_channels)."""
+    def build_decoder(self, template, out_channels: int, ctx=None, latent_in: int | None = None,
+                      latent_parts: list[int] | None = None) -> nn.Module:
+        """A module (b, d) -> (b, n, out_channels), d = ``latent_size`` by default.
+
+        ``latent_parts = [d_0, d_1, ...]``: the input is Z = [z_0 | z_1 | ...], codes of networks
+        with this one's latent layout (d = sum d_j). With ``latent_vertices`` the first transposed
+        convolution reads them as one (b, n_latent, sum_j d_j / n_latent) map, channels
+        concatenated per latent vertex, without a dense layer (Deep Spectral Meshes, thesis 4.4.2);
+        a flat code (``latent``) is one latent vertex, read through the decoder's own linear
+        layer. ``latent_in``: a foreign flat code of d entries, through a linear layer first."""
+        if latent_in is not None and latent_parts is not None:
+            raise RecipeError("build_decoder: give latent_in (a flat code) or latent_parts (codes of latent maps), "
+                              "not both")
         h = self._hierarchy(template, ctx)
         ch = [out_channels, *self.channels][: len(h.levels)]
         act = ACTIVATIONS[self.activation]
         if self.latent_vertices:
-            return LatentConvDecoder(self.conv, h, ch, latent_in or self.latent, out_channels, act,
-                                     self.residual_rate)
+            return LatentConvDecoder(self.conv, h, ch, out_channels, act, self.residual_rate, latent_in, latent_parts)
+        d = sum(int(x) for x in latent_parts) if latent_parts is not None else (latent_in or self.latent)
         if self.fully_convolutional:
-            return ConvDecoder(self.conv, h, ch, latent_in or self.latent, out_channels, act, self.residual_rate)
-        return Decoder(self.conv, h, ch, latent_in or self.latent, out_channels, act)
+            return ConvDecoder(self.conv, h, ch, d, out_channels, act, self.residual_rate)
+        return Decoder(self.conv, h, ch, d, out_channels, act)
 
     # ---- the model roles
     def fit(self, data, ctx) -> None:

@@ -18,10 +18,19 @@ of the hierarchy by a *latent level* of exactly ``n_latent`` vertices built from
   support is the vertices within ``radius`` hops on its graph (centres whose supports touch).
 
 The encoder's last strided convolution maps onto the latent level with 2 c_L channels for a VAE
-(mean and log-variance halves) and c_L for an AE; z is the flattened (n_latent x c_L) map, so the
-latent size is n_latent * c_L and no fully connected layer is needed. The decoder starts with the
-transposed convolution from the latent level (a linear layer first only when another model feeds
-it a code of a different size, e.g. Deep Spectral Meshes' concatenated Z).
+(mean and log-variance halves) and c_L for an AE; z is the flattened (n_latent x c_L) map
+(vertex-major: entry v c_L + c is channel c of latent vertex v), so the latent size is
+n_latent * c_L and no fully connected layer is needed. The decoder starts with the transposed
+convolution from the latent level, which reads a (b, n_latent, c) map:
+
+* its own code: c = c_L;
+* ``latent_parts = [d_0, d_1, ...]`` (Deep Spectral Meshes' Z = [z_0 | z_1 | ...], thesis 4.4.2,
+  figure 4.1: "Z in R^{8 x 8}"): each z_j, a code of a network with the same latent level, is
+  read as its (n_latent, d_j / n_latent) map and the maps are concatenated per latent vertex,
+  c = sum_j d_j / n_latent; still no dense layer, so latent vertex v of every part feeds only
+  the first transposed convolution's outputs in v's support;
+* ``latent_in`` (a foreign flat code of another size, e.g. pb's code with a one-hot condition):
+  a linear layer to the (n_latent, c_L) map first.
 """
 from __future__ import annotations
 
@@ -30,6 +39,7 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import shortest_path
+import torch
 from torch import nn
 
 from fwk.errors import RecipeError
@@ -101,44 +111,68 @@ def with_latent_level(h: Hierarchy, depth: int, n_latent: int, radius: int = 2) 
 
 
 class LatentConvEncoder(nn.Module):
-    """Strided convolutions down to the latent level; z = the flattened (n_latent, c_L) map."""
+    """Strided convolutions down to the latent level, y = sqrt(1 - r) ELU(conv(x)) + sqrt(r) res(x)
+    (no ELU on the last); z = the flattened (n_latent, c_L) map (mu, and logvar for a VAE)."""
 
     def __init__(self, conv, hierarchy, channels, variational, act, residual_rate):
         super().__init__()
         L = len(channels) - 1
         self.c_last, self.variational = channels[-1], variational
         outs = [*channels[1:-1], channels[-1] * (2 if variational else 1)]
-        self.convs = nn.ModuleList(strided_conv(conv, channels[i], outs[i], hierarchy, i, "down", residual_rate)
-                                   for i in range(L))
-        self.act = act()
+        self.convs = nn.ModuleList(strided_conv(conv, channels[i], outs[i], hierarchy, i, "down", residual_rate,
+                                                act() if i < L - 1 else None) for i in range(L))
 
     def forward(self, x):
-        for i, conv in enumerate(self.convs):
+        for conv in self.convs:
             x = conv(x)
-            if i < len(self.convs) - 1:
-                x = self.act(x)
         mu = x[..., :self.c_last].flatten(1)
         return mu, (x[..., self.c_last:].flatten(1) if self.variational else None)
 
 
 class LatentConvDecoder(nn.Module):
-    """Transposed convolutions from the latent level (a linear layer first only for foreign codes)."""
+    """Transposed convolutions from the latent level; the first reads a (b, n_latent, c) map (its
+    own code, or several codes' maps concatenated per latent vertex: ``latent_parts``); a linear
+    layer first only for a foreign flat code (``latent_in``). No ELU on the last block.
 
-    def __init__(self, conv, hierarchy, channels, latent_in, out_channels, act, residual_rate):
+    ``forward(z)``: z (b, sum of the parts' sizes) flat, or the map (b, n_latent, c) itself.
+    """
+
+    def __init__(self, conv, hierarchy, channels, out_channels, act, residual_rate, latent_in: int | None = None,
+                 latent_parts: list[int] | None = None):
         super().__init__()
         L = len(channels) - 1
-        self.n_last, self.c_last = hierarchy.levels[L].n_vertices, channels[-1]
-        d = self.n_last * self.c_last
-        self.fc = nn.Linear(latent_in, d) if latent_in != d else None
-        chans = [out_channels, *channels[1:]]
-        self.convs = nn.ModuleList(strided_conv(conv, chans[i + 1], chans[i], hierarchy, i, "up", residual_rate)
-                                   for i in reversed(range(L)))
-        self.act = act()
+        self.n_last, self.c_last = n, c = hierarchy.levels[L].n_vertices, channels[-1]
+        self.fc = None
+        if latent_parts is not None:
+            bad = [d for d in latent_parts if int(d) <= 0 or int(d) % n]
+            if bad:
+                raise RecipeError(f"latent_parts: codes of {list(latent_parts)} entries cannot be read on {n} latent "
+                                  f"vertices ({bad} not a positive multiple of {n}); the networks' latent_vertices "
+                                  "must agree")
+            self.parts = [int(d) // n for d in latent_parts]  # channels per latent vertex of each code
+        else:
+            if latent_in is not None and latent_in != n * c:
+                self.fc = nn.Linear(latent_in, n * c)
+            self.parts = [c]
+        self.map_channels = sum(self.parts)
+        chans = [out_channels, *channels[1:-1], self.map_channels]
+        self.convs = nn.ModuleList(strided_conv(conv, chans[i + 1], chans[i], hierarchy, i, "up", residual_rate,
+                                                act() if i > 0 else None) for i in reversed(range(L)))
+
+    def latent_map(self, z):
+        """z (b, d) -> the (b, n_latent, c) map the first transposed convolution reads."""
+        if z.dim() == 3:
+            return z
+        b, n = len(z), self.n_last
+        if self.fc is not None:
+            return self.fc(z).reshape(b, n, self.c_last)
+        if len(self.parts) == 1:
+            return z.reshape(b, n, self.parts[0])
+        codes = torch.split(z, [n * c for c in self.parts], dim=1)
+        return torch.cat([x.reshape(b, n, c) for x, c in zip(codes, self.parts)], dim=2)
 
     def forward(self, z):
-        x = (self.fc(z) if self.fc is not None else z).reshape(len(z), self.n_last, self.c_last)
-        for i, conv in enumerate(self.convs):
+        x = self.latent_map(z)
+        for conv in self.convs:
             x = conv(x)
-            if i < len(self.convs) - 1:
-                x = self.act(x)
         return x

@@ -18,10 +18,20 @@ The assembler is the recipe's ``assembler`` (default ``spectral``), built with d
 
 Network (4.2.2, 4.4.2-4.4.3). One encoder E_b and one decoder D_b per band, built by ``network``
 (or ``networks``, one per band): any model playing ``fwk.protocols.NetworkFactory`` (``vae``: the
-thesis uses the fully convolutional vcconv VAE with 8 latent vertices x 4 channels = 32 entries
-per band). Encoders give (mu_b, log sigma_b^2);
+thesis uses the fully convolutional vcconv VAE, channels [|f|, 32, 64, 128, 128, 4], with 8
+latent vertices x 4 channels = 32 entries per band). Encoders give (mu_b, log sigma_b^2);
 mu = [mu_0 | ... | mu_B], sigma likewise, Z = mu + sigma * eps, and every decoder reads the
 whole Z: D_b decodes its band from Z_b conditioned on the other bands' codes.
+
+How a decoder reads Z (figure 4.1, 4.4.2: "Z in R^{8 x 8}"): each band's code is a latent map,
+Z_b in R^{n_latent x c_b} (flattened vertex-major), and D_b's first transposed convolution reads
+the (n_latent, c_0 + ... + c_B) map whose row v holds every band's channels at latent vertex v
+(``build_decoder(..., latent_parts=[|Z_0|, ..., |Z_B|])``), so there is no dense layer between Z
+and the decoders: an entry of latent vertex v reaches, in the first layer, only the vertices in
+v's support. Networks with a flat code (no ``latent_vertices``: one latent vertex) read the
+concatenated Z through their own first linear layer, as their decoders read their own code.
+With ``networks:`` the bands' networks must share the latent level (sampler and
+``latent_vertices``) for the rows of the map to be the same latent vertices.
 
 Conditioning Factor gamma (4.5). During training the other bands' entries seen by D_b are
 zeroed with probability 1 - gamma. Semantics chosen here (``conditioning_dropout: band``):
@@ -262,11 +272,11 @@ class DSM:
         for b in range(self.n_bands):
             m = self._net_model(b)
             latents.append(int(m.latent_size))
-        total = sum(latents)
         for b, c in enumerate(self.channels):
             m = self._net_model(b)
             encs.append(m.build_encoder(template, c, ctx))
-            decs.append(m.build_decoder(template, c, ctx, total))
+            # Z = [Z_0 | ... | Z_B] read as one latent map (thesis 4.4.2, fig. 4.1): no dense front end
+            decs.append(m.build_decoder(template, c, ctx, latent_parts=latents))
         self.latents = latents
         return DSMNet(encs, decs, latents, self.gamma, self.conditioning_dropout)
 
