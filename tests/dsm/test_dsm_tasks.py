@@ -20,8 +20,7 @@ def run(tmp_path_factory):
     over = ["dataset.n_vertices=250", "dataset.n_subjects=12", "train.epochs=1", "metrics=[l1, dame]",
             "renders=0", f"models.dsm.network={json.dumps(NET)}", f"models.dsm-g04.network={json.dumps(NET)}",
             "models.dsm.k=20", "models.dsm-g04.k=20",
-            "models.vae-euclidean-std.channels=[8]", "models.vae-euclidean-std.latent=8",
-            "models.vae-euclidean-std.sampler={name: quadric, factors: [4]}", "max_subjects=2"]
+            f"models.vae-euclidean-std={json.dumps({**NET, 'latent': 8})}", "max_subjects=2"]
     return execute(str(SMOKE), over, runs_dir=str(out), quiet=True, registry=get_registry())
 
 
@@ -32,7 +31,14 @@ def test_inline_run_writes_pictures_meshes_and_disentanglement(run):
         for band in ("low", "high"):
             shares = d["dsm"][label][band]["shares"]
             assert abs(sum(shares.values()) - 1) < 1e-6 and 0 <= d["dsm"][label][band]["own_share"] <= 1
-    assert abs(sum(d["compare"]["vae-euclidean-std"]["shares"].values()) - 1) < 1e-6
+            r = d["dsm"][label][band]  # the like-with-like measures beside it
+            assert abs(sum(r["normalised_shares"].values()) - 1) < 1e-6 and min(r["variance_units"].values()) >= 0
+        assert set(d["dsm"][label]["cross_response"]) == {"low<-high", "high<-low"}
+        assert all(v >= 0 for v in d["dsm"][label]["cross_response"].values())
+    c = d["compare"]["vae-euclidean-std"]
+    assert abs(sum(c["shares"].values()) - 1) < 1e-6 and abs(sum(c["normalised_shares"].values()) - 1) < 1e-6
+    report = (run / "report.md").read_text()
+    assert "training variance" in report and "rho low <- high" in report
     for f in ("edit_low.png", "edit_high.png", "interpolation_dsm.png", "interpolation_dsm-g04.png"):
         assert (run / "figures" / f).stat().st_size > 1000
     objs = sorted((run / "interpolation" / "dsm").glob("*.obj"))

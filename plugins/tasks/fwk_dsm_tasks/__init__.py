@@ -31,16 +31,44 @@ the mean head).
 band's slice of Z) are moved by ``amounts`` (in units of the prior's standard deviation) in one
 band at a time and decoded; the picture shows, per band, every dsm model's edits side by side
 with the same edits of each single-band comparison model's latent (``compare``), each mesh
-coloured by its displacement from the unedited decode. Beyond the thesis, disentanglement: for
-an edit of band b, the share of the output change inside band b,
+coloured by its displacement from the unedited decode.
 
-    share_b = ||X_b D||_M^2 / ||D||_M^2,   D = decode(Z + a e_{b,d}) - decode(Z)
+Beyond the thesis, disentanglement, measured on up to ``max_subjects`` test subjects, every
+direction and every non-zero amount. Notation: an edit of band j's entry d by a gives the output
+change D = decode(Z + a e_{j,d}) - decode(Z) (n x 3); X_c is band c's spectral projector of the
+band model (``split``: X_c D = split(D)[c] - split(0)[c]; the bands are M-orthogonal and sum to
+D); M the Voronoi areas of the mean head; e_c(D) = ||X_c D||_M^2 = sum_i M_ii |(X_c D)_i|^2.
 
-(X_b the band-b spectral projector of the dsm model's assembler, M the mass matrix; the bands
-are M-orthogonal, so the shares of all bands sum to 1; the band model's ``band_shares``),
-averaged over up to ``max_subjects`` test subjects, the directions and the non-zero amounts. A
-single-band model's edits are measured with the same projectors: its per-band shares say where a
-latent edit lands when nothing separates the bands. Reported in a table and in ``metrics.json`` (``disentanglement``).
+1. **Share of the M-weighted energy** (reported since the first version, ``shares``):
+   share_c = e_c(D) / sum_c' e_c'(D), averaged over the edits; the band model's
+   ``band_shares``. A single-band model's edits are measured with the same projectors.
+   It is dominated by the bands' amplitudes: the low band carries most of a face's variation,
+   so almost any change is "mostly low band" and a high-band edit scores low even when it
+   touches nothing but the high band's (small) natural range.
+2. **Normalised by the bands' training variance** (``normalised_shares``,
+   ``variance_units``): with v_c = (1/N) sum_s e_c(P_s - P-bar) over the N training subjects of
+   the run (P-bar their mean), epsilon_c(D) = e_c(D) / v_c is the edit's movement of band c in
+   units of that band's typical variation (1: as far as a typical subject is from the mean in
+   that band), and nu_c = epsilon_c / sum_c' epsilon_c' its share; both averaged over the
+   edits. For a dsm edit of band b, nu_b is its disentanglement with each band on its own
+   scale (1: the edit stays in its band).
+3. **Cross-response of the decoders** (``cross_response``, dsm models only): decoder D_c's
+   response to an edit of another band's code j against its response to an equal edit of its
+   own code c,
+
+       rho_{c<-j} = mean ||X_c D^{(j)}||_M / mean ||X_c D^{(c)}||_M,
+
+   the means over the same subjects, entries d and amounts a (D^{(j)}: the output change of an
+   edit of band j). Assembly (eq. 4.15) gives X_c D = X_c Delta P'_c: the band-c part of the
+   output changes only through D_c, so this is D_c's own response as it reaches the mesh.
+   rho = 0: D_c ignores Z_j (disentangled); rho = 1: it responds to Z_j as much as to Z_c
+   (at initialisation, or with a dense layer over the whole Z, rho is about 1). Conditioning
+   (gamma = 1) lets D_c read Z_j on purpose; a lower gamma should lower rho.
+
+Reported in tables and in ``metrics.json`` (``disentanglement``: per dsm model and edited band
+``shares``, ``own_share``, ``normalised_shares``, ``own_normalised_share``, ``variance_units``;
+per dsm model ``band_variance`` and ``cross_response``; per comparison model ``shares``,
+``normalised_shares``, ``variance_units``).
 
 Each task can chain the other on the same models: ``interpolate: {...}`` inside an ``edit``
 recipe (or ``edit: {...}`` inside ``interpolate``), so one run gives both pictures; the chained
@@ -63,6 +91,7 @@ from fwk.errors import DataError, FwkError, RecipeError
 from fwk.evaluation import write_report
 from fwk.evaluation.render import colour_limits, render_grid
 from fwk.evaluation.report import markdown_table
+from fwk.geometry.operators import mass_matrix
 from fwk.hookspecs import hookimpl
 from fwk.lifecycle import open_run
 from fwk.protocols import RECONSTRUCT, BandModel, GenerativeModel
@@ -227,7 +256,60 @@ def _interp(ctx, env: Env, p: "InterpolateSettings") -> tuple[dict, dict, list]:
     return results, figures, notes
 
 
-def _edit(ctx, env: Env, p: "EditSettings") -> tuple[dict, dict, list]:
+def band_parts(model, D) -> np.ndarray:
+    """(..., n, 3) displacements -> (..., bands, n, 3): X_c D for every band c of a band model,
+    from its ``split`` (split(P)[c] = X_c (P - mean) + mean, so X_c D = split(D)[c] - split(0)[c])."""
+    D = np.asarray(D, dtype=np.float64)
+    flat = D.reshape(-1, *D.shape[-2:])
+    parts, zero = model.split(flat), model.split(np.zeros((1, *D.shape[-2:])))
+    out = np.stack([np.asarray(x) - np.asarray(z)[0] for x, z in zip(parts, zero)], axis=1)
+    return out.reshape(*D.shape[:-2], len(parts), *D.shape[-2:])
+
+
+def band_energies(model, D, weights) -> np.ndarray:
+    """(..., n, 3) -> (..., bands): e_c(D) = sum_i w_i |(X_c D)_i|^2, the ``weights``-weighted
+    energy of each band's part of D (``weights``: per-vertex areas, the mass matrix diagonal)."""
+    X = band_parts(model, D)
+    return np.einsum("...cni,...cni,n->...c", X, X, np.asarray(weights, dtype=np.float64))
+
+
+def band_variances(model, P, weights) -> np.ndarray:
+    """(bands,): v_c = (1 / N) sum_s e_c(P_s - P-bar) over the N meshes P (the training split), P-bar
+    their mean: each band's training variance (total over vertices and coordinates)."""
+    P = np.asarray(P, dtype=np.float64)
+    return band_energies(model, P - P.mean(0), weights).mean(0)
+
+
+def disentanglement_measures(energies: dict, variances, band_names) -> dict:
+    """The two like-with-like measures from the band energies of the edits (module docstring).
+
+    ``energies``: {edited band j: e(D) of shape (..., bands)} over the edits of band j (subjects,
+    directions, non-zero amounts); ``variances``: v (bands,). Returns, per edited band j,
+    ``variance_units`` (mean e_c / v_c per band c) and ``normalised_shares`` (mean over the edits
+    of (e_c / v_c) / sum_c' (e_c' / v_c')), and ``cross_response`` {"c<-j": rho_{c<-j}}: decoder
+    c's mean response norm sqrt(e_c) to edits of band j over that to equal edits of its own band
+    c, for every pair of edited bands j != c."""
+    v = np.maximum(np.asarray(variances, dtype=np.float64), 1e-300)
+    out = {"edits": {}, "cross_response": {}}
+    for j, E in energies.items():
+        E = np.asarray(E, dtype=np.float64).reshape(-1, len(band_names))
+        eps = E / v
+        nu = eps / np.maximum(eps.sum(-1, keepdims=True), 1e-300)
+        out["edits"][j] = {"variance_units": {n: float(x) for n, x in zip(band_names, eps.mean(0))},
+                           "normalised_shares": {n: float(x) for n, x in zip(band_names, nu.mean(0))}}
+    norms = {j: np.sqrt(np.asarray(E, dtype=np.float64).reshape(-1, len(band_names))).mean(0)
+             for j, E in energies.items()}
+    for c in [b for b in norms if b in band_names]:  # edits of the bands' own codes (a single-band model has none)
+        own = norms[c][band_names.index(c)]
+        for j in norms:
+            if j != c and j in band_names:
+                out["cross_response"][f"{c}<-{j}"] = float(norms[j][band_names.index(c)] / max(own, 1e-300))
+    return out
+
+
+def measure_edits(env: Env, p: "EditSettings", weights=None):
+    """The edits of ``edit`` and their disentanglement (old and new measures, module docstring):
+    (results, decoded meshes of the pictured subject, dsm labels, comparison labels, bands)."""
     P = env.splits.get("test")
     if P is None or len(P) == 0:
         raise DataError("edit: the test split has no subjects")
@@ -240,10 +322,15 @@ def _edit(ctx, env: Env, p: "EditSettings") -> tuple[dict, dict, list]:
     ref = env.models[dsm_labels[0]]
     bands = p.bands or list(ref.band_names)
     amounts = [float(a) for a in p.amounts]
-    nz = [a for a in amounts if a != 0.0]
+    keep = [i for i, a in enumerate(amounts) if a != 0.0]
     S = P[: max(p.max_subjects, p.subject + 1)]
+    if weights is None:  # the Voronoi areas of the mean head: the M of the M-weighted energies
+        weights = mass_matrix(env.template.vertices, env.template.triangles).diagonal()
+    train = env.splits.get("train")
+    if train is None or len(train) < 2:
+        raise DataError("edit: the band variances need the training split (at least 2 subjects)")
     results = {"directions": p.directions, "amounts": amounts, "n_subjects": int(len(S)), BAND_KEY: {}, "compare": {}}
-    figures = {}
+    decoded = {}
 
     def edited(z0, sl, zeros):
         """z0 (s, d) -> (s, dirs, amounts, d) with entry sl.start + dir moved by amount."""
@@ -254,35 +341,52 @@ def _edit(ctx, env: Env, p: "EditSettings") -> tuple[dict, dict, list]:
             Z[:, di, :, sl.start + d] += np.asarray(zeros)
         return Z
 
-    decoded = {}
     for label in dsm_labels:
         m = env.models[label]
+        names = list(m.band_names)
+        var = band_variances(m, train, weights)
         z0 = m.encode(S)
         base = m.decode(z0)
-        results[BAND_KEY][label] = {"gamma": getattr(m, "gamma", None)}
+        res = results[BAND_KEY][label] = {"gamma": getattr(m, "gamma", None),
+                                          "band_variance": {n: float(x) for n, x in zip(names, var)}}
+        energies = {}
         for b in bands:
             Z = edited(z0, m.latent_slice(b), amounts)
             out = m.decode(Z.reshape(-1, Z.shape[-1])).reshape(*Z.shape[:3], -1, 3)
             D = out - base[:, None, None]
-            keep = [i for i, a in enumerate(amounts) if a != 0.0]
             sh = m.band_shares(D[:, :, keep])  # (s, dirs, amounts, bands)
             mean = sh.reshape(-1, sh.shape[-1]).mean(0)
-            results[BAND_KEY][label][b] = {"own_share": float(mean[m.band_names.index(b)]),
-                                        "shares": {n: float(x) for n, x in zip(m.band_names, mean)}}
+            res[b] = {"own_share": float(mean[names.index(b)]), "shares": {n: float(x) for n, x in zip(names, mean)}}
+            energies[b] = band_energies(m, D[:, :, keep], weights)
             decoded[(label, b)] = (out[p.subject, 0], base[p.subject])
+        new = disentanglement_measures(energies, var, names)
+        for b in bands:
+            res[b].update(new["edits"][b])
+            res[b]["own_normalised_share"] = res[b]["normalised_shares"][b]
+        res["cross_response"] = new["cross_response"]
+    names = list(ref.band_names)
+    var = band_variances(ref, train, weights)
     for label in cmp_labels:
         m = env.models[label]
         z0 = np.asarray(m.encode(S))
         base = np.asarray(m.decode(z0))
-        sl = slice(0, z0.shape[1])
-        Z = edited(z0, sl, amounts)
+        Z = edited(z0, slice(0, z0.shape[1]), amounts)
         out = np.asarray(m.decode(Z.reshape(-1, Z.shape[-1]))).reshape(*Z.shape[:3], -1, 3)
         D = out - base[:, None, None]
-        keep = [i for i, a in enumerate(amounts) if a != 0.0]
         sh = ref.band_shares(D[:, :, keep])
         mean = sh.reshape(-1, sh.shape[-1]).mean(0)
-        results["compare"][label] = {"shares": {n: float(x) for n, x in zip(ref.band_names, mean)}}
+        new = disentanglement_measures({"latent": band_energies(ref, D[:, :, keep], weights)}, var, names)
+        results["compare"][label] = {"shares": {n: float(x) for n, x in zip(names, mean)}, **new["edits"]["latent"]}
         decoded[(label, None)] = (out[p.subject, 0], base[p.subject])
+    return results, decoded, dsm_labels, cmp_labels, bands
+
+
+def _edit(ctx, env: Env, p: "EditSettings") -> tuple[dict, dict, list]:
+    results, decoded, dsm_labels, cmp_labels, bands = measure_edits(env, p)
+    ref = env.models[dsm_labels[0]]
+    amounts = [float(a) for a in p.amounts]
+    nz = [a for a in amounts if a != 0.0]
+    figures = {}
     # pictures: per band, rows = each dsm model editing that band, then each comparison model
     for b in bands:
         rows_src = [(f"{l} {b}", decoded[(l, b)]) for l in dsm_labels]
@@ -298,21 +402,46 @@ def _edit(ctx, env: Env, p: "EditSettings") -> tuple[dict, dict, list]:
         if f is not None:
             figures[f"edit of the {b} band, entry {p.directions[0]} by {amounts} (rows: dsm models, then the "
                     f"single-band models' latent), coloured by the change"] = f
-    # the table
-    cols = ["model", "edited", *[f"share in {n}" for n in ref.band_names]]
-    tab = []
+    names = list(ref.band_names)
+    n_s = results["n_subjects"]
+    where = (f"averaged over {n_s} test subjects, directions {p.directions} and amounts {nz}")
+    # the tables: the M-weighted energy shares (as before), the same normalised by each band's
+    # training variance, and the decoders' cross-responses
+    cols = ["model", "edited", *[f"share in {n}" for n in names]]
+    tab, tab_v = [], []
     for l in dsm_labels:
+        g = results[BAND_KEY][l]["gamma"]
         for b in bands:
             r = results[BAND_KEY][l][b]
-            tab.append([f"{l} (gamma {results[BAND_KEY][l]['gamma']})", b,
-                        *[f"{r['shares'][n]:.3f}" for n in ref.band_names]])
+            tab.append([f"{l} (gamma {g})", b, *[f"{r['shares'][n]:.3f}" for n in names]])
+            tab_v.append([f"{l} (gamma {g})", b, *[f"{r['normalised_shares'][n]:.3f} ({r['variance_units'][n]:.3g})"
+                                                  for n in names]])
     for l in cmp_labels:
-        tab.append([l, "latent", *[f"{results['compare'][l]['shares'][n]:.3f}" for n in ref.band_names]])
+        r = results["compare"][l]
+        tab.append([l, "latent", *[f"{r['shares'][n]:.3f}" for n in names]])
+        tab_v.append([l, "latent", *[f"{r['normalised_shares'][n]:.3f} ({r['variance_units'][n]:.3g})" for n in names]])
     text = ("Share of the M-weighted energy of the output change that falls in each spectral band "
-            f"(the band projectors of {dsm_labels[0]}), averaged over {len(S)} test subjects, "
-            f"directions {p.directions} and amounts {nz}. For a dsm edit of band b, the share in b is its "
-            "disentanglement (1 = the edit stays in its band).\n\n" + markdown_table(tab, cols))
-    return results, figures, [("Disentanglement of latent edits", text)]
+            f"(the band projectors of {dsm_labels[0]}), {where}. For a dsm edit of band b, the share in b is its "
+            "disentanglement (1 = the edit stays in its band). This share is dominated by the bands' "
+            "amplitudes (the low band carries most of a face's variance); the two tables below compare like "
+            "with like.\n\n" + markdown_table(tab, cols))
+    text_v = ("Each band's energy of the output change divided by that band's training variance v_c (the mean "
+              "M-weighted energy of the training subjects' band c about their mean), as a share of the sum over "
+              f"bands, {where}; in brackets the mean e_c / v_c itself (1: the edit moves band c as far as a typical "
+              "training subject differs from the mean in that band).\n\n"
+              + markdown_table(tab_v, ["model", "edited", *[f"normalised share in {n} (e/v)" for n in names]]))
+    pairs = sorted({k for l in dsm_labels for k in results[BAND_KEY][l]["cross_response"]})
+    tab_x = [[f"{l} (gamma {results[BAND_KEY][l]['gamma']})",
+              *[f"{results[BAND_KEY][l]['cross_response'].get(k, float('nan')):.3f}" for k in pairs]] for l in dsm_labels]
+    text_x = ("Cross-response rho_{c<-j} of decoder D_c: the mean M-norm of its band-c output change for an edit of "
+              "band j's code over that for an equal edit of its own code c (same entries, same amounts), "
+              f"{where}. 0: D_c ignores Z_j (disentangled); 1: it responds to Z_j as much as to its own code.\n\n"
+              + markdown_table(tab_x, ["model", *[f"rho {k.replace('<-', ' <- ')}" for k in pairs]]))
+    sections = [("Disentanglement of latent edits", text),
+                ("Disentanglement normalised by the bands' training variance", text_v)]
+    if pairs:
+        sections.append(("Decoders' response to the other bands' codes", text_x))
+    return results, figures, sections
 
 
 # ------------------------------------------------------------------------------------- tasks
