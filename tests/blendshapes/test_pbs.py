@@ -114,10 +114,15 @@ def test_k_is_chosen_on_the_front_and_saved(trained):
 def test_thesis_ks_and_knee():
     from fwk_pb import knee, thesis_ks
 
-    ks = thesis_ks(14921)
-    assert len(ks) == 37 and ks[0] == 0 and ks[-1] == 14921 and 440 in ks and 1000 in ks
-    small = thesis_ks(6000)
-    assert small[0] == 0 and small[-1] == 6000 and small == sorted(set(small))
+    printed = [*range(0, 101, 10), 120, 140, 160, 180, 200, *range(230, 471, 30), *range(500, 1001, 50)]
+    assert len(printed) == 36  # thesis 5.3.4: |K| = 37 with n
+    for n in (14921, 11248, 1001):  # the grid as printed, whatever n (no rescaling by n / 14,921)
+        assert thesis_ks(n) == [*printed, n]
+    assert 440 in thesis_ks(11248) and 380 in thesis_ks(11248)  # the thesis's chosen k are on it
+    # a small template: values >= n clamp to n and collapse onto it
+    assert thesis_ks(500) == [k for k in printed if k < 500] + [500]
+    assert thesis_ks(250) == [k for k in printed if k < 250] + [250]
+    assert thesis_ks(1000) == printed
     # an L-shaped front: the corner is the knee
     x = np.array([0.0, 0.1, 0.2, 1.0])
     y = np.array([1.0, 0.2, 0.1, 0.0])
