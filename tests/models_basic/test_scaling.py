@@ -80,3 +80,114 @@ def test_errors():
         Scaler("std").fit(F)
     with pytest.raises(RuntimeError, match="before fit"):
         Scaler("std").transform(_F())
+
+
+# ---------------------------------------------------------------------------- issue 17: granularity,
+# robust range and centring of norm, each against a naive loop over vertices and channels
+
+def _naive_lo_hi(x, rng, q):
+    """Min / max, or the q and 1 - q quantiles by sorting and interpolating linearly (numpy's
+    default method, written out)."""
+    if rng == "minmax":
+        return min(x), max(x)
+    s = sorted(x)
+
+    def quant(p):
+        h = (len(s) - 1) * p
+        lo = int(np.floor(h))
+        hi = min(lo + 1, len(s) - 1)
+        return s[lo] + (h - lo) * (s[hi] - s[lo])
+    return quant(q), quant(1 - q)
+
+
+def _naive_norm(F, gran, rng, centre, a, q):
+    """The norm of fwk.scaling written as loops: per (vertex, channel) or per channel."""
+    b, n, c = F.shape
+    G = np.empty_like(F)
+    for k in range(c):
+        for i in range(n):
+            mean_i = sum(F[:, i, k]) / b
+            if gran == "vertex":
+                pool = list(F[:, i, k] - (mean_i if centre == "mean" else 0.0))
+            else:
+                pool = [F[s, v, k] - (sum(F[:, v, k]) / b if centre == "mean" else 0.0) for s in range(b) for v in range(n)]
+            lo, hi = _naive_lo_hi(pool, rng, q)
+            for s in range(b):
+                if centre == "mid":
+                    G[s, i, k] = (F[s, i, k] - lo) / (hi - lo) * 2 * a - a
+                else:
+                    G[s, i, k] = (F[s, i, k] - mean_i) / max(hi, -lo) * a
+    return G
+
+
+@pytest.mark.parametrize("gran", ["vertex", "channel"])
+@pytest.mark.parametrize("rng", ["minmax", "quantile"])
+@pytest.mark.parametrize("centre", ["mid", "mean"])
+def test_norm_options_match_naive_loops(gran, rng, centre):
+    F = _F(5, b=9, n=4, c=2)
+    a, q = 0.7, 0.1
+    s = Scaler("norm", gran, a=a, range=rng, q=q, centre=centre).fit(F)
+    assert np.allclose(s.transform(F), _naive_norm(F, gran, rng, centre, a, q), rtol=1e-12, atol=1e-12)
+    assert s.shift.shape == ((F.shape[1] if gran == "vertex" or centre == "mean" else 1), F.shape[2])
+
+
+@pytest.mark.parametrize("gran", ["vertex", "channel"])
+def test_quantile_range_is_numpys(gran):
+    F = _F(6, b=40, n=6, c=3)
+    F[3, 2, 1] = 1e3  # an outlier: min-max would let it set the range, the quantile range does not
+    s = Scaler("norm", gran, range="quantile", q=0.05).fit(F)
+    axes = (0,) if gran == "vertex" else (0, 1)
+    lo = np.quantile(F, 0.05, axis=axes).reshape(-1, 3)
+    hi = np.quantile(F, 0.95, axis=axes).reshape(-1, 3)
+    assert np.allclose(s.shift, (lo + hi) / 2) and np.allclose(s.div, (hi - lo) / 2)
+    G = s.transform(F)
+    assert G[3, 2, 1] > 10  # not clipped: beyond [-1, 1], and still invertible
+    assert np.allclose(s.inverse(G), F)
+    inside = np.mean(np.abs(G) <= 1 + 1e-12)
+    assert inside >= 0.85
+
+
+@pytest.mark.parametrize("kind,gran", [("norm", "vertex"), ("norm", "channel"), ("std", "vertex"), ("std", "channel")])
+@pytest.mark.parametrize("rng", ["minmax", "quantile"])
+def test_zero_decodes_to_the_training_mean_exactly(kind, gran, rng):
+    F = _F(7)
+    s = Scaler(kind, gran, range=rng, centre="mean").fit(F)
+    if kind == "norm" or gran == "vertex":  # std per channel centres on the channel's mean
+        assert np.array_equal(s.inverse(np.zeros_like(F)), np.broadcast_to(F.mean(axis=0), F.shape))
+    G = s.transform(F)
+    if kind == "norm" and rng == "minmax":  # the training range still lies in [-a, a], one side touching
+        assert np.abs(G).max() == pytest.approx(1.0)
+        assert np.all(np.abs(G) <= 1 + 1e-12)
+    H = _F(8)
+    assert np.allclose(s.inverse(s.transform(H)), H, rtol=1e-13, atol=1e-13)
+    t = Scaler().load_state_dict(s.state_dict())
+    assert (t.kind, t.granularity, t.range, t.centre) == (kind, gran, rng, "mean")
+    assert np.array_equal(t.transform(H), s.transform(H))
+
+
+def test_granularity_default_is_the_kinds_own_and_norm_honours_it():
+    F = _F(9)
+    assert Scaler("std").granularity == "vertex" and Scaler("norm").granularity == "channel"
+    assert Scaler("norm").fit(F).shift.shape == (1, 3)  # as before issue 17
+    assert Scaler("norm", "vertex").fit(F).shift.shape == (F.shape[1], 3)  # no longer ignored
+
+
+def test_old_state_loads_as_what_it_was():
+    F, H = _F(10), _F(11)
+    c = F.shape[-1]
+    lo, hi = F.min(axis=(0, 1)).reshape(1, c), F.max(axis=(0, 1)).reshape(1, c)
+    # what Scaler("norm", "vertex").state_dict() held before issue 17 (norm was per channel whatever its granularity)
+    old = {"kind": "norm", "granularity": "vertex", "a": 1.0, "eps": 1e-8, "shift": lo + (hi - lo) / 2, "div": (hi - lo) / 2}
+    s = Scaler("norm", "vertex", range="quantile", centre="mean").load_state_dict(old)
+    assert (s.granularity, s.range, s.centre) == ("channel", "minmax", "mid")
+    assert np.allclose(s.transform(H), (H - lo) / (hi - lo) * 2 - 1)
+    assert np.array_equal(s.transform(H), Scaler("norm").fit(F).transform(H))
+
+
+def test_option_errors():
+    with pytest.raises(RecipeError, match="range"):
+        Scaler("norm", range="robust")
+    with pytest.raises(RecipeError, match="centre"):
+        Scaler("norm", centre="median")
+    with pytest.raises(RecipeError, match="q"):
+        Scaler("norm", range="quantile", q=0.5)
