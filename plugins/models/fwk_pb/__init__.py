@@ -49,7 +49,9 @@ in the state and saved with the run; ``predict`` and ``fwk apply`` use the chose
 (``fwk.protocols.CompositeModel``).
 
 Beyond the thesis (its future work, ``conditional: true``): one network pair for all
-expressions, the expression given to the decoders as a one-hot condition concatenated to z.
+expressions, the expression given to the decoders as a one-hot condition concatenated to z
+(a foreign flat code: ``build_decoder(..., latent_in=)`` reads it through a linear layer, also
+when the network's own code is a latent map).
 """
 from __future__ import annotations
 
