@@ -1,5 +1,6 @@
 """ae and vae play the network-factory, reconstruction and generative roles."""
 import numpy as np
+import pytest
 
 from fwk.plugins import get_registry
 from fwk.protocols import GenerativeModel, NetworkFactory, ReconstructionModel, plays
@@ -55,3 +56,22 @@ def test_default_representation_is_euclidean_with_std_scaling():
     ref.fit(X, None, None)
     assert m.representation.params == {}
     assert np.array_equal(rep.encode(X), ref.encode(X))
+
+
+@pytest.mark.parametrize("case", [TestAENetworks, TestVAENetworks, TestFullyConvolutionalVCConvNetworks,
+                                  TestFullyConvolutionalSpiralNetworks, TestLatentVerticesLSANetworks])
+def test_decoders_read_concatenated_codes(case):
+    """build_decoder(..., latent_parts=[d, d]): two codes of this network's layout in one input
+    (Deep Spectral Meshes' Z), for every layout; a latent map has no linear layer reading them."""
+    import torch
+
+    from fwk.testing.model import tiny_fit_data
+
+    t = tiny_fit_data(n_subjects=4).template
+    m = case().make()
+    d = m.latent_size
+    enc, dec = m.build_encoder(t, 3), m.build_decoder(t, 9, latent_parts=[d, d])
+    mu, _ = enc(torch.randn(2, t.n_vertices, 3))
+    assert dec(torch.cat([mu, mu], 1)).shape == (2, t.n_vertices, 9)
+    if m.latent_vertices:
+        assert not any(isinstance(x, torch.nn.Linear) and x.in_features == 2 * d for x in dec.modules())
