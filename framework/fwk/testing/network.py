@@ -69,6 +69,18 @@ class NetworkFactoryContract:
         dec = m.build_decoder(template, 3, latent_in=d)
         assert dec(torch.randn(2, d)).shape == (2, template.n_vertices, 3)
 
+    def test_decoder_reads_concatenated_codes(self, template):
+        """``latent_parts``: the decoder of a band model reads several codes concatenated (Deep
+        Spectral Meshes' [Z_low | Z_high]); every entry of every part reaches the output."""
+        m = self.make()
+        parts = [m.latent_size, m.latent_size]
+        dec = m.build_decoder(template, 3, latent_parts=parts)
+        z = torch.randn(2, sum(parts), requires_grad=True)
+        y = dec(z)
+        assert y.shape == (2, template.n_vertices, 3)
+        y.square().sum().backward()
+        assert z.grad is not None and bool((z.grad.abs().sum(0) > 0).all()), "a code entry does not reach the output"
+
     def test_networks_are_deterministic_for_a_seed_and_take_a_context(self, template, tmp_path):
         ctx = make_test_context(tmp_path)
         states = []
