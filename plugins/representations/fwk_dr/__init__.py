@@ -4,25 +4,78 @@ al. 2019 in the simplified form of Wu et al. 2018). 9 channels per vertex.
 Encoding a mesh P' against a reference P (the training mean, or a per-sample reference such as
 a subject's own neutral): for every vertex i, the deformation gradient T_i minimises
 
-    sum_{j in N(i)} c_ij || e'_ij - T_i e_ij ||^2  +  lam_i || T_i n_i - s_i n'_i ||^2
+    E_i(T) = sum_{j in N(i)} c_ij || e'_ij - T e_ij ||^2  +  lam_i || T n_i - s_i n'_i ||^2
+             + mu_i || T - sbar_i Rbar_i ||_F^2
 
-with e_ij = p_i - p_j (reference), e'_ij the deformed edge, c_ij the cotangent weights of the
-fitted template (clamped below at ``weight_floor`` x their mean so that no weight is negative),
-n_i, n'_i unit vertex normals and s_i = sqrt(sum c |e'|^2 / sum c |e|^2) the local scale. The
-normal term (weight lam_i = ``normal_weight`` x the mean c |e|^2 of the one-ring) guards flat
-one-rings, whose edges span only a plane, so T_i (and S) never collapse; with s_i it is exact
-for similarity transforms. Closed form: T_i = (sum c e' e^T + lam s n' n^T)(sum c e e^T + lam n n^T)^-1.
-Polar decomposition T = R S (SVD, det R = +1); features are log R as an axis-angle 3-vector
-and the upper triangle of S - I (6 numbers), scaled by ``scaling`` (none / std / norm).
+with e_ij = p_i - p_j (reference), e'_ij the deformed edge, n_i, n'_i unit vertex normals.
+
+- c_ij are the cotangent weights (cot a_ij + cot b_ij) / 2 of the fitted reference (eq. 2.5),
+  clamped to [``weight_floor`` x their mean |c|, ``weight_ceiling``]: no weight is negative, and
+  none exceeds ``weight_ceiling`` (10 = cot 5.7 deg, so only triangles with an angle below ~6 deg
+  are affected; ICT-FaceKit's largest weight is 11.6, its 99.9th percentile 6.3). Unbounded, a
+  needle's weight (cot of its tiny angle) amplifies noise on its short edge without limit.
+- The normal term (lam_i = ``normal_weight`` x the mean c |e|^2 of the one-ring, s_i =
+  sqrt(sum c |e'|^2 / sum c |e|^2) the local scale) guards flat one-rings, whose edges span only
+  a plane, so T_i never collapses along the normal.
+- The Tikhonov term (issue 17) guards one-rings that are tiny or collapsed. With kappa_i =
+  sum_j c_ij |e_ij|^2 (a one-ring's energy per unit stretch, proportional to its area) and
+  kappa~ its median over the fitted mean's vertices, its weight is mu_i = (tau kappa~)^2 / kappa_i,
+  tau = ``regularisation``: relative to the one-ring's own energy it is (tau kappa~ / kappa_i)^2,
+  so it takes over below tau times the typical energy and vanishes quadratically above. Its
+  target is the similarity of the closed neighbourhood Nbar(i) = {i} u N(i): Rbar_i =
+  polar(sum_{k in Nbar(i)} B_k) (rotation part, det +1) and sbar_i^2 = sum_{k in Nbar(i)} sum_j
+  c_kj |e'_kj|^2 / sum_{k in Nbar(i)} kappa_k.
+
+Closed form. With A_i = sum c e e^T + lam n n^T and B_i = sum c e' e^T + lam s n' n^T,
+
+    T_i = (B_i + mu_i sbar_i Rbar_i) (A_i + mu_i I)^-1.
+
+Why this regulariser (the math):
+
+- *Exact for similarities*, for every tau: if P' = s Q P + t then e' = s Q e, n' = Q n,
+  s_i = s, so B_k = s Q A_k for every k, Rbar_i = polar(s Q sum A_k) = Q (the sum is positive
+  definite), sbar_i = s, and T_i = s Q (A_i + mu_i I)(A_i + mu_i I)^-1 = s Q. The reference
+  itself encodes to 0.
+- *Vanishes where the one-ring is well shaped*: T_i - T_i^0 = mu_i (sbar Rbar - T_i^0)(A_i +
+  mu_i I)^-1 with T_i^0 = B_i A_i^-1 the unregularised gradient, so the change is at most
+  mu_i / lambda_min(A_i) of T_i^0's deviation from the neighbourhood's similarity. For a
+  one-ring of typical size lambda_min(A_i) ~ kappa_i / 60 (the normal direction, with the default
+  normal_weight and six neighbours), so with tau = 0.01 the bound is 60 tau^2 = 0.6 %; on
+  synthetic heads the rotations move by 0.35-0.54 % of the deformation's largest local rotation
+  (tested against the unregularised energy: < 1e-3 rad).
+- *Bounded sensitivity*: a displacement of the deformed vertices by at most delta changes B_i by
+  ||dB_i|| <= 2 delta sqrt(C_i kappa_i) (Cauchy-Schwarz, C_i = sum_j c_ij <= degree x
+  weight_ceiling; plus the normal term, smaller by normal_weight), and
+  lambda_min(A_i + mu_i I) >= max(lambda_min(A_i), mu_i), so ||dT_i|| <= 2 delta sqrt(C_i kappa_i)
+  / max(lambda_min(A_i), (tau kappa~)^2 / kappa_i), which tends to 0 with kappa_i: the smaller
+  the one-ring, the more firmly it follows its neighbourhood. Unregularised, a one-ring of size h
+  moves by delta / h: at a collapsed one-ring (all neighbours within 1e-3 of an edge of the
+  vertex) noise of 1e-3 of an edge rotates T by up to 2.9 rad; regularised by under 0.01 rad
+  (tested).
+- *Tiny one-rings follow their neighbourhood*: where kappa_i << tau kappa~, T_i -> sbar_i Rbar_i,
+  the similarity of the surrounding triangles, a proper rotation: a sliver that folds (a
+  reflection, det T < 0, whose rotation part is near pi) gives a bounded rotation.
+
+``regularisation: 0`` and ``weight_ceiling: null`` give the earlier behaviour exactly (what a
+state saved before issue 17 loads as). On ICT-FaceKit the folds are in the data (triangles whose
+normal reverses between a mesh and its reference); the default tau = 0.01 removes most of the
+rotations above 2 rad they cause at a small cost in round-trip accuracy: the figures, and the
+other values measured, are in docs/methods/spectral.md ("measured on ICT-FaceKit").
+
+Polar decomposition T = R S (det R = +1; scaled Newton, SVD where det T <= 0); features are
+log R as an axis-angle 3-vector and the upper triangle of S - I (6 numbers), scaled by
+``scaling`` (none / std / norm, with ``granularity``, ``range``, ``q`` and ``centre`` as in
+``fwk.scaling``).
 
 Decoding: T_i = exp(r_i) (I + S_i), then the Poisson-type system (Wu et al. 2018)
 
     sum_j c_ij ((p'_i - p'_j) - (T_i + T_j)/2 e_ij) = 0   for every i
 
-i.e. L_c p' = b with the template's weighted graph Laplacian L_c, factorised once (SuperLU) with
-one vertex per connected component pinned; all meshes and coordinates are solved as one block.
-The factorisation is kept in memory, keyed by the content hash of the reference geometry and
-topology, so every DR instance on the same template shares it.
+i.e. L_c p' = b with the template's weighted graph Laplacian L_c (the same clamped weights),
+factorised once (SuperLU) with one vertex per connected component pinned; all meshes and
+coordinates are solved as one block. The factorisation is kept in memory, keyed by the content
+hash of the reference geometry, topology and weight clamps, so every DR instance on the same
+template shares it.
 
 DR does not encode position (nor, for the whole mesh, orientation), so a decoded mesh is
 placed by rigid registration (Kabsch, no scaling): with ``target`` given to ``decode`` (the
@@ -32,14 +85,18 @@ evaluation that must never silently fall back to the reference).
 
 ``ref="mean"``: the reference is the fitted training mean unless ``encode``/``decode`` get a
 per-sample ``ref`` (b, n, 3) or (n, 3); ``ref="sample"`` requires one (a subject's own neutral
-for expressions, thesis 5.2) and fails clearly without it. The cotangent weights (and the
+for expressions, thesis 5.2) and fails clearly without it. The cotangent weights, mu (and the
 factorisation) always come from the fitted mean, so per-sample references cost nothing extra.
+
+Scaling defaults (issue 17, measured on ICT-FaceKit, docs/methods/spectral.md): norm per vertex
+and channel, over the 1-99 % quantile range, centred on the training mean, so a zero network
+output decodes to the mean features; ``scaling: std`` is per vertex and channel as before.
 
 Guards (never NaN): a flat one-ring is held by the normal term; an isolated vertex (no edge) gets
 T = I and is pinned to the reference when decoding.
 
 Round trip: similarity transforms of the reference come back exactly (to 1e-10, tested);
-a smooth general deformation comes back to within 1e-3 of the mesh size (tested; the
+a smooth general deformation comes back to within 1 % of its largest displacement (tested; the
 least-squares gradients of a non-affine deformation are not integrable exactly).
 """
 from __future__ import annotations
@@ -112,16 +169,19 @@ def polar(T, iters: int = 30, tol: float = 1e-14):
     return R, S
 
 
-def _operators(mean: np.ndarray, F: np.ndarray, weight_floor: float) -> dict:
-    """What depends on the fitted mean only: the floored cotangent weights of the directed
+def _operators(mean: np.ndarray, F: np.ndarray, weight_floor: float, weight_ceiling: float | None) -> dict:
+    """What depends on the fitted mean only: the clamped cotangent weights of the directed
     half-edges, the vertex incidence, the factorised weighted Laplacian with one pin per
-    connected component, the vertex-face incidence and the vertex degrees."""
+    connected component, the vertex-face incidence, the vertex degrees, the closed-neighbourhood
+    matrix K = adjacency + I and the median one-ring energy kappa (non-isolated vertices)."""
     n = len(mean)
     L = cotangent_laplacian(mean, F).tocoo()
     off = L.row < L.col
     i, j, c = L.row[off], L.col[off], -L.data[off]
     floor = weight_floor * np.abs(c).mean()
     c = np.maximum(c, floor)
+    if weight_ceiling is not None:
+        c = np.minimum(c, weight_ceiling)
     # directed half-edges (i -> j) both ways
     hi = np.concatenate([i, j])
     hj = np.concatenate([j, i])
@@ -138,7 +198,14 @@ def _operators(mean: np.ndarray, F: np.ndarray, weight_floor: float) -> dict:
     m = len(F)
     vf = sp.csr_matrix((np.ones(3 * m), (F.ravel(), np.repeat(np.arange(m), 3))), shape=(n, m))
     deg = np.maximum(np.asarray(inc.sum(1)).ravel(), 1)
-    return {"hi": hi, "hj": hj, "hc": hc, "inc": inc, "lu": lu, "pins": pins, "vf": vf, "deg": deg}
+    K = (sp.csr_matrix((np.ones(len(hi)), (hi, hj)), shape=(n, n)) + sp.identity(n, format="csr")).tocsr()
+    K.data[:] = 1.0
+    e = mean[hi] - mean[hj]
+    kappa = inc @ (hc * (e * e).sum(-1))
+    live = kappa > 0
+    kappa_typ = float(np.median(kappa[live])) if live.any() else 0.0
+    return {"hi": hi, "hj": hj, "hc": hc, "inc": inc, "lu": lu, "pins": pins, "vf": vf, "deg": deg, "K": K,
+            "kappa_typ": kappa_typ}
 
 
 class DR:
@@ -150,16 +217,23 @@ class DR:
     relative_option = False  # always the deformation from ref
     relative = True
 
-    def __init__(self, scaling: str = "norm", granularity: str = "vertex", a: float = 1.0, ref: str = "mean",
+    def __init__(self, scaling: str = "norm", granularity: str | None = "vertex", a: float = 1.0, ref: str = "mean",
                  align: str = "reference", normal_weight: float = 0.1, weight_floor: float = 1e-3,
-                 eps: float = 1e-8):
+                 eps: float = 1e-8, range: str = "quantile", q: float = 0.01, centre: str = "mean",
+                 regularisation: float = 1e-2, weight_ceiling: float | None = 10.0):
         if align not in ALIGN:
             raise RecipeError(f"align: expected one of {', '.join(ALIGN)}, got {align!r}")
         if ref not in REFS:
             raise RecipeError(f"ref: expected one of {', '.join(REFS)}, got {ref!r}")
-        self.scaler = Scaler(scaling, granularity, a, eps)
+        if not regularisation >= 0:
+            raise RecipeError(f"regularisation: expected a number >= 0, got {regularisation!r}")
+        if weight_ceiling is not None and not weight_ceiling > 0:
+            raise RecipeError(f"weight_ceiling: expected a number > 0 or null, got {weight_ceiling!r}")
+        self.scaler = Scaler(scaling, granularity, a, eps, range=range, q=q, centre=centre)
         self.ref_mode = ref
         self.align, self.normal_weight, self.weight_floor = align, normal_weight, weight_floor
+        self.regularisation = float(regularisation)
+        self.weight_ceiling = None if weight_ceiling is None else float(weight_ceiling)
         self.mean = self.F = None
         self._ops = self._mean_terms = None
 
@@ -168,13 +242,21 @@ class DR:
         self._mean_terms = None
         self.mean = np.asarray(mean, dtype=np.float64)
         self.F = np.asarray(F, dtype=np.int64)
-        self._ops = memo(f"{__name__}.operators", content_key(self.mean, self.F, self.weight_floor),
-                         lambda: _operators(self.mean, self.F, self.weight_floor), size=8)
+        key = content_key(self.mean, self.F, self.weight_floor, self.weight_ceiling)
+        self._ops = memo(f"{__name__}.operators", key,
+                         lambda: _operators(self.mean, self.F, self.weight_floor, self.weight_ceiling), size=8)
+
+    def _mu(self, den):
+        """The Tikhonov weights mu_i = (tau kappa~)^2 / kappa_i for one-ring energies den (r, n)
+        (tau = ``regularisation``, kappa~ the fitted mean's median one-ring energy)."""
+        m = self.regularisation * self._ops["kappa_typ"]
+        return m * m / (den + 1e-12 * m)
 
     def _ref_terms(self, ref):
         """What depends on the reference only: its edges e (r, h, 3), normals n0, the one-ring
-        sums den = sum c |e|^2, the guard weight lam and the inverse of
-        A = sum c e e^T + lam n0 n0^T (r, n, 3, 3); r = 1 for the fitted mean (cached)."""
+        sums den = kappa = sum c |e|^2 (and their neighbourhood sums Kden when mu > 0), the guard
+        weight lam and the inverse of A + mu I, A = sum c e e^T + lam n0 n0^T (r, n, 3, 3); r = 1
+        for the fitted mean (cached)."""
         if ref is None and self._mean_terms is not None:
             return self._mean_terms
         o = self._ops
@@ -190,18 +272,25 @@ class DR:
         lam = self.normal_weight * den / o["deg"]
         n0 = self._normals(R0)
         A = A + lam[..., None, None] * n0[..., :, None] * n0[..., None, :]
+        mu = self._mu(den) if self.regularisation > 0 else None
+        if mu is not None:
+            A = A + mu[..., None, None] * np.eye(3)
         # guard: a vertex with no (non-degenerate) edge has no gradient: T = I there
         iso = ~(den > 1e-300 * max(float(np.abs(den).max(initial=0.0)), 1e-300))
         A[iso] = np.eye(3)
         terms = {"e": e, "n0": n0, "den": den, "lam": lam, "Ainv": np.linalg.inv(A), "iso": iso}
+        if mu is not None:
+            terms["mu"] = mu
+            terms["Kden"] = np.stack([o["K"] @ den[s] for s in range(len(R0))])
         if ref is None:
             self._mean_terms = terms
         return terms
 
     def _gradients_of(self, P, ref):
-        """T (b, n, 3, 3) = B A^-1, the guarded cotangent-weighted least-squares gradients."""
+        """T (b, n, 3, 3) = (B + mu sbar Rbar)(A + mu I)^-1, the guarded cotangent-weighted
+        least-squares gradients (module docstring)."""
         o = self._ops
-        b = len(P)
+        b, n = P.shape[:2]
         t = self._ref_terms(ref)
         e = t["e"]
         ed = P[:, o["hi"]] - P[:, o["hj"]]
@@ -213,6 +302,13 @@ class DR:
         s = np.sqrt(S[..., 9] / np.maximum(t["den"], 1e-300))
         n1 = self._normals(P)
         B = B + (t["lam"] * s)[..., None, None] * n1[..., :, None] * t["n0"][..., None, :]
+        if self.regularisation > 0:  # the similarity of the closed neighbourhood: Rbar = polar(K B), sbar^2 = K E' / K kappa
+            K = o["K"]
+            KB = np.stack([K @ B[q].reshape(n, 9) for q in range(b)]).reshape(b, n, 3, 3)
+            KE = np.stack([K @ S[q, :, 9] for q in range(b)])
+            sbar = np.sqrt(KE / np.maximum(t["Kden"], 1e-300))
+            Rbar, _ = polar(KB)
+            B = B + (t["mu"] * sbar)[..., None, None] * Rbar
         B[np.broadcast_to(t["iso"], B.shape[:2])] = np.eye(3)
         return B @ t["Ainv"]
 
@@ -236,6 +332,7 @@ class DR:
 
     # ------------------------------------------------------------------ features
     def raw_features(self, P, ref=None) -> np.ndarray:
+        """(b, n, 9) unscaled features [log R | upper triangle of S - I] of P against ``ref``."""
         P = np.asarray(P, dtype=np.float64)
         single = P.ndim == 2
         P = P[None] if single else P
@@ -252,6 +349,7 @@ class DR:
         return F[0] if single else F
 
     def gradients(self, F) -> np.ndarray:
+        """(..., 9) unscaled features -> (..., 3, 3) T = exp(log R) (I + (S - I))."""
         F = np.asarray(F, dtype=np.float64)
         rv, su = F[..., :3], F[..., 3:]
         R = Rotation.from_rotvec(rv.reshape(-1, 3)).as_matrix().reshape(*rv.shape[:-1], 3, 3)
@@ -263,6 +361,8 @@ class DR:
         return R @ S
 
     def integrate(self, T, ref=None, target=None) -> np.ndarray:
+        """Positions (b, n, 3) whose edges best follow the gradients T (b, n, 3, 3), placed
+        rigidly onto ``target`` (or the reference)."""
         o = self._ops
         b = len(T)
         R0 = self._refs(ref, b)
@@ -306,13 +406,19 @@ class DR:
 
     def state_dict(self) -> dict:
         return {"scaler": self.scaler.state_dict(), "mean": self.mean, "F": self.F, "align": self.align,
-                "ref": self.ref_mode, "normal_weight": self.normal_weight, "weight_floor": self.weight_floor}
+                "ref": self.ref_mode, "normal_weight": self.normal_weight, "weight_floor": self.weight_floor,
+                "regularisation": self.regularisation, "weight_ceiling": self.weight_ceiling}
 
     def load_state_dict(self, d: dict, ctx=None) -> None:
+        """Restore ``state_dict``'s output. A state saved before issue 17 has no ``regularisation``
+        or ``weight_ceiling``: it loads with neither (0, no ceiling), the features it was trained on."""
         self.scaler.load_state_dict(d["scaler"])
         self.align, self.normal_weight = str(d["align"]), float(d["normal_weight"])
         self.ref_mode = str(d.get("ref", "mean"))
         self.weight_floor = float(d["weight_floor"])
+        self.regularisation = float(d.get("regularisation", 0.0))
+        wc = d.get("weight_ceiling")
+        self.weight_ceiling = None if wc is None else float(wc)
         self._mean_terms = None
         self._setup(np.asarray(d["mean"]), np.asarray(d["F"]))
 
