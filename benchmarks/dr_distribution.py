@@ -23,8 +23,9 @@ sweep of ``regularisation``:
    stretch ||S - I||_F (percentiles 50, 90, 99, 99.9, max), the number of vertices whose angle
    exceeds 0.5 rad for some subject, the number of (subject, vertex) pairs whose gradient is a
    reflection (det T <= 0: a fold), and the round trip (decode(encode(P)), registered onto P,
-   L1 in the evaluation space, test subjects). Also counted: triangles whose normal reverses
-   between the reference and the mesh (folds present in the data themselves);
+   L1 in the evaluation space, test subjects). Also measured on the data themselves: triangles
+   whose normal reverses between the reference and the mesh (folds), and the angle between each
+   vertex normal and the reference's (rotations that are really there);
 2. for every scaling option (norm: granularity x range x centre; std): the share of [-1, 1]
    that the middle 98 % of the training values fill (per channel, over samples and vertices:
    (Q99 - Q1) / 2; median and minimum over the 9 channels), the share of test values outside
@@ -48,6 +49,7 @@ import numpy as np
 
 from fwk.cache import Cache
 from fwk.data.preprocess import Preprocessor
+from fwk.geometry.operators import vertex_normals
 from fwk.plugins import get_registry
 from fwk.scaling import Scaler
 from fwk.testing import ICT_SKIP_REASON, ict_path
@@ -89,6 +91,13 @@ def flipped_triangles(P, ref, F) -> int:
     def nrm(V):
         return np.cross(V[..., F[:, 1], :] - V[..., F[:, 0], :], V[..., F[:, 2], :] - V[..., F[:, 0], :])
     return int(((nrm(P) * nrm(ref)).sum(-1) < 0).sum())
+
+
+def normal_angles(P, ref, F) -> list[float]:
+    """Percentiles of the angle between each vertex normal and the reference's (a rotation
+    that is in the data, whatever DR makes of it)."""
+    c = (vertex_normals(P, F) * vertex_normals(np.broadcast_to(ref, P.shape), F)).sum(-1)
+    return [float(x) for x in np.percentile(np.arccos(np.clip(c, -1, 1)), PCTS)]
 
 
 def distribution(r, P, ref, test, F) -> dict:
@@ -154,6 +163,7 @@ def main():
            "omp_threads": os.environ.get("OMP_NUM_THREADS"),
            "data_flipped_triangles": {"identities": flipped_triangles(N, mean, F),
                                       "expressions": flipped_triangles(E, NE, F), "triangles": len(F)},
+           "data_normal_angle": {"identities": normal_angles(N, mean, F), "expressions": normal_angles(E, NE, F)},
            "baselines": {"identity_mean_shape_l1": l1(mean[None], N[test]),
                          "expression_neutral_l1": l1(NE[etest], E[etest]),
                          "expression_mean_offset_l1": l1(NE[etest] + (E[etrain] - NE[etrain]).mean(0), E[etest])},
@@ -182,6 +192,9 @@ def main():
     d = out["data_flipped_triangles"]
     print(f"triangles whose normal reverses in the data: identities vs mean {d['identities']} "
           f"(subject, triangle) pairs; expressions vs own neutral {d['expressions']} (of {d['triangles']} triangles)")
+    na = out["data_normal_angle"]
+    print("vertex normal against the reference's, rad (p50 p90 p99 p99.9 max): identities "
+          + " ".join(f"{v:.3f}" for v in na["identities"]) + "; expressions " + " ".join(f"{v:.3f}" for v in na["expressions"]))
     print(f"baselines (test): mean shape L1 {b['identity_mean_shape_l1']:.4f}; expression: neutral L1 "
           f"{b['expression_neutral_l1']:.4f}, neutral + mean offset {b['expression_mean_offset_l1']:.4f}")
     print("\n1. distribution   |log R| rad: p50 p90 p99 p99.9 max      ||S-I||_F: p50 p90 p99 p99.9 max"

@@ -41,17 +41,19 @@ Why this regulariser (the math):
   mu_i / lambda_min(A_i) of T_i^0's deviation from the neighbourhood's similarity. For a
   one-ring of typical size lambda_min(A_i) ~ kappa_i / 60 (the normal direction, with the default
   normal_weight and six neighbours), so with tau = 0.01 the bound is 60 tau^2 = 0.6 %; on
-  synthetic heads the rotations move by 0.35-0.54 % of the deformation's largest local rotation
-  (tested against the unregularised energy: < 1e-3 rad).
+  synthetic heads under random smooth deformations the rotations move by 0.35-0.54 % of the
+  deformation's largest local rotation (tested against a naive solve of the unregularised
+  energy: under 1 %).
 - *Bounded sensitivity*: a displacement of the deformed vertices by at most delta changes B_i by
   ||dB_i|| <= 2 delta sqrt(C_i kappa_i) (Cauchy-Schwarz, C_i = sum_j c_ij <= degree x
   weight_ceiling; plus the normal term, smaller by normal_weight), and
   lambda_min(A_i + mu_i I) >= max(lambda_min(A_i), mu_i), so ||dT_i|| <= 2 delta sqrt(C_i kappa_i)
   / max(lambda_min(A_i), (tau kappa~)^2 / kappa_i), which tends to 0 with kappa_i: the smaller
   the one-ring, the more firmly it follows its neighbourhood. Unregularised, a one-ring of size h
-  moves by delta / h: at a collapsed one-ring (all neighbours within 1e-3 of an edge of the
-  vertex) noise of 1e-3 of an edge rotates T by up to 2.9 rad; regularised by under 0.01 rad
-  (tested).
+  moves by delta / h: at a collapsed one-ring (every neighbour within 1e-4 of an edge of the
+  vertex) noise of 1e-3 of an edge gave |log R| up to 3.10 rad and |S - I| up to 77; regularised
+  0.008 and 0.012, as at a well-shaped one-ring (tests/representations/test_dr_degenerate.py;
+  the needle's 1e7 weight gave |S - I| 0.76, clamped 0.011).
 - *Tiny one-rings follow their neighbourhood*: where kappa_i << tau kappa~, T_i -> sbar_i Rbar_i,
   the similarity of the surrounding triangles, a proper rotation: a sliver that folds (a
   reflection, det T < 0, whose rotation part is near pi) gives a bounded rotation.
