@@ -24,7 +24,7 @@ class Euclidean:
     relative_option = True  # `relative: true` takes the features against ref (an offset)
     relative = False  # the constructor's `relative` sets it per instance
 
-    def __init__(self, scaling: str = "std", granularity: str = "vertex", a: float = 1.0, relative: bool = False,
+    def __init__(self, scaling: str = "std", granularity: str | None = None, a: float = 1.0, relative: bool = False,
                  eps: float = 1e-8):
         self.scaler = Scaler(scaling, granularity, a, eps)
         self.relative = relative
