@@ -1,92 +1,189 @@
-"""Per-model training step time, inference time and parameter count at the thesis configuration
-(section 3.4: channels [|f|, 16, 32, 64, 128], pooling factor 4, latent 64, batch 16), on a
-~5k-vertex synthetic head and the 11k-vertex ICT-FaceKit face-head region (a synthetic head of
-that size when the data is absent). CPU here; the same script uses CUDA when available.
+"""Training-step throughput of the thesis's networks, today's code against the code as it was
+before issue 17's kernel work (``benchmarks/_before.py``, a frozen copy of commit 5b25de3's
+convs and networks), side by side in one process.
 
-    python benchmarks/training.py [--steps 5] [--sizes 5000 11248]
+    python benchmarks/training.py [--steps 7] [--bf16] [--all]
 
-Prints a table and, as its last line, one JSON object {model: {n_vertices: {step_ms, infer_ms,
-params}}} plus flat per-model ``step_ms``, ``params`` and ``n_vertices`` of the largest mesh.
+Networks (thesis 3.4 / appendix A), batch 16, on the ICT-FaceKit face-head region (11,248
+vertices) when ICT-FaceKit is present, else a synthetic head of the same size (printed):
+
+* ``vcconv VAE``: the fully convolutional VAE, channels [3, 32, 64, 128, 128, 8], 8 latent
+  vertices, weight_num 35, residual rate 0.5, ``simple`` sampler with 4 levels;
+* ``spiral++ AE``: channels [3, 16, 32, 64, 128], latent 64, ``quadric`` sampler, factors
+  [4, 4, 4, 4], spirals of length 9.
+
+A step is forward, L1 loss, backward and an Adam step. The two versions alternate step by step
+after one warm-up step each; the table gives the median step time of each, their ratio, the
+GFLOP of one forward and backward pass (matrix products counted by
+see ``gflop``) and the achieved rate against an fp32 matmul (2048^3) measured in
+the same process with the same threads. GFLOP per step is estimated as 3x the dense products
+of one forward pass (``torch.utils.flop_counter``; sparse pooling left out). ``--bf16`` also times today's code under CPU autocast
+(bfloat16, what ``train.precision: bf16-mixed`` gives Lightning) and trains both precisions
+for a few steps from the same initialisation to report the per-step loss deviation. ``--all``
+adds a table of every conv's AE at the thesis configuration (today's code only). Threads:
+torch's default (``OMP_NUM_THREADS``); the machine's load average is printed with the figures.
+
+The last line is one JSON object with every figure.
 """
+from __future__ import annotations
+
 import argparse
+import copy
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import _before  # noqa: E402
+from _ict import face_head  # noqa: E402
 from fwk.plugins import get_registry  # noqa: E402
 from fwk.recipes import make_spec  # noqa: E402
 
-CONVS = {"spiral": {"name": "spiral"}, "spiral++": {"name": "spiral++", "length": 9},
-         "feast": {"name": "feast", "heads": 8}, "lsa": {"name": "lsa"}}
+BATCH = 16
+VCCONV_VAE = {"name": "vae", "conv": {"name": "vcconv", "weight_num": 35}, "channels": [32, 64, 128, 128, 8],
+              "latent_vertices": 8, "sampler": {"name": "simple", "levels": 4}, "residual_rate": 0.5}
+SPIRALPP_AE = {"name": "ae", "conv": {"name": "spiral++", "length": 9}, "channels": [16, 32, 64, 128],
+               "latent": 64, "sampler": {"name": "quadric", "factors": [4, 4, 4, 4]}}
+OTHER_CONVS = {"spiral": {"name": "spiral"}, "feast": {"name": "feast", "heads": 8}, "lsa": {"name": "lsa"}}
 
 
-def template_of(n):
-    from _ict import face_head
+def networks(spec, template):
+    """Today's (encoder, decoder) of a model spec, and its hierarchy."""
+    m = make_spec("model", spec, "model", get_registry()).build()
+    enc, dec = m.build_encoder(template, 3), m.build_decoder(template, 3)
+    return enc, dec, m.hierarchy
 
-    if n >= 11000:
-        col, src = face_head(1)
-        return col.template, src
-    reg = get_registry()
-    col = reg.get("dataset", "synthetic-heads")(n_subjects=1, n_vertices=n).load(None)
-    return col.template, "synthetic-heads"
+
+def stepper(enc, dec, x, bf16=False):
+    """One training step (forward, L1, backward, Adam) as a closure returning the loss."""
+    opt = torch.optim.Adam(list(enc.parameters()) + list(dec.parameters()), 1e-3)
+
+    def step():
+        opt.zero_grad(set_to_none=True)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            loss = (dec(enc(x)[0]).float() - x).abs().mean()
+        loss.backward()
+        opt.step()
+        return loss.item()
+
+    return step
+
+
+def gflop(enc, dec, x) -> float:
+    """Estimated GFLOP of one training step: 3 x the dense matrix products of a forward pass
+    (forward, and the two gradients of each product), counted by torch. The sparse pooling
+    products are left out (the counter counts them as dense; their real cost is negligible)."""
+    sparse = {f"{type(net).__name__}.{name}" for net in (enc, dec) for name, mod in net.named_modules()
+              if name and not any(True for _ in mod.parameters())}
+    with torch.no_grad(), FlopCounterMode(display=False) as fc:
+        dec(enc(x)[0])
+    counts = fc.get_flop_counts()
+    fwd = sum(counts["Global"].values()) - sum(sum(counts.get(k, {}).values()) for k in sparse)
+    return 3 * fwd / 1e9
+
+
+def matmul_rate(repeat: int = 7) -> float:
+    """fp32 GFLOP/s of a 2048 x 2048 x 2048 matmul (median), with torch's current threads."""
+    a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
+    a @ b
+    ts = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        a @ b
+        ts.append(time.perf_counter() - t0)
+    return 2 * 2048 ** 3 / float(np.median(ts)) / 1e9
+
+
+def alternate(steps: dict, n: int) -> dict:
+    """Median seconds per call of each closure, called in turn n times after one warm-up each."""
+    for f in steps.values():
+        f()
+    ts = {k: [] for k in steps}
+    for _ in range(n):
+        for k, f in steps.items():
+            t0 = time.perf_counter()
+            f()
+            ts[k].append(time.perf_counter() - t0)
+    return {k: float(np.median(v)) for k, v in ts.items()}
+
+
+def loss_deviation(enc, dec, x, n: int = 8) -> list[float]:
+    """Relative |loss_bf16 - loss_fp32| / loss_fp32 at each of n steps from the same initialisation."""
+    e2, d2 = copy.deepcopy(enc), copy.deepcopy(dec)
+    f32, b16 = stepper(enc, dec, x), stepper(e2, d2, x, bf16=True)
+    out = []
+    for _ in range(n):
+        a, b = f32(), b16()
+        out.append(abs(b - a) / a)
+    return out
+
+
+def load_average() -> float:
+    return os.getloadavg()[0]
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--steps", type=int, default=5)
-    ap.add_argument("--sizes", type=int, nargs="+", default=[5000, 11248])
+    ap.add_argument("--steps", type=int, default=7, help="timed steps per version (after one warm-up)")
+    ap.add_argument("--bf16", action="store_true", help="also time bf16 autocast and its loss deviation")
+    ap.add_argument("--all", action="store_true", help="also time every other conv's AE (today's code)")
     a = ap.parse_args()
-    dev = "cuda" if torch.cuda.is_available() else "cpu"
-    reg = get_registry()
-    out, flat = {}, {}
-    print(f"device {dev}; batch 16; channels [3, 16, 32, 64, 128]; latent 64; pooling factor 4")
-    print(f"{'model':<10} {'n':>6} {'step ms':>9} {'infer ms':>9} {'params':>10}")
-    for n in a.sizes:
-        t, src = template_of(n)
-        x = torch.randn(16, t.n_vertices, 3, device=dev)
-        for name, conv in {**CONVS, "vcconv": None}.items():
-            if conv is None:  # the thesis's fully convolutional vcconv VAE (section 3.4)
-                spec = {"name": "vae", "conv": {"name": "vcconv", "weight_num": 35}, "channels": [32, 64, 128, 128, 8],
-                        "latent_vertices": 8, "sampler": {"name": "simple", "levels": 4},
-                        "residual_rate": 0.5}
-            else:
-                spec = {"name": "ae", "conv": conv, "channels": [16, 32, 64, 128], "latent": 64,
-                        "sampler": {"name": "quadric", "factors": [4, 4, 4, 4]}}
-            m = make_spec("model", spec, "model", reg).build()
-            enc, dec = m.build_encoder(t, 3).to(dev), m.build_decoder(t, 3).to(dev)
-            params = sum(p.numel() for p in list(enc.parameters()) + list(dec.parameters()))
-            opt = torch.optim.Adam(list(enc.parameters()) + list(dec.parameters()), 1e-3)
-
-            def step():
-                opt.zero_grad()
-                loss = (dec(enc(x)[0]) - x).abs().mean()
-                loss.backward()
-                opt.step()
-
-            step()
-            ts = []
-            for _ in range(a.steps):
-                t0 = time.perf_counter()
-                step()
-                if dev == "cuda":
-                    torch.cuda.synchronize()
-                ts.append(time.perf_counter() - t0)
-            with torch.no_grad():
-                t0 = time.perf_counter()
-                dec(enc(x)[0])
-                infer = time.perf_counter() - t0
-            r = {"step_ms": 1000 * float(np.median(ts)), "infer_ms": 1000 * infer, "params": int(params),
-                 "n_vertices": t.n_vertices, "source": src}
-            out.setdefault(name, {})[t.n_vertices] = r
-            flat[name] = {k: r[k] for k in ("step_ms", "params", "n_vertices")}
-            print(f"{name:<10} {t.n_vertices:>6} {r['step_ms']:>9.1f} {r['infer_ms']:>9.1f} {params:>10}")
-    print(json.dumps({**flat, "detail": out, "device": dev}))
+    torch.manual_seed(0)
+    col, src = face_head(1)
+    t = col.template
+    threads = torch.get_num_threads()
+    x = torch.randn(BATCH, t.n_vertices, 3)
+    load0 = load_average()
+    rate = matmul_rate()
+    print(f"template: {src}, {t.n_vertices} vertices; batch {BATCH}; torch {torch.__version__}, {threads} threads; "
+          f"fp32 matmul 2048^3: {rate:.0f} GFLOP/s; load average {load0:.2f}")
+    result = {"template": src, "n_vertices": t.n_vertices, "batch": BATCH, "threads": threads,
+              "matmul_gflops": rate, "torch": torch.__version__}
+    print(f"{'network':<13} {'before ms':>10} {'after ms':>9} {'ratio':>6} {'GFLOP before':>13} {'GFLOP after':>12} "
+          f"{'GFLOP/s after':>14} {'of matmul':>10}")
+    for label, key, spec in (("vcconv VAE", "vcconv_vae", VCCONV_VAE), ("spiral++ AE", "spiralpp_ae", SPIRALPP_AE)):
+        torch.manual_seed(0)
+        enc, dec, h = networks(spec, t)
+        if key == "vcconv_vae":
+            oenc, odec = _before.vcconv_vae(h, 3, spec["channels"], weight_num=35, residual_rate=0.5)
+        else:
+            oenc, odec = _before.spiralpp_ae(h, 3, spec["channels"], spec["latent"], length=9)
+        g_new, g_old = gflop(enc, dec, x), gflop(oenc, odec, x)
+        steps = {"before": stepper(oenc, odec, x), "after": stepper(enc, dec, x)}
+        if a.bf16:
+            e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
+            steps["after_bf16"] = stepper(e16, d16, x, bf16=True)
+        ts = alternate(steps, a.steps)
+        r = {"before_ms": 1e3 * ts["before"], "after_ms": 1e3 * ts["after"], "ratio": ts["before"] / ts["after"],
+             "gflop_before": g_old, "gflop_after": g_new, "gflops_before": g_old / ts["before"],
+             "gflops_after": g_new / ts["after"], "of_matmul": g_new / ts["after"] / rate}
+        print(f"{label:<13} {r['before_ms']:>10.0f} {r['after_ms']:>9.0f} {r['ratio']:>6.2f} {g_old:>13.1f} "
+              f"{g_new:>12.1f} {r['gflops_after']:>14.1f} {100 * r['of_matmul']:>9.0f}%")
+        if a.bf16:
+            dev = loss_deviation(enc, dec, x)
+            r.update({"after_bf16_ms": 1e3 * ts["after_bf16"], "bf16_speedup": ts["after"] / ts["after_bf16"],
+                      "bf16_loss_rel_dev": dev})
+            print(f"{'  bf16':<13} {'':>10} {r['after_bf16_ms']:>9.0f} {r['bf16_speedup']:>6.2f}x over fp32; "
+                  f"per-step loss deviation (relative) max {max(dev):.2e}, "
+                  f"steps {', '.join(f'{d:.1e}' for d in dev)}")
+        result[key] = r
+    if a.all:
+        result["others"] = {}
+        for name, conv in OTHER_CONVS.items():
+            enc, dec, _ = networks({**SPIRALPP_AE, "conv": conv}, t)
+            ms = 1e3 * alternate({"s": stepper(enc, dec, x)}, max(2, a.steps // 2))["s"]
+            result["others"][name] = {"step_ms": ms}
+            print(f"{name + ' AE':<13} {'':>10} {ms:>9.0f}")
+    result["load_average"] = [load0, load_average()]
+    print(f"load average at start / end: {load0:.2f} / {load_average():.2f}")
+    print(json.dumps(result))
 
 
 if __name__ == "__main__":

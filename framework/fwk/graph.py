@@ -35,7 +35,10 @@ def sparse_apply(M, x):
     import torch  # deferred: see the module docstring
 
     b, n, c = x.shape
-    y = torch.sparse.mm(M, x.transpose(0, 1).reshape(n, b * c))
+    # under CPU autocast (bf16) the pooling stays in the operator's precision: autocast would cast
+    # the sparse operand too, and its backward then mixes dtypes
+    with torch.autocast(x.device.type, enabled=False):
+        y = torch.sparse.mm(M, x.to(M.dtype).transpose(0, 1).reshape(n, b * c))
     return y.reshape(M.shape[0], b, c).transpose(0, 1)
 
 
@@ -209,3 +212,44 @@ def adjacency(edges, n: int) -> sp.csr_matrix:
     A = symmetric_adjacency(edges, n)
     A.data[:] = 1.0
     return A
+
+
+def buckets(counts, max_buckets: int = 4) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
+    """Rows of different lengths cut into at most ``max_buckets`` groups, each padded only to its
+    own longest row, with the least padding (exact: dynamic programming over the distinct lengths).
+
+    Returns (order, spans): ``order`` (n,) the rows sorted by length (stable), ``spans`` a list of
+    (start, count, width): rows ``order[start:start + count]`` padded to ``width`` (at least 1)."""
+    counts = np.asarray(counts, dtype=np.int64)
+    order = np.argsort(counts, kind="stable")
+    if len(counts) == 0:
+        return order, []
+    vals, freq = np.unique(counts, return_counts=True)
+    ends = np.cumsum(freq)  # rows with length <= vals[v]: ends[v]
+    D = len(vals)
+    B = min(max_buckets, D)
+    # best[k][v]: least padded size of the rows up to length vals[v] in k + 1 buckets, the last ending at v
+    inf = np.iinfo(np.int64).max // 4
+    best = np.full((B, D), inf, dtype=np.int64)
+    back = np.zeros((B, D), dtype=np.int64)
+    width = np.maximum(vals, 1)
+    best[0] = ends * width
+    for k in range(1, B):
+        for v in range(D):
+            for u in range(v):  # previous bucket ends at u
+                cost = best[k - 1, u] + (ends[v] - ends[u]) * width[v]
+                if cost < best[k, v]:
+                    best[k, v], back[k, v] = cost, u
+    k = int(np.argmin(best[:, D - 1]))
+    cuts, v = [], D - 1
+    while True:
+        cuts.append(v)
+        if k == 0:
+            break
+        v, k = int(back[k, v]), k - 1
+    cuts = cuts[::-1]
+    spans, start = [], 0
+    for v in cuts:
+        spans.append((start, int(ends[v]) - start, int(width[v])))
+        start = int(ends[v])
+    return order, spans

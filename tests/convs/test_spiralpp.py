@@ -1,8 +1,11 @@
 import numpy as np
+import pytest
+import torch
 
 from fwk.graph import ordered_one_rings, spirals
 from fwk.plugins import get_registry
 from fwk.testing.conv import ConvContract
+from fwk.testing.sampler import two_components
 
 
 class TestSpiralPPContract(ConvContract):
@@ -84,3 +87,57 @@ def test_spirals_match_a_naive_geometric_construction_on_a_grid():
     for v in (40, 30, 41, 50):  # interior vertices with three complete rings
         S = spirals(F, n * n, length=37)
         assert list(S[v]) == naive_spiral(n, v, 3), v
+
+
+def _naive_spiralpp(conv, x):
+    """x'_i = W [x_{S(i,1)} || ... || x_{S(i,L)}] + b, one vertex at a time."""
+    S = conv.index
+    return torch.stack([conv.layer(torch.cat([x[:, int(j)] for j in S[i]], -1)) for i in range(S.shape[0])], 1)
+
+
+def _close(a, e, tol=1e-5):
+    return a.shape == e.shape and bool((a - e).abs().max() <= tol * (1 + e.abs().max()))
+
+
+@pytest.mark.parametrize("c_in,c_out", [(3, 5), (16, 3), (32, 8), (40, 40)])  # both dx paths (c < 32, c >= 32)
+@pytest.mark.parametrize("chunk_bytes", [1 << 30, 5000])  # one chunk; many, the last one short
+@pytest.mark.parametrize("input_grad", [True, False])
+def test_spiralpp_matches_a_per_vertex_loop_in_value_and_gradient(monkeypatch, c_in, c_out, chunk_bytes, input_grad):
+    import fwk_spiralpp
+
+    monkeypatch.setattr(fwk_spiralpp, "CHUNK_BYTES", chunk_bytes)
+    h = get_registry().get("sampler", "quadric")(factors=[4]).build(two_components())
+    torch.manual_seed(0)
+    conv = get_registry().get("conv", "spiral++")(c_in, c_out, h, 1)
+    with torch.no_grad():
+        conv.layer.bias.normal_()
+    n = h.levels[1].n_vertices
+    x = torch.randn(3, n, c_in, requires_grad=input_grad)
+    g = torch.randn(3, n, c_out)
+    y = conv(x)
+    (y * g).sum().backward()
+    got = ([x.grad.clone()] if input_grad else []) + [p.grad.clone() for p in conv.parameters()]
+    if input_grad:
+        x.grad = None
+    conv.zero_grad()
+    expect = _naive_spiralpp(conv, x)
+    (expect * g).sum().backward()
+    ref = ([x.grad.clone()] if input_grad else []) + [p.grad.clone() for p in conv.parameters()]
+    assert _close(y, expect)
+    for a, e in zip(got, ref):
+        assert _close(a, e), (a - e).abs().max()
+
+
+def test_spiralpp_takes_a_vertex_major_view_and_runs_under_bf16_autocast():
+    h = get_registry().get("sampler", "quadric")(factors=[4]).build(two_components())
+    torch.manual_seed(1)
+    conv = get_registry().get("conv", "spiral++")(6, 4, h, 0)
+    n = h.levels[0].n_vertices
+    xv = torch.randn(n, 2, 6)  # vertex-major storage, as the convs hand their outputs on
+    x = xv.transpose(0, 1)
+    assert torch.allclose(conv(x), conv(x.contiguous()), atol=1e-6)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y16 = conv(x)
+    assert y16.dtype == torch.bfloat16
+    y = conv(x)
+    assert (y16.float() - y).abs().max() <= 0.05 * (1 + y.abs().max())

@@ -7,7 +7,6 @@ whole mesh; each output vertex i has its own sampling coefficients A_ijm for eve
 its neighbourhood N(i), so the kernel W_ij = sum_m A_ijm B_m varies over the mesh:
 
     y_i = b + sum_{j in N(i)} sum_m A_ijm B_m^T x_j
-        = b + sum_m B_m^T (sum_j A_ijm x_j)            (computed in this cheaper order)
 
 ``mode`` chooses the support (the sampler's ``Level.conv`` / ``pool`` / ``unpool``
 neighbourhoods where it defines them, as the connectivity-only sampler of Zhou et al. does;
@@ -25,9 +24,26 @@ residual path y = act(conv(x)); ``act`` is the ``activation`` module the model s
 identity). res averages the input over the same support
 with learned non-negative weights normalised to sum to one (|w_ij| / sum_j |w_ij|; the identity
 when the vertex count is unchanged) followed by a linear channel map when c_in != c_out.
-Neighbourhoods are padded to a fixed size with a mask; everything is one gather and two matrix
-products, in whichever of two orders needs fewer multiply-adds for the layer's shape and batch
-(sum over the neighbourhood first, or the explicit kernels W_ij first as in Zhou et al.'s code).
+
+Evaluation (the same sum in one of three orders, ``order``; ``auto`` takes the one with the
+fewest multiply-adds for the layer's shape and batch, which is ``sum`` for the encoder's strided
+layers and ``basis`` for the decoder's transposed ones at the thesis's sizes):
+
+* ``sum``: T_im = sum_j A_ijm x_j on the output side (one gather of the input rows, one batched
+  (M x K) @ (K x b c_in) product per output vertex), then y_i = sum_m B_m^T T_im as one dense
+  product; the residual's weighted average rides along as an (M+1)-th coefficient;
+* ``basis``: Z_jm = B_m^T x_j on the input side (one dense product), then each input vertex j
+  sends sum_m A_ijm Z_jm to the outputs i whose support holds it (one batched
+  (K' x M) @ (M x b c_out) product per input vertex, K' = how many supports hold j, and one
+  scatter-add). For a transposed layer the inputs are the few coarse vertices, so the basis
+  product runs there: about 8x fewer multiply-adds than ``sum`` in the thesis's decoder;
+* ``kernel``: the explicit kernels W_ij = sum_m A_ijm B_m first, as in Zhou et al.'s code.
+
+Supports are padded to a fixed size per bucket: vertices are sorted by their support size and cut
+into up to four buckets, each padded only to its own largest support (padding is about a third
+of the thesis's supports in one bucket). Activations run vertex-major ((n, b, c) in memory) so
+gathers and scatters move whole rows and their backward passes are an ``index_add`` and an
+``index_select``; the output is returned as a (b, n, c) view of that layout.
 """
 from __future__ import annotations
 
@@ -39,12 +55,12 @@ from torch import nn
 from torch.nn.utils import skip_init
 
 from fwk.errors import RecipeError
-from fwk.graph import adjacency, padded_rows, reach
+from fwk.graph import adjacency, buckets, padded_rows, reach
 from fwk.hookspecs import hookimpl
 from fwk.protocols import CONV_BUILD_ARGS
 
 MODES = ("same", "down", "up")
-ORDERS = ("auto", "sum", "kernel")  # evaluation order of the same sum (see forward); auto: fewer multiply-adds
+ORDERS = ("auto", "sum", "basis", "kernel")  # evaluation order of the same sum (see the module docstring)
 
 
 def support(hierarchy, level: int, mode: str, radius: int):
@@ -69,6 +85,31 @@ def support(hierarchy, level: int, mode: str, radius: int):
         return lv.unpool.index, lv.unpool.mask, nxt.n_vertices, lv.n_vertices
     idx, mask = padded_rows(hierarchy.up[level])
     return idx, mask, nxt.n_vertices, lv.n_vertices
+
+
+def _bucketed(rows: list[np.ndarray], cols: list[np.ndarray], n_rows: int):
+    """Pair lists grouped by row, cut into buckets of similar length (``fwk.graph.buckets``).
+
+    rows[r]: the (other vertex, coefficient position) pairs of row r as two equal-length arrays
+    in ``cols`` order. Returns (order (n_rows,) rows in bucket order, [(start, count, width)],
+    other (sum count*width,), pos (same), valid (same, float)): padded slots repeat the row's
+    first pair (or 0) with valid = 0."""
+    counts = np.array([len(c) for c in cols], dtype=np.int64)
+    order, spans = buckets(counts)
+    other, pos, valid = [], [], []
+    for start, count, width in spans:
+        o = np.zeros((count, width), np.int64)
+        p = np.zeros((count, width), np.int64)
+        v = np.zeros((count, width), np.float32)
+        for r, row in enumerate(order[start:start + count]):
+            k = len(cols[row])
+            if k:
+                o[r, :k], p[r, :k], v[r, :k] = rows[row], cols[row], 1.0
+                o[r, k:], p[r, k:] = rows[row][0], cols[row][0]
+        other.append(o.ravel())
+        pos.append(p.ravel())
+        valid.append(v.ravel())
+    return order, spans, np.concatenate(other), np.concatenate(pos), np.concatenate(valid)
 
 
 class VCConv(nn.Module):
@@ -97,12 +138,13 @@ class VCConv(nn.Module):
         residual_rate (float or None): r in [0, 1]; None: no residual path.
         activation (torch.nn.Module or None): applied to the conv branch before the residual mix;
             supplied by the model like the build arguments (not a recipe key); None: no activation.
-        order (str): evaluation order of the same sum: ``auto`` (fewer multiply-adds), ``sum``
-            or ``kernel`` (see ``forward``); the numbers agree to rounding.
+        order (str): evaluation order of the same sum: ``auto`` (fewest multiply-adds), ``sum``,
+            ``basis`` or ``kernel`` (see the module docstring); the numbers agree to rounding.
 
     Shapes:
         - **input:** (b, n_l, c_in) for ``same`` and ``down``, (b, n_{l+1}, c_in) for ``up``
         - **output:** (b, n_l, c_out) for ``same`` and ``up``, (b, n_{l+1}, c_out) for ``down``
+          (a view of a vertex-major tensor: use ``reshape``, not ``view``)
 
     ``reset_parameters()`` draws B_m ~ N(0, 2 / (c_in K)) and A_ijm ~ N(0, 1 / M) (K the padded
     support size), sets b = 0 and the residual weights w_ij = 1, and draws R as
@@ -126,6 +168,7 @@ class VCConv(nn.Module):
         self.order = order
         self.activation = activation  # a module (no parameters: the state_dict is unchanged) or None
         idx, mask, self.n_in, self.n_out = support(hierarchy, level, mode, radius)
+        # index and mask stay in the state_dict (as before); the evaluation plans below do not
         self.register_buffer("index", torch.as_tensor(idx, dtype=torch.long))
         self.register_buffer("mask", torch.as_tensor(mask, dtype=torch.float32))
         K = idx.shape[1]
@@ -136,10 +179,42 @@ class VCConv(nn.Module):
         self.coef = nn.Parameter(torch.empty(self.n_out, K, weight_num))
         self.bias = nn.Parameter(torch.empty(out_channels))
         self.r = residual_rate
+        self.res_w = self.res_lin = None
         if residual_rate is not None:
             self.res_w = nn.Parameter(torch.empty(self.n_out, K)) if mode != "same" else None
             self.res_lin = skip_init(nn.Linear, in_channels, out_channels, bias=False) if in_channels != out_channels else None
+        self._plan(np.asarray(idx, dtype=np.int64), np.asarray(mask, dtype=bool))
         self.reset_parameters()
+
+    def _plan(self, idx: np.ndarray, mask: np.ndarray) -> None:
+        """The bucketed supports of both sides (non-persistent buffers, moved by ``.to``)."""
+        n_out, K = idx.shape
+        flat = np.arange(n_out * K).reshape(n_out, K)
+        # output side (sum, kernel): each output vertex's valid neighbours and coefficient positions
+        o_rows = [idx[i][mask[i]] for i in range(n_out)]
+        o_cols = [flat[i][mask[i]] for i in range(n_out)]
+        order, self._out_spans, other, pos, valid = _bucketed(o_rows, o_cols, n_out)
+        self.register_buffer("_out_src", torch.as_tensor(other), persistent=False)
+        self.register_buffer("_out_pos", torch.as_tensor(pos), persistent=False)
+        self.register_buffer("_out_valid", torch.as_tensor(valid), persistent=False)
+        inv = np.empty(n_out, np.int64)
+        inv[order] = np.arange(n_out)
+        self.register_buffer("_out_order", torch.as_tensor(order), persistent=False)
+        self.register_buffer("_out_inv", torch.as_tensor(inv), persistent=False)
+        # input side (basis): for each input vertex j, the (output vertex, coefficient position) pairs holding it
+        i_all, k_all = np.nonzero(mask)
+        j_all = idx[i_all, k_all]
+        srt = np.argsort(j_all, kind="stable")
+        splits = np.searchsorted(j_all[srt], np.arange(self.n_in + 1))
+        i_rows = [i_all[srt[splits[j]:splits[j + 1]]] for j in range(self.n_in)]
+        i_cols = [flat[i_all, k_all][srt[splits[j]:splits[j + 1]]] for j in range(self.n_in)]
+        order, self._in_spans, other, pos, valid = _bucketed(i_rows, i_cols, self.n_in)
+        self.register_buffer("_in_order", torch.as_tensor(order), persistent=False)
+        self.register_buffer("_in_dst", torch.as_tensor(other), persistent=False)
+        self.register_buffer("_in_pos", torch.as_tensor(pos), persistent=False)
+        self.register_buffer("_in_valid", torch.as_tensor(valid), persistent=False)
+        self._out_slots = int(sum(c * w for _, c, w in self._out_spans))
+        self._in_slots = int(sum(c * w for _, c, w in self._in_spans))
 
     def reset_parameters(self) -> None:
         """B_m ~ N(0, 2 / (c_in K)), A_ijm ~ N(0, 1 / M), b = 0, w_ij = 1, R as torch.nn.Linear."""
@@ -153,41 +228,137 @@ class VCConv(nn.Module):
         if self.r is not None and self.res_lin is not None:
             self.res_lin.reset_parameters()
 
+    # ---- evaluation orders
+    def costs(self, b: int) -> dict:
+        """Multiply-adds of one forward pass per order for batch size b (``auto`` takes the least)."""
+        M, c, o = self.basis.shape
+        P_out, P_in = self._out_slots, self._in_slots
+        return {"sum": P_out * M * b * c + self.n_out * b * M * c * o,
+                "basis": self.n_in * b * c * M * o + P_in * M * b * o,
+                "kernel": P_out * M * c * o + P_out * b * c * o}
+
+    def chosen_order(self, b: int) -> str:
+        """The order ``forward`` uses for batch size b."""
+        if self.order != "auto":
+            return self.order
+        cost = self.costs(b)
+        return min(cost, key=cost.get)
+
+    def _res_weights(self):
+        """sqrt(r) w~ (n_out * K,), w~_ij = |w_ij| / sum_j |w_ij| over the valid support (flat
+        coefficient positions); the residual's factor sqrt(r) rides on its weights."""
+        w = self.res_w.abs() * self.mask
+        return (w * (math.sqrt(self.r) / w.sum(1, keepdim=True).clamp_min(1e-12))).reshape(-1)
+
+    def _gather_out(self, t):
+        """Rows of t (n_out * K, ...) at the output-side slots, zero at padding: (slots, ...)."""
+        g = t.index_select(0, self._out_pos)
+        return g * self._out_valid.reshape(-1, *([1] * (g.dim() - 1)))
+
+    def _sum(self, xv, b, c, o, M):
+        """Output side, per bucket: T_i = A_i^T X_i (one batched product), then one dense product
+        with the basis (and the bias); each bucket's rows are copied to their vertices."""
+        has_res = self.r is not None and self.res_w is not None
+        A = self._gather_out(self.coef.reshape(-1, M))  # (slots, M)
+        if has_res:
+            A = torch.cat([A, self._gather_out(self._res_weights())[:, None]], 1)  # residual as an (M+1)-th
+        Mx = A.shape[1]
+        x2 = xv.reshape(self.n_in, b * c)
+        Bm = self.basis.reshape(M * c, o)
+        sizes = [count * width for _, count, width in self._out_spans]
+        # a gather per bucket (its backward: an index_add into the small input) and a split of the small A
+        # (its backward: one cat); slices of large tensors would cost a zero-filled copy each in the backward
+        y = res = None
+        at = 0
+        for (start, count, width), Ab in zip(self._out_spans, A.split(sizes)):
+            Xb = x2.index_select(0, self._out_src[at:at + count * width]).reshape(count, width, b * c)
+            T = torch.bmm(Ab.reshape(count, width, Mx).transpose(1, 2), Xb).reshape(count, Mx, b, c)
+            Tc, Tr = T.split([M, Mx - M], 1) if has_res else (T, None)
+            yb = torch.addmm(self.bias, Tc.permute(0, 2, 1, 3).reshape(count * b, M * c), Bm)
+            rows = self._out_order[start:start + count]
+            y = yb.new_empty(self.n_out, b, o) if y is None else y  # every row is written by one bucket
+            y.index_copy_(0, rows, yb.reshape(count, b, o))
+            if has_res:
+                res = Tr.new_empty(self.n_out, b, c) if res is None else res
+                res.index_copy_(0, rows, Tr.reshape(count, b, c))
+            at += count * width
+        if has_res and self.res_lin is not None:
+            res = res @ self.res_lin.weight.t()
+        return y, res
+
+    def _basis(self, xv, b, c, o, M):
+        """Input side, per bucket of input vertices: Z_j = x_j [B_1 .. B_M] (one dense product),
+        then (K' x M) @ (M x b o) per input vertex and a scatter-add to the outputs (which start
+        at the bias)."""
+        has_res = self.r is not None and self.res_w is not None
+        res_first = has_res and self.res_lin is not None and self.n_in * c * o + self._in_slots * o \
+            <= self._in_slots * c + self.n_out * c * o  # R before the scatter when that is cheaper
+        d = o if res_first else c
+        x2 = xv.reshape(self.n_in, b * c)
+        Bm = self.basis.permute(1, 0, 2).reshape(c, M * o)
+        A = self.coef.reshape(-1, M).index_select(0, self._in_pos) * self._in_valid[:, None]  # (slots, M)
+        sizes = [count * width for _, count, width in self._in_spans]
+        w = (self._res_weights().index_select(0, self._in_pos) * self._in_valid).split(sizes) if has_res \
+            else [None] * len(sizes)
+        y = res = None  # accumulators in the products' dtype (bf16 under CPU autocast)
+        at = 0
+        for (start, count, width), Ab, wb in zip(self._in_spans, A.split(sizes), w):
+            xb = x2.index_select(0, self._in_order[start:start + count])  # (count, b c)
+            Z = (xb.reshape(count * b, c) @ Bm).reshape(count, b, M, o)
+            Y = torch.bmm(Ab.reshape(count, width, M), Z.transpose(1, 2).reshape(count, M, b * o))
+            dst = self._in_dst[at:at + count * width]
+            if y is None:
+                y = self.bias.to(Y.dtype).expand(self.n_out, b, o).reshape(self.n_out, b * o).clone()
+            y.index_add_(0, dst, Y.reshape(count * width, b * o))
+            if has_res:
+                src = xb.reshape(count * b, c) @ self.res_lin.weight.t() if res_first else xb  # R x_j
+                R = (wb.reshape(count, width, 1) * src.reshape(count, 1, b * d)).reshape(count * width, b * d)
+                res = R.new_zeros(self.n_out, b * d) if res is None else res
+                res.index_add_(0, dst, R)
+            at += count * width
+        y = y.reshape(self.n_out, b, o)
+        if has_res:
+            res = res.reshape(self.n_out, b, d)
+            if not res_first and self.res_lin is not None:
+                res = res @ self.res_lin.weight.t()
+        return y, res
+
+    def _kernel(self, xv, b, c, o, M):
+        """Explicit kernels W_ij = sum_m A_ijm B_m, then y_i = sum_j W_ij^T x_j per output vertex."""
+        has_res = self.r is not None and self.res_w is not None
+        A = self._gather_out(self.coef.reshape(-1, M))  # (slots, M)
+        W = A @ self.basis.reshape(M, c * o)  # (slots, c o)
+        X = xv.reshape(self.n_in, b * c).index_select(0, self._out_src)  # (slots, b c)
+        sizes = [count * width for _, count, width in self._out_spans]
+        w = self._gather_out(self._res_weights()).split(sizes) if has_res else [None] * len(sizes)
+        ys, rs = [], []
+        for (_, count, width), Xb, Wb, wb in zip(self._out_spans, X.split(sizes), W.split(sizes), w):
+            Xb = Xb.reshape(count, width, b, c)
+            ys.append(torch.bmm(Xb.transpose(1, 2).reshape(count, b, width * c), Wb.reshape(count, width * c, o)))
+            if has_res:
+                rs.append((Xb * wb.reshape(count, width, 1, 1)).sum(1))
+        y = torch.cat(ys, 0).index_select(0, self._out_inv) + self.bias
+        res = None
+        if has_res:
+            res = torch.cat(rs, 0).index_select(0, self._out_inv)
+            if self.res_lin is not None:
+                res = res @ self.res_lin.weight.t()
+        return y, res
+
     def forward(self, x):
         b, _, c = x.shape
-        n, K, M = self.n_out, self.K, self.coef.shape[2]
-        c_out = self.basis.shape[2]
-        A = self.coef * self.mask[:, :, None]
-        # two orders of the same sum, chosen by their multiply-add count for this batch size:
-        #   (a) T_im = sum_j A_ijm x_j, then y_i = sum_m B_m^T T_im:  n M b c (K + c_out)
-        #   (b) W_ij = sum_m A_ijm B_m (explicit kernels), then y_i = sum_j W_ij^T x_j:  n K c c_out (M + b)
-        # (b) wins where c_out is small next to K and b (the decoder's last, finest levels): it
-        # also never builds the (n, M, b, c) intermediate, 800 MB at 11k vertices with c = 32
-        explicit = self.order == "kernel" or (self.order == "auto" and K * c_out * (M + b) < M * b * (K + c_out))
-        # vertex-major gather (n, K, b, c); padded neighbours get zero coefficients
-        X = x.transpose(0, 1)[self.index.reshape(-1)].reshape(n, K, b, c)
-        if explicit:
-            # one batched (b x K c) @ (K c x c_out) product per vertex
-            W = (A.reshape(n * K, M) @ self.basis.reshape(M, c * c_out)).reshape(n, K * c, c_out)
-            y = torch.bmm(X.transpose(1, 2).reshape(n, b, K * c), W).transpose(0, 1) + self.bias
-        else:
-            # one batched (M x K) @ (K x b c) product per output vertex, then one (b n, M c) @ (M c, c_out)
-            T = torch.bmm(A.transpose(1, 2), X.reshape(n, K, b * c))
-            T = T.reshape(n, M, b, c).permute(2, 0, 1, 3).reshape(b * n, M * c)
-            y = (T @ self.basis.reshape(M * c, -1)).reshape(b, n, -1) + self.bias
+        M, _, o = self.basis.shape
+        xv = x.transpose(0, 1)  # vertex-major (n_in, b, c); free when x is the previous layer's output
+        order = self.chosen_order(b)
+        evaluate = self._sum if order == "sum" else self._basis if order == "basis" else self._kernel
+        y, res = evaluate(xv, b, c, o, M)  # y includes the bias; res (strided modes) includes sqrt(r)
         if self.activation is not None:
             y = self.activation(y)
-        if self.r is None:
-            return y
-        if self.res_w is None:
-            res = x
-        else:
-            w = self.res_w.abs() * self.mask
-            w = w / w.sum(1, keepdim=True).clamp_min(1e-12)
-            res = torch.einsum("nk,nkbc->bnc", w, X)
-        if self.res_lin is not None:
-            res = self.res_lin(res)
-        return math.sqrt(1 - self.r) * y + math.sqrt(self.r) * res
+        if self.r is not None:
+            if res is None:  # mode same: the identity (or R) on the input itself
+                res = math.sqrt(self.r) * (xv if self.res_lin is None else xv @ self.res_lin.weight.t())
+            y = torch.add(res, y, alpha=math.sqrt(1 - self.r))
+        return y.transpose(0, 1)
 
 
 @hookimpl
