@@ -31,7 +31,10 @@ metrics.json schema (every evaluating task writes it; ``fwk report`` reads it)::
      "dataset": {"name", "units", ...},             # optional, shown at the top of report.md
      "timing": {label: {name: seconds}},            # optional
      "figures": {caption: path relative to the run directory},
-     "notes": [str, ...]}                           # tasks may add more top-level keys
+     "notes": [str, ...],
+     "training": {network: {"epochs", "ended_by", "best_val", "best_epoch", "plateau", ...}}}
+                                                    # from curves/ (fwk.evaluation.curves); tasks may
+                                                    # add more top-level keys
 
 The evaluation space is the registered data scaled by s into [-1, 1] (the thesis's space);
 input-unit values divide l1 and euclidean by s and l2 by s^2; DAME and FMPD are
