@@ -20,8 +20,11 @@ reused pid is not mistaken for it) in a per-user folder: ``$FWK_RUNTIME_DIR``, e
 ``$XDG_RUNTIME_DIR/fwk/procs``, else ``<tmp>/fwk-<uid>/procs``. A process removes its file on
 exit; files of processes that died without doing so are ignored and removed by whoever counts.
 
-Only the intra-op pool is sized (``torch.set_num_threads``): eager-mode training does not use
-the inter-op pool, which torch creates lazily and lets a process size only once.
+The intra-op pool is sized (``torch.set_num_threads``), and so are the BLAS pools that NumPy
+and SciPy use (OpenBLAS, MKL; through ``threadpoolctl``), whose matrix products in the metrics,
+the spectral assembly and the dr solves would otherwise still take every core. Eager-mode
+training does not use torch's inter-op pool, which torch creates lazily and lets a process
+size only once.
 
 Thread counts change the order of some floating-point reductions: a run is bit-for-bit
 reproducible (and resumable to the same weights) for a fixed count, so pin it with
@@ -34,6 +37,8 @@ import math
 import os
 import tempfile
 from pathlib import Path
+
+from threadpoolctl import threadpool_limits
 
 from ..errors import FwkError
 
@@ -214,4 +219,5 @@ def apply_threads(env=None, directory: Path | None = None) -> tuple[int, str, bo
     changed = torch.get_num_threads() != n
     if changed:
         torch.set_num_threads(n)
+        threadpool_limits(limits=n, user_api="blas")
     return n, why, changed
