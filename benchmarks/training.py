@@ -82,8 +82,13 @@ def gflop(enc, dec, x) -> float:
     products are left out (the counter counts them as dense; their real cost is negligible)."""
     sparse = {f"{type(net).__name__}.{name}" for net in (enc, dec) for name, mod in net.named_modules()
               if name and not any(True for _ in mod.parameters())}
-    with torch.no_grad(), FlopCounterMode(display=False) as fc:
-        dec(enc(x)[0])
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the counter sees this thread only (spiral++ deals chunks to worker threads)
+    try:
+        with torch.no_grad(), FlopCounterMode(display=False) as fc:
+            dec(enc(x)[0])
+    finally:
+        torch.set_num_threads(threads)
     counts = fc.get_flop_counts()
     fwd = sum(counts["Global"].values()) - sum(sum(counts.get(k, {}).values()) for k in sparse)
     return 3 * fwd / 1e9

@@ -102,10 +102,21 @@ def _close(a, e, tol=1e-5):
 @pytest.mark.parametrize("c_in,c_out", [(3, 5), (16, 3), (32, 8), (40, 40)])  # both dx paths (c < 32, c >= 32)
 @pytest.mark.parametrize("chunk_bytes", [1 << 30, 5000])  # one chunk; many, the last one short
 @pytest.mark.parametrize("input_grad", [True, False])
-def test_spiralpp_matches_a_per_vertex_loop_in_value_and_gradient(monkeypatch, c_in, c_out, chunk_bytes, input_grad):
+@pytest.mark.parametrize("threads", [1, 3])  # 3: chunks dealt to three workers, their dW and dx summed
+def test_spiralpp_matches_a_per_vertex_loop_in_value_and_gradient(monkeypatch, c_in, c_out, chunk_bytes, input_grad,
+                                                                  threads):
     import fwk_spiralpp
 
     monkeypatch.setattr(fwk_spiralpp, "CHUNK_BYTES", chunk_bytes)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        _check_against_loop(c_in, c_out, input_grad)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _check_against_loop(c_in, c_out, input_grad):
     h = get_registry().get("sampler", "quadric")(factors=[4]).build(two_components())
     torch.manual_seed(0)
     conv = get_registry().get("conv", "spiral++")(c_in, c_out, h, 1)

@@ -17,9 +17,12 @@ follow the reference: length 9, dilation 1.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import torch
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from fwk.errors import RecipeError
 from fwk.cache import content_key, memo
@@ -28,6 +31,34 @@ from fwk.hookspecs import hookimpl
 from fwk.protocols import CONV_BUILD_ARGS
 
 CHUNK_BYTES = 2 << 20  # gathered rows per chunk: about 2 MB (the chip's L2 is 1 MB a core, its L3 32 MB)
+_POOL: list = []  # one ThreadPoolExecutor, made on first use by _in_workers
+
+
+def _in_workers(work, workers: int) -> None:
+    """Run ``work(w)`` for w in 0..workers-1: w = 0 on this thread, the others on a thread pool,
+    every torch op inside single-threaded. The chunks of a layer are spread over torch's threads
+    this way rather than each small op over OpenMP's: no barrier per op (which stalls whenever
+    another process holds a core), one join per call. torch's thread count is restored after."""
+    if workers <= 1:
+        work(0)
+        return
+    if not _POOL or _POOL[0]._max_workers < workers - 1:
+        _POOL[:] = [ThreadPoolExecutor(max_workers=workers - 1, thread_name_prefix="fwk-spiralpp")]
+
+    def run(w):
+        torch.set_num_threads(1)  # this pool thread's ops (and MKL's, process-wide until restored)
+        with torch.no_grad():  # grad mode is per thread; the work is a Function's forward or backward
+            work(w)
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        futures = [_POOL[0].submit(run, w) for w in range(1, workers)]
+        work(0)
+        for f in futures:
+            f.result()
+    finally:
+        torch.set_num_threads(threads)
 
 
 class GatherLinear(torch.autograd.Function):
@@ -40,8 +71,10 @@ class GatherLinear(torch.autograd.Function):
     Each chunk gathers its rows straight into the (rows b, L c) layout of the product (one
     ``index_select`` of c-float rows of x viewed as (n_in b, c)) and multiplies; the backward
     gathers again for dW (as fast as reading back a kept copy, without keeping 200 MB for the
-    thesis's largest layer) and scatters dx with ``index_add_``. Each call allocates its buffers
-    once: no page-faulting fresh memory per chunk.
+    thesis's largest layer) and scatters dx with ``index_add_``. With T torch threads the chunks
+    are dealt round-robin to T workers (``_in_workers``), each with its own buffers and, in the
+    backward, its own dW and dx accumulators, summed in worker order at the end (deterministic
+    for a given T). Buffers are allocated once per call, not per chunk.
     """
 
     @staticmethod
@@ -50,32 +83,46 @@ class GatherLinear(torch.autograd.Function):
         return (index[s:s + k, None, :] * b + torch.arange(b, device=index.device)[None, :, None]).reshape(-1)
 
     @staticmethod
+    def _plan(n_out, rows, threads):
+        """(rows per chunk, workers, chunk starts of each worker)."""
+        threads = max(1, threads)
+        rows = max(1, min(rows, -(-n_out // threads)))  # at least one chunk per thread
+        starts = list(range(0, n_out, rows))
+        workers = min(threads, len(starts))
+        return rows, workers, [starts[w::workers] for w in range(workers)]
+
+    @staticmethod
     def forward(ctx, x, weight, bias, index, rows):
         n_in, b, c = x.shape
         n_out, L = index.shape
         o = weight.shape[0]
         y = x.new_empty(n_out, b, o)
         x2 = x.view(n_in * b, c)
-        rows = max(1, min(rows, n_out))
-        g = x.new_empty(rows * b * L, c)
+        rows, workers, plan = GatherLinear._plan(n_out, rows, torch.get_num_threads() if x.device.type == "cpu" else 1)
         Wt = weight.t()
-        for s in range(0, n_out, rows):
-            k = min(rows, n_out - s)
-            gk = g[:k * b * L]
-            torch.index_select(x2, 0, GatherLinear._rows(index, s, k, b), out=gk)
-            yk = y[s:s + k].view(k * b, o)
-            if bias is None:
-                torch.mm(gk.view(k * b, L * c), Wt, out=yk)
-            else:
-                torch.addmm(bias, gk.view(k * b, L * c), Wt, out=yk)
+
+        def work(w):
+            g = x.new_empty(rows * b * L, c)
+            for s in plan[w]:
+                k = min(rows, n_out - s)
+                gk = g[:k * b * L]
+                torch.index_select(x2, 0, GatherLinear._rows(index, s, k, b), out=gk)
+                yk = y[s:s + k].view(k * b, o)
+                if bias is None:
+                    torch.mm(gk.view(k * b, L * c), Wt, out=yk)
+                else:
+                    torch.addmm(bias, gk.view(k * b, L * c), Wt, out=yk)
+
+        _in_workers(work, workers)
         ctx.save_for_backward(x, weight, index)
-        ctx.rows, ctx.has_bias = rows, bias is not None
+        ctx.rows, ctx.workers, ctx.plan, ctx.has_bias = rows, workers, plan, bias is not None
         return y
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, gy):
         x, weight, index = ctx.saved_tensors
-        rows = ctx.rows
+        rows, workers, plan = ctx.rows, ctx.workers, ctx.plan
         n_in, b, c = x.shape
         n_out, L = index.shape
         o = weight.shape[0]
@@ -86,32 +133,44 @@ class GatherLinear(torch.autograd.Function):
         # transposed, (L c, k b) = W^T dy^T, and scattered as (c, b) blocks per vertex, which is
         # faster there (measured per chunk: 0.60 against 0.97 ms at c = 16, o = 3)
         flat = c >= 32
-        gx = x.new_zeros(n_in * b, c) if need_x and flat else None
-        gxT = x.new_zeros(n_in, c * b) if need_x and not flat else None
-        gW = x.new_zeros(o, L * c) if need_w else None
-        g = x.new_empty(rows * b * L, c)
-        q = x.new_empty(L * c, rows * b) if need_x and not flat else None
-        h = x.new_empty(rows, L, c, b) if need_x and not flat else None
-        for s in range(0, n_out, rows):
-            k = min(rows, n_out - s)
-            gyk = gy[s:s + k].view(k * b, o)
-            r = GatherLinear._rows(index, s, k, b)
-            gk = g[:k * b * L]
-            if need_w:
-                torch.index_select(x2, 0, r, out=gk)
-                gW.addmm_(gyk.t(), gk.view(k * b, L * c))  # dy^T G: 2x faster than G^T dy for o = 3
-            if need_x and flat:
-                torch.mm(gyk, weight, out=gk.view(k * b, L * c))
-                gx.index_add_(0, r, gk)
-            elif need_x:
-                qk = q[:, :k * b]
-                torch.mm(weight.t(), gyk.t(), out=qk)  # (L c, k b)
-                hk = h[:k]
-                hk.copy_(qk.view(L, c, k, b).permute(2, 0, 1, 3))
-                gxT.index_add_(0, index[s:s + k].reshape(-1), hk.view(k * L, c * b))
+        gxs = [x.new_zeros(n_in * b, c) if flat else x.new_zeros(n_in, c * b) for _ in range(workers)] \
+            if need_x else None
+        gWs = [x.new_zeros(o, L * c) for _ in range(workers)] if need_w else None
+
+        def work(w):
+            g = x.new_empty(rows * b * L, c)
+            if need_x and not flat:
+                q, h = x.new_empty(L * c, rows * b), x.new_empty(rows, L, c, b)
+            for s in plan[w]:
+                k = min(rows, n_out - s)
+                gyk = gy[s:s + k].view(k * b, o)
+                r = GatherLinear._rows(index, s, k, b)
+                gk = g[:k * b * L]
+                if need_w:
+                    torch.index_select(x2, 0, r, out=gk)
+                    gWs[w].addmm_(gyk.t(), gk.view(k * b, L * c))  # dy^T G: 2x faster than G^T dy for o = 3
+                if need_x and flat:
+                    torch.mm(gyk, weight, out=gk.view(k * b, L * c))
+                    gxs[w].index_add_(0, r, gk)
+                elif need_x:
+                    qk = q[:, :k * b]
+                    torch.mm(weight.t(), gyk.t(), out=qk)  # (L c, k b)
+                    hk = h[:k]
+                    hk.copy_(qk.view(L, c, k, b).permute(2, 0, 1, 3))
+                    gxs[w].index_add_(0, index[s:s + k].reshape(-1), hk.view(k * L, c * b))
+
+        _in_workers(work, workers)
         gb = gy.sum((0, 1)) if ctx.has_bias and ctx.needs_input_grad[2] else None
+        gW = gx = None
+        if need_w:
+            gW = gWs[0]
+            for t in gWs[1:]:
+                gW += t
         if need_x:
-            gx = gx.view(n_in, b, c) if flat else gxT.view(n_in, c, b).transpose(1, 2)
+            gx = gxs[0]
+            for t in gxs[1:]:
+                gx += t
+            gx = gx.view(n_in, b, c) if flat else gx.view(n_in, c, b).transpose(1, 2)
         return gx, gW, gb, None, None
 
 
