@@ -65,8 +65,9 @@ class GatherLinear(torch.autograd.Function):
     r"""y_i = W [x_{S(i,1)} || ... || x_{S(i,L)}] + b over vertex-major tensors, a chunk of output
     vertices at a time, without keeping the gathered (n, b, L c) matrix.
 
-    ``forward(x, weight, bias, index, rows)``: x (n_in, b, c) contiguous, weight (o, L c), bias (o,)
-    or None, index (n_out, L) int64, ``rows`` output vertices per chunk; returns (n_out, b, o).
+    ``forward(x, weight, bias, index, flat, rows)``: x (n_in, b, c) contiguous, weight (o, L c),
+    bias (o,) or None, index (n_out, L) int64, flat = ``rows_of(index, b)``, ``rows`` output vertices
+    per chunk; returns (n_out, b, o).
 
     Each chunk gathers its rows straight into the (rows b, L c) layout of the product (one
     ``index_select`` of c-float rows of x viewed as (n_in b, c)) and multiplies; the backward
@@ -78,9 +79,10 @@ class GatherLinear(torch.autograd.Function):
     """
 
     @staticmethod
-    def _rows(index, s, k, b):
-        """Rows of x viewed as (n_in b, c) that chunk [s, s + k) gathers, in (vertex, sample, l) order."""
-        return (index[s:s + k, None, :] * b + torch.arange(b, device=index.device)[None, :, None]).reshape(-1)
+    def rows_of(index, b):
+        """(n_out b L,) the rows of x viewed as (n_in b, c) that the output rows gather, in
+        (vertex, sample, l) order: chunk [s, s + k) reads entries [s b L, (s + k) b L)."""
+        return (index[:, None, :] * b + torch.arange(b, device=index.device)[None, :, None]).reshape(-1)
 
     @staticmethod
     def _plan(n_out, rows, threads):
@@ -92,7 +94,7 @@ class GatherLinear(torch.autograd.Function):
         return rows, workers, [starts[w::workers] for w in range(workers)]
 
     @staticmethod
-    def forward(ctx, x, weight, bias, index, rows):
+    def forward(ctx, x, weight, bias, index, flat, rows):
         n_in, b, c = x.shape
         n_out, L = index.shape
         o = weight.shape[0]
@@ -106,7 +108,7 @@ class GatherLinear(torch.autograd.Function):
             for s in plan[w]:
                 k = min(rows, n_out - s)
                 gk = g[:k * b * L]
-                torch.index_select(x2, 0, GatherLinear._rows(index, s, k, b), out=gk)
+                torch.index_select(x2, 0, flat[s * b * L:(s + k) * b * L], out=gk)
                 yk = y[s:s + k].view(k * b, o)
                 if bias is None:
                     torch.mm(gk.view(k * b, L * c), Wt, out=yk)
@@ -114,14 +116,14 @@ class GatherLinear(torch.autograd.Function):
                     torch.addmm(bias, gk.view(k * b, L * c), Wt, out=yk)
 
         _in_workers(work, workers)
-        ctx.save_for_backward(x, weight, index)
+        ctx.save_for_backward(x, weight, index, flat)
         ctx.rows, ctx.workers, ctx.plan, ctx.has_bias = rows, workers, plan, bias is not None
         return y
 
     @staticmethod
     @once_differentiable
     def backward(ctx, gy):
-        x, weight, index = ctx.saved_tensors
+        x, weight, index, flat = ctx.saved_tensors
         rows, workers, plan = ctx.rows, ctx.workers, ctx.plan
         n_in, b, c = x.shape
         n_out, L = index.shape
@@ -132,24 +134,24 @@ class GatherLinear(torch.autograd.Function):
         # dx: for c >= 32 dy W scattered as c-float rows; for narrower rows the product is computed
         # transposed, (L c, k b) = W^T dy^T, and scattered as (c, b) blocks per vertex, which is
         # faster there (measured per chunk: 0.60 against 0.97 ms at c = 16, o = 3)
-        flat = c >= 32
-        gxs = [x.new_zeros(n_in * b, c) if flat else x.new_zeros(n_in, c * b) for _ in range(workers)] \
+        rowwise = c >= 32
+        gxs = [x.new_zeros(n_in * b, c) if rowwise else x.new_zeros(n_in, c * b) for _ in range(workers)] \
             if need_x else None
         gWs = [x.new_zeros(o, L * c) for _ in range(workers)] if need_w else None
 
         def work(w):
             g = x.new_empty(rows * b * L, c)
-            if need_x and not flat:
+            if need_x and not rowwise:
                 q, h = x.new_empty(L * c, rows * b), x.new_empty(rows, L, c, b)
             for s in plan[w]:
                 k = min(rows, n_out - s)
                 gyk = gy[s:s + k].view(k * b, o)
-                r = GatherLinear._rows(index, s, k, b)
+                r = flat[s * b * L:(s + k) * b * L]
                 gk = g[:k * b * L]
                 if need_w:
                     torch.index_select(x2, 0, r, out=gk)
                     gWs[w].addmm_(gyk.t(), gk.view(k * b, L * c))  # dy^T G: 2x faster than G^T dy for o = 3
-                if need_x and flat:
+                if need_x and rowwise:
                     torch.mm(gyk, weight, out=gk.view(k * b, L * c))
                     gxs[w].index_add_(0, r, gk)
                 elif need_x:
@@ -170,8 +172,8 @@ class GatherLinear(torch.autograd.Function):
             gx = gxs[0]
             for t in gxs[1:]:
                 gx += t
-            gx = gx.view(n_in, b, c) if flat else gx.view(n_in, c, b).transpose(1, 2)
-        return gx, gW, gb, None, None
+            gx = gx.view(n_in, b, c) if rowwise else gx.view(n_in, c, b).transpose(1, 2)
+        return gx, gW, gb, None, None, None
 
 
 def level_spirals(hierarchy, level: int, length: int, dilation: int) -> np.ndarray:
@@ -218,6 +220,7 @@ class SpiralPP(nn.Module):
         super().__init__()
         idx = level_spirals(hierarchy, level, length, dilation)
         self.register_buffer("index", torch.as_tensor(idx, dtype=torch.long))
+        self._flat = None  # (b, GatherLinear.rows_of(index, b)) for the last batch size seen
         self.length = length
         self.layer = nn.Linear(in_channels * length, out_channels)
         self.reset_parameters()
@@ -237,8 +240,10 @@ class SpiralPP(nn.Module):
             dt = torch.get_autocast_dtype(dev)
             xv, W, bias = xv.to(dt), W.to(dt), bias.to(dt)
         rows = max(1, CHUNK_BYTES // (xv.element_size() * self.length * b * c))
+        if self._flat is None or self._flat[0] != b or self._flat[1].device != self.index.device:
+            self._flat = (b, GatherLinear.rows_of(self.index, b))  # derived from the index buffer, per batch size
         with torch.autocast(dev, enabled=False):
-            y = GatherLinear.apply(xv.contiguous(), W, bias, self.index, rows)
+            y = GatherLinear.apply(xv.contiguous(), W, bias, self.index, self._flat[1], rows)
         return y.transpose(0, 1)
 
 
