@@ -22,6 +22,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 from torch.autograd.function import once_differentiable
 
 from fwk.errors import RecipeError
@@ -214,6 +215,7 @@ class SpiralPP(nn.Module):
     name = "spiral++"
     build_args = CONV_BUILD_ARGS
     strided = False
+    fuses_pooling = True  # forward(x, rows=...) and forward_up(x, up): pooling fused into the conv
 
     def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0, length: int = 9,
                  dilation: int = 1):
@@ -221,6 +223,7 @@ class SpiralPP(nn.Module):
         idx = level_spirals(hierarchy, level, length, dilation)
         self.register_buffer("index", torch.as_tensor(idx, dtype=torch.long))
         self._flat = None  # (b, GatherLinear.rows_of(index, b)) for the last batch size seen
+        self._up = None  # (up, bag, weights) of forward_up's last operator
         self.length = length
         self.layer = nn.Linear(in_channels * length, out_channels)
         self.reset_parameters()
@@ -230,21 +233,70 @@ class SpiralPP(nn.Module):
         nn.init.xavier_uniform_(self.layer.weight)
         nn.init.zeros_(self.layer.bias)
 
-    def forward(self, x):
-        b, n, c = x.shape
-        # vertex-major (n, b, c): free when x is the previous layer's output (a view of that layout)
-        xv = x.transpose(0, 1)
+    def _operands(self, x):
+        """(x vertex-major, W, b) in the CPU / CUDA autocast dtype when autocast is on (as Linear)."""
+        xv = x.transpose(0, 1)  # (n, b, c): free when x is the previous layer's output (a view of that layout)
         W, bias = self.layer.weight, self.layer.bias
         dev = x.device.type
-        if torch.is_autocast_enabled(dev):  # mixed precision: the product in the autocast dtype, as Linear's
+        if torch.is_autocast_enabled(dev):
             dt = torch.get_autocast_dtype(dev)
             xv, W, bias = xv.to(dt), W.to(dt), bias.to(dt)
-        rows = max(1, CHUNK_BYTES // (xv.element_size() * self.length * b * c))
-        if self._flat is None or self._flat[0] != b or self._flat[1].device != self.index.device:
-            self._flat = (b, GatherLinear.rows_of(self.index, b))  # derived from the index buffer, per batch size
-        with torch.autocast(dev, enabled=False):
-            y = GatherLinear.apply(xv.contiguous(), W, bias, self.index, self._flat[1], rows)
+        return xv.contiguous(), W, bias
+
+    def forward(self, x, rows=None):
+        """x (b, n, c_in) -> (b, n, c_out); with ``rows`` (m,) int64 only those output vertices,
+        (b, m, c_out) = forward(x)[:, rows] (a pooling that keeps a vertex subset, fused)."""
+        b, n, c = x.shape
+        xv, W, bias = self._operands(x)
+        chunk = max(1, CHUNK_BYTES // (xv.element_size() * self.length * b * c))
+        if rows is None:
+            if self._flat is None or self._flat[0] != b or self._flat[1].device != self.index.device:
+                self._flat = (b, GatherLinear.rows_of(self.index, b))  # derived from the index buffer, per batch size
+            index, flat = self.index, self._flat[1]
+        else:
+            index = self.index.index_select(0, rows)
+            flat = GatherLinear.rows_of(index, b)
+        with torch.autocast(x.device.type, enabled=False):
+            y = GatherLinear.apply(xv, W, bias, index, flat, chunk)
         return y.transpose(0, 1)
+
+    def forward_up(self, x, up):
+        """forward(U x) for an up-sampling U (``up``, a sparse (n, n_coarse) COO tensor, e.g.
+        ``Hierarchy.up`` through ``fwk.graph.torch_sparse``) without forming U x: x (b, n_coarse,
+        c_in) -> (b, n, c_out).
+
+        With Z_jl = W_l x_j on the coarse vertices (one product, n_coarse / n of the plain
+        conv's multiply-adds), y_i = b + sum_l sum_j U[s_l(i), j] Z_jl is one weighted gather-sum
+        (``embedding_bag``) over the up-sampling's parents of each spiral entry."""
+        b, n_c, c = x.shape
+        xv, W, bias = self._operands(x)
+        L, o = self.length, W.shape[0]
+        if self._up is None or self._up[0] is not up:
+            self._up = (up, *self._up_tables(up))
+        bag, weight = self._up[1], self._up[2]
+        Wc = W.view(o, L, c).permute(2, 1, 0).reshape(c, L * o)
+        Z = (xv.view(n_c * b, c) @ Wc).view(n_c, b, L, o).transpose(1, 2).reshape(n_c * L, b * o)
+        y = F.embedding_bag(bag, Z, per_sample_weights=weight.to(Z.dtype), mode="sum")
+        y = (y.view(-1, b, o) + bias).transpose(0, 1)
+        return y
+
+    def _up_tables(self, up):
+        """(bag (n, L P) rows of Z, weights (n, L P)): for each output vertex and spiral entry
+        s_l(i), the up-sampling parents j of s_l(i) as rows j L + l of Z, and U[s_l(i), j];
+        P = the most parents of a vertex, missing ones weighted 0."""
+        up = up.coalesce()
+        n = up.shape[0]
+        r, j = up.indices()
+        v = up.values()
+        count = torch.bincount(r, minlength=n)
+        P = max(1, int(count.max()))
+        slot = torch.arange(len(r), device=r.device) - (torch.cumsum(count, 0) - count)[r]  # rows are sorted
+        parent = torch.zeros(n, P, dtype=torch.long, device=r.device)
+        pw = torch.zeros(n, P, dtype=v.dtype, device=r.device)
+        parent[r, slot], pw[r, slot] = j, v
+        L = self.length
+        bag = (parent[self.index] * L + torch.arange(L, device=r.device)[None, :, None]).reshape(n, L * P)
+        return bag, pw[self.index].reshape(n, L * P)
 
 
 @hookimpl
