@@ -2,7 +2,7 @@
 before issue 17's kernel work (``benchmarks/_before.py``, a frozen copy of commit 5b25de3's
 convs and networks), side by side in one process.
 
-    python benchmarks/training.py [--steps 7] [--bf16] [--all]
+    OMP_NUM_THREADS=2 python benchmarks/training.py [--steps 7] [--bf16] [--fused] [--all]
 
 Networks (thesis 3.4 / appendix A), batch 16, on the ICT-FaceKit face-head region (11,248
 vertices) when ICT-FaceKit is present, else a synthetic head of the same size (printed):
@@ -12,16 +12,18 @@ vertices) when ICT-FaceKit is present, else a synthetic head of the same size (p
 * ``spiral++ AE``: channels [3, 16, 32, 64, 128], latent 64, ``quadric`` sampler, factors
   [4, 4, 4, 4], spirals of length 9.
 
-A step is forward, L1 loss, backward and an Adam step. The two versions alternate step by step
-after one warm-up step each; the table gives the median step time of each, their ratio, the
-GFLOP of one forward and backward pass (matrix products counted by
-see ``gflop``) and the achieved rate against an fp32 matmul (2048^3) measured in
-the same process with the same threads. GFLOP per step is estimated as 3x the dense products
-of one forward pass (``torch.utils.flop_counter``; sparse pooling left out). ``--bf16`` also times today's code under CPU autocast
-(bfloat16, what ``train.precision: bf16-mixed`` gives Lightning) and trains both precisions
-for a few steps from the same initialisation to report the per-step loss deviation. ``--all``
-adds a table of every conv's AE at the thesis configuration (today's code only). Threads:
-torch's default (``OMP_NUM_THREADS``); the machine's load average is printed with the figures.
+A step is forward, L1 loss, backward and an Adam step. The versions alternate step by step after
+one warm-up step each; the table gives the median step time of each, their ratio, the GFLOP per
+step (3x the dense products of one forward pass, counted by ``torch.utils.flop_counter``; the
+sparse pooling left out, see ``gflop``) and the achieved rate against an fp32 matmul (2048^3)
+measured in the same process with the same threads.
+
+``--bf16`` also times today's code under CPU autocast (bfloat16, what ``train.precision:
+bf16-mixed`` gives Lightning) and trains both precisions for a few steps from the same
+initialisation to report the per-step loss deviation. ``--fused`` also times the spiral++ AE
+with its pooling fused into the convs (``FusedPoolingAE``, a proposal for fwk_autoencoder).
+``--all`` adds the step time of the spiral, feast and lsa AEs (today's code). Threads: torch's
+default (``OMP_NUM_THREADS``); the machine's load average is printed with the figures.
 
 The last line is one JSON object with every figure.
 """

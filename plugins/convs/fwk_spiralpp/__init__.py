@@ -10,10 +10,19 @@ concatenates the features along the spiral and applies one shared linear layer:
 
     x'_i = W [x_{S(i,1)} || x_{S(i,2)} || ... || x_{S(i,l)}] + b
 
-implemented as one gather (b, n, l, c) and one matrix product. Where rings run out (borders,
-small components) the spiral is padded with the centre vertex (``fwk.graph.spirals``), an
-explicit choice instead of the reference code's silent k-nearest-neighbour fallback. Defaults
-follow the reference: length 9, dilation 1.
+Where rings run out (borders, small components) the spiral is padded with the centre vertex
+(``fwk.graph.spirals``), an explicit choice instead of the reference code's silent
+k-nearest-neighbour fallback. Defaults follow the reference: length 9, dilation 1.
+
+Evaluation (``GatherLinear``): a chunk of about 2 MB of output rows at a time, the spiral rows
+gathered straight into the product's layout and multiplied while in cache; the backward gathers
+again instead of keeping the (n, b, L c) matrix (200 MB in the thesis's largest layer) and
+scatters dx; with T torch threads the chunks go to T workers. Activations are vertex-major
+((n, b, c) in memory; the output is a (b, n, c) view). Pooling can be fused into the conv
+(``fuses_pooling``): ``forward(x, rows=kept)`` computes only the vertices a selecting pooling
+keeps, ``forward_up(x, U)`` = forward(U x) with the product on the coarse vertices. Both are the
+same sums in another order; together they cut the thesis AE's multiply-adds from 22 to 6 GFLOP
+per step (``benchmarks/training.py --fused``).
 """
 from __future__ import annotations
 
@@ -205,7 +214,8 @@ class SpiralPP(nn.Module):
 
     Shapes:
         - **input:** (b, n, c_in), n = ``hierarchy.levels[level].n_vertices``
-        - **output:** (b, n, c_out)
+        - **output:** (b, n, c_out) (a view of a vertex-major tensor: use ``reshape``, not ``view``);
+          with ``rows`` (m,): (b, m, c_out); ``forward_up``: input (b, n_coarse, c_in), output (b, n, c_out)
 
     ``reset_parameters()`` draws W Xavier-uniform and sets b = 0 (the constructor's
     ``torch.nn.Linear`` draws its own initialisation first, so the random stream is that of the
