@@ -36,7 +36,7 @@ layers and ``basis`` for the decoder's transposed ones at the thesis's sizes):
   sends sum_m A_ijm Z_jm to the outputs i whose support holds it (one batched
   (K' x M) @ (M x b c_out) product per input vertex, K' = how many supports hold j, and one
   scatter-add). For a transposed layer the inputs are the few coarse vertices, so the basis
-  product runs there: about 8x fewer multiply-adds than ``sum`` in the thesis's decoder;
+  product runs there: about 4x fewer multiply-adds than ``sum`` in the thesis's decoder;
 * ``kernel``: the explicit kernels W_ij = sum_m A_ijm B_m first, as in Zhou et al.'s code.
 
 Supports are padded to a fixed size per bucket: vertices are sorted by their support size and cut
