@@ -176,3 +176,33 @@ def test_fwk_threads_option_sets_the_variable(monkeypatch):
     monkeypatch.delenv("FWK_THREADS")
     with pytest.raises(SystemExit):
         main(["--threads", "0", "list"])
+
+
+def test_thread_share_reports_inside_a_real_trainer(monkeypatch, tmp_path):
+    """Lightning sets every callback's ``log`` to the module's: the change must still reach the
+    run's log (a regression: it called LightningModule.log with one argument)."""
+    import lightning.pytorch as pl
+
+    from fwk.engine import ThreadShare
+    from fwk.engine import callbacks as cb
+
+    calls = iter([(1, "2 fwk processes on 2 cores", True)] + [(1, "", False)] * 10)
+    monkeypatch.setattr(cb, "apply_threads", lambda *a, **k: next(calls))
+
+    class Tiny(pl.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Linear(2, 1)
+
+        def training_step(self, batch, _):
+            return self.w(batch[0]).square().mean()
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    said = []
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(4, 2)), batch_size=2)
+    trainer = pl.Trainer(max_epochs=2, callbacks=[ThreadShare(said.append)], logger=False, enable_checkpointing=False,
+                         enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(tmp_path))
+    trainer.fit(Tiny(), data)
+    assert said == ["threads: 1 (2 fwk processes on 2 cores)"]

@@ -69,12 +69,13 @@ class ThreadShare(pl.Callback):
     ``OMP_NUM_THREADS``); a change is reported through ``log``."""
 
     def __init__(self, log=None):
-        self.log = log
+        # not ``self.log``: Lightning sets a callback's ``log`` to the module's (callback_connector)
+        self.report = log
 
     def on_train_epoch_start(self, trainer, module):
         n, why, changed = apply_threads()
-        if changed and self.log is not None:
-            self.log(f"threads: {n} ({why})")
+        if changed and self.report is not None:
+            self.report(f"threads: {n} ({why})")
 
 
 def stopping_rule(values, patience: int, min_delta: float) -> dict:
