@@ -15,55 +15,14 @@ import numpy as np
 import pytest
 import torch
 
-from fwk.engine import EarlyStopping, TrainConfig, fit, make_optimizer
+from fwk.engine import EarlyStopping, TrainConfig, fit
 from fwk.engine.callbacks import stopping_rule
 from fwk.errors import RecipeError
 from fwk.runs import make_test_context
+from regression import _data, _module
 
 HERE = Path(__file__).resolve().parent
 RULE = {"patience": 2, "min_delta": 0.02}  # the data below: the rule ends training at epoch 25 of 40
-
-
-def _data(n=40, d=6, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    X = torch.randn(n, d, generator=g)
-    Y = X @ torch.randn(d, 2, generator=g) + 0.1 * torch.randn(n, 2, generator=g)
-    return (X[:32], Y[:32]), (X[32:], Y[32:])
-
-
-def _module(crash_at_step=None, sleep=0.0):
-    import lightning.pytorch as pl
-
-    class Reg(pl.LightningModule):
-        """Dropout and injected noise draw from the global RNG; ``crash_at_step`` raises in that
-        training step (a run killed in the middle of an epoch)."""
-
-        def __init__(self):
-            super().__init__()
-            self.net = torch.nn.Sequential(torch.nn.Linear(6, 16), torch.nn.Dropout(0.2), torch.nn.ELU(),
-                                           torch.nn.Linear(16, 2))
-            self.steps = 0
-
-        def training_step(self, batch, _):
-            self.steps += 1
-            if crash_at_step is not None and self.steps == crash_at_step:
-                raise RuntimeError("killed")
-            if sleep:
-                time.sleep(sleep)
-            x, y = batch
-            loss = torch.mean(torch.abs(self.net(x + 0.01 * torch.randn_like(x)) - y))
-            self.log("train_loss", loss, on_epoch=True, on_step=False, batch_size=len(x))
-            return loss
-
-        def validation_step(self, batch, _):
-            x, y = batch
-            self.log("val_loss", torch.mean(torch.abs(self.net(x) - y)), batch_size=len(x))
-
-        def configure_optimizers(self):
-            return make_optimizer(self.parameters(), self.train_config)
-
-    torch.manual_seed(0)
-    return Reg()
 
 
 def _ctx(tmp_path, epochs=40, **kw):
