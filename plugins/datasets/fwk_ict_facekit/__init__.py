@@ -16,7 +16,13 @@ Expressions are named composites of blendshapes with weights; built in are the t
 * ``oo-brow-raise-eyes-wide``: mouthFunnel, mouthPucker, browInnerUp, browOuterUp (L, R),
   eyeWide (L, R);
 
-more can be defined in a recipe (``expressions: {name: {blendshape: weight}}``).
+more can be defined in a recipe (``expressions: {name: {blendshape: weight}}``). Every one of
+ICT-FaceKit's 57 expression blendshapes (``ICT_BLENDSHAPES``: ``jawOpen``, ``eyeBlink_L``, ...;
+the archive's README says 53) is an expression of its own too, the blendshape at weight 1:
+``shapes`` takes their names, a list mixing them with composites, or ``all`` (every blendshape,
+in ``ICT_BLENDSHAPES`` order; ``[all, mouth-wide]`` adds composites). In the face-head region
+``PupilDilate_L``/``_R`` move 74-78 vertices by at most 0.005 cm (they move the eyes, outside the
+region); every other blendshape moves thousands of its vertices by 0.25-4.2 cm.
 
 Personalisation (synthetic; ICT-FaceKit's blendshapes belong to the generic face): the
 expression delta D_e = sum_b a_b (B_b - N_0) is personalised for subject s as
@@ -59,11 +65,30 @@ BUILTIN_EXPRESSIONS = {
     "oo-brow-raise-eyes-wide": {"mouthFunnel": 0.8, "mouthPucker": 0.8, "browInnerUp_L": 1.0, "browInnerUp_R": 1.0,
                                 "browOuterUp_L": 1.0, "browOuterUp_R": 1.0, "eyeWide_L": 1.0, "eyeWide_R": 1.0},
 }
+#: ICT-FaceKit's expression blendshapes (FaceXModel/<name>.obj), each also an expression of weight 1
+ICT_BLENDSHAPES = (
+    "browDown_L", "browDown_R", "browInnerUp_L", "browInnerUp_R", "browOuterUp_L", "browOuterUp_R",
+    "cheekPuff_L", "cheekPuff_R", "cheekRaiser_L", "cheekRaiser_R", "cheekSquint_L", "cheekSquint_R",
+    "eyeBlink_L", "eyeBlink_R", "eyeLookDown_L", "eyeLookDown_R", "eyeLookIn_L", "eyeLookIn_R",
+    "eyeLookOut_L", "eyeLookOut_R", "eyeLookUp_L", "eyeLookUp_R", "eyeSquint_L", "eyeSquint_R",
+    "eyeWide_L", "eyeWide_R", "jawForward", "jawLeft", "jawOpen", "jawRight", "mouthClose",
+    "mouthDimple_L", "mouthDimple_R", "mouthFrown_L", "mouthFrown_R", "mouthFunnel", "mouthLeft",
+    "mouthLowerDown_L", "mouthLowerDown_R", "mouthPress_L", "mouthPress_R", "mouthPucker", "mouthRight",
+    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthSmile_L", "mouthSmile_R",
+    "mouthStretch_L", "mouthStretch_R", "mouthUpperUp_L", "mouthUpperUp_R", "noseSneer_L", "noseSneer_R",
+    "PupilDilate_L", "PupilDilate_R",
+)
+ALL = "all"  # shapes: every blendshape
+#: what the folder is and where it comes from, for error texts (a user's clone has no shared/ folder)
+WHERE = ("ICT-FaceKit's FaceXModel folder (the FaceXModel folder of github.com/ICT-VGL/ICT-FaceKit, MIT "
+         "licence, or its FaceXModel.tar.xz; set dataset.path or $FWK_ICT_PATH to it)")
 REGIONS = ("face-head", "face", "narrow-face", "full")
 FACE_HEAD = (11248, 11144)
 
 
-def default_path() -> str:
+def default_path() -> str | None:
+    """$FWK_ICT_PATH, else a ``shared/data/ict-facekit`` data folder in or above the working
+    directory (its FaceXModel folder, else its archive), else None."""
     env = os.environ.get("FWK_ICT_PATH")
     if env:
         return env
@@ -71,37 +96,46 @@ def default_path() -> str:
         d = base / "shared" / "data" / "ict-facekit"  # name-ok: the data folder beside the repo
         if (d / "FaceXModel").exists() or (d / "FaceXModel.tar.xz").exists():
             return str(d / "FaceXModel") if (d / "FaceXModel").exists() else str(d / "FaceXModel.tar.xz")
-    return "../shared/data/ict-facekit/FaceXModel"
+    return None
 
 
 class ICTFaceKit:
-    """ICT-FaceKit identities (sampled) with personalised expression composites."""
+    """ICT-FaceKit identities (sampled) with personalised expressions: each blendshape, and composites."""
 
     name = "ict-facekit"
 
     def __init__(self, path: str | None = None, region: str = "face-head", n_subjects: int = 200,
-                 sigma: float = 1.0, shapes: list[str] | None = None,
+                 sigma: float = 1.0, shapes: list[str] | str | None = None,
                  expressions: dict[str, dict[str, float]] | None = None, personalise: bool = True, seed: int = 0):
         if region not in REGIONS:
             raise RecipeError(f"dataset.region: unknown region {region!r}{did_you_mean(region, REGIONS)} "
                               f"(regions: {', '.join(REGIONS)})")
         self.path = path or default_path()
         self.region, self.n_subjects, self.sigma = region, n_subjects, sigma
-        self.expressions = {**BUILTIN_EXPRESSIONS, **(expressions or {})}
-        self.shapes = list(shapes) if shapes else ["neutral", *BUILTIN_EXPRESSIONS]
-        for s in self.shapes:
-            if s != "neutral" and s not in self.expressions:
-                raise RecipeError(f"dataset.shapes: unknown expression {s!r}{did_you_mean(s, self.expressions)}")
+        self.expressions = {**{b: {b: 1.0} for b in ICT_BLENDSHAPES}, **BUILTIN_EXPRESSIONS, **(expressions or {})}
+        if isinstance(shapes, str):
+            shapes = [shapes]
+        self.shapes = []
+        for s in (list(shapes) if shapes else ["neutral", *BUILTIN_EXPRESSIONS]):
+            for x in (ICT_BLENDSHAPES if s == ALL else [s]):
+                if x != "neutral" and x not in self.expressions:
+                    raise RecipeError(f"dataset.shapes: unknown expression {x!r}"
+                                      f"{did_you_mean(x, [*self.expressions, ALL])} (a blendshape of ICT-FaceKit, "
+                                      f"a composite ({', '.join(BUILTIN_EXPRESSIONS)}, or `expressions:`) or {ALL})")
+                if x not in self.shapes:
+                    self.shapes.append(x)
         if "neutral" not in self.shapes:
             self.shapes.insert(0, "neutral")
         self.personalise, self.seed = personalise, seed
 
     # --------------------------------------------------------------------- files
     def _folder(self) -> Path:
+        if self.path is None:
+            raise DataError(f"dataset.path: not given and $FWK_ICT_PATH not set; give {WHERE}")
         p = Path(self.path)
         if p.is_dir():
             if not (p / "generic_neutral_mesh.obj").exists():
-                raise DataError(f"dataset.path: {p} has no generic_neutral_mesh.obj (not an ICT-FaceKit FaceXModel folder)")
+                raise DataError(f"dataset.path: {p} has no generic_neutral_mesh.obj: not {WHERE}")
             return p
         if p.is_file() and p.name.endswith((".tar.xz", ".tar", ".tar.gz")):
             st = p.stat()
@@ -115,8 +149,7 @@ class ICTFaceKit:
                 (tmp / "FaceXModel").rename(out / "FaceXModel") if not (out / "FaceXModel").exists() else None
                 (out / "FaceXModel" / ".complete").touch()
             return out / "FaceXModel"
-        raise DataError(f"dataset.path: {p} does not exist (give the FaceXModel folder or FaceXModel.tar.xz; "
-                        "see ../shared/data/ict-facekit/unpack)")
+        raise DataError(f"dataset.path: {p} does not exist; give {WHERE}")
 
     def _read_all(self, folder: Path, names: list[str], cache) -> np.ndarray:
         def build():
@@ -192,7 +225,8 @@ class ICTFaceKit:
         blend = sorted({b for e in self.shapes if e != "neutral" for b in self.expressions[e]})
         for b in blend:
             if not (folder / f"{b}.obj").exists():
-                raise DataError(f"{folder / (b + '.obj')}: blendshape used by an expression does not exist")
+                raise DataError(f"{folder / (b + '.obj')}: blendshape used by an expression does not exist "
+                                f"(is {folder} {WHERE}?)")
         ids = [f"identity{i:03d}" for i in range(100)]
         data = self._read_all(folder, ids + blend, cache)
         verts, template = self._region(t_full, folder)
