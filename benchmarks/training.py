@@ -2,7 +2,7 @@
 before issue 17's kernel work (``benchmarks/_before.py``, a frozen copy of commit 5b25de3's
 convs and networks), side by side in one process.
 
-    OMP_NUM_THREADS=2 python benchmarks/training.py [--steps 7] [--bf16] [--fused] [--all]
+    OMP_NUM_THREADS=2 python benchmarks/training.py [--steps 7] [--bf16] [--all]
 
 Networks (thesis 3.4 / appendix A), batch 16, on the ICT-FaceKit face-head region (11,248
 vertices) when ICT-FaceKit is present, else a synthetic head of the same size (printed):
@@ -10,7 +10,8 @@ vertices) when ICT-FaceKit is present, else a synthetic head of the same size (p
 * ``vcconv VAE``: the fully convolutional VAE, channels [3, 32, 64, 128, 128, 8], 8 latent
   vertices, weight_num 35, residual rate 0.5, ``simple`` sampler with 4 levels;
 * ``spiral++ AE``: channels [3, 16, 32, 64, 128], latent 64, ``quadric`` sampler, factors
-  [4, 4, 4, 4], spirals of length 9.
+  [4, 4, 4, 4], spirals of length 9 (today: each pooling fused into its conv, spiral++ playing
+  ``fwk.protocols.FusedPoolingConv``).
 
 A step is forward, L1 loss, backward and an Adam step. The versions alternate step by step after
 one warm-up step each; the table gives the median step time of each, their ratio, the GFLOP per
@@ -20,9 +21,7 @@ measured in the same process with the same threads.
 
 ``--bf16`` also times today's code under CPU autocast (bfloat16, what ``train.precision:
 bf16-mixed`` gives Lightning) and trains both precisions for a few steps from the same
-initialisation to report the per-step loss deviation. ``--fused`` also times the spiral++ AE
-with its pooling fused into the convs (``FusedPoolingAE``, a proposal for fwk_autoencoder).
-``--all`` adds the step time of the spiral, feast and lsa AEs (today's code). Threads: torch's
+initialisation to report the per-step loss deviation. ``--all`` adds the step time of the spiral, feast and lsa AEs (today's code). Threads: torch's
 default (``OMP_NUM_THREADS``); the machine's load average is printed with the figures.
 
 The last line is one JSON object with every figure.
@@ -63,49 +62,14 @@ def networks(spec, template):
     return enc, dec, m.hierarchy
 
 
-class FusedPoolingAE(torch.nn.Module):
-    """A proposal measured by ``--fused``: today's spiral++ AE (``Encoder`` / ``Decoder`` of
-    fwk_autoencoder, read through their attributes) with its pooling fused into the convs
-    (``fuses_pooling``): the encoder computes each conv only at the vertices its pooling keeps
-    (quadric's D selects one vertex per row: pool(act(conv(x))) = act(conv(x, rows=kept))), the
-    decoder applies each conv to the up-sampled input without forming it (conv.forward_up(x, U)).
-    The same maths; the model would do this itself once the Conv protocol names the role."""
-
-    def __init__(self, enc, dec):
-        super().__init__()
-        self.enc, self.dec = enc, dec
-        self.kept = []
-        for pool in enc.pools:
-            D = pool.M.coalesce()
-            r, j = D.indices()
-            assert len(r) == D.shape[0] and bool((D.values() == 1).all()) and bool((r == torch.arange(len(r))).all())
-            self.kept.append(j)
-
-    def encode(self, x):
-        e = self.enc
-        for conv, kept in zip(e.convs, self.kept):
-            x = e.act(conv(x, rows=kept))
-        h = x.flatten(1)
-        return e.mu(h), (e.logvar(h) if e.logvar is not None else None)
-
-    def decode(self, z):
-        d = self.dec
-        x = d.fc(z).reshape(len(z), d.n_last, d.c_last)
-        for unpool, conv in zip(d.unpools, d.convs):
-            x = d.act(conv.forward_up(x, unpool.M))
-        return d.out(x)
-
-
-def stepper(enc, dec, x, bf16=False, forward=None):
-    """One training step (forward, L1, backward, Adam) as a closure returning the loss;
-    ``forward(x)`` (default ``dec(enc(x)[0])``) reconstructs through enc and dec's parameters."""
+def stepper(enc, dec, x, bf16=False):
+    """One training step (forward ``dec(enc(x)[0])``, L1, backward, Adam) as a closure returning the loss."""
     opt = torch.optim.Adam(list(enc.parameters()) + list(dec.parameters()), 1e-3)
-    forward = forward or (lambda v: dec(enc(v)[0]))
 
     def step():
         opt.zero_grad(set_to_none=True)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            loss = (forward(x).float() - x).abs().mean()
+            loss = (dec(enc(x)[0]).float() - x).abs().mean()
         loss.backward()
         opt.step()
         return loss.item()
@@ -113,7 +77,7 @@ def stepper(enc, dec, x, bf16=False, forward=None):
     return step
 
 
-def gflop(enc, dec, x, forward=None) -> float:
+def gflop(enc, dec, x) -> float:
     """Estimated GFLOP of one training step: 3 x the dense matrix products of a forward pass
     (forward, and the two gradients of each product), counted by torch. The sparse pooling
     products are left out (the counter counts them as dense; their real cost is negligible)."""
@@ -123,7 +87,7 @@ def gflop(enc, dec, x, forward=None) -> float:
     torch.set_num_threads(1)  # the counter sees this thread only (spiral++ deals chunks to worker threads)
     try:
         with torch.no_grad(), FlopCounterMode(display=False) as fc:
-            (forward or (lambda v: dec(enc(v)[0])))(x)
+            dec(enc(x)[0])
     finally:
         torch.set_num_threads(threads)
     counts = fc.get_flop_counts()
@@ -176,8 +140,6 @@ def main():
     ap.add_argument("--steps", type=int, default=7, help="timed steps per version (after one warm-up)")
     ap.add_argument("--bf16", action="store_true", help="also time bf16 autocast and its loss deviation")
     ap.add_argument("--all", action="store_true", help="also time every other conv's AE (today's code)")
-    ap.add_argument("--fused", action="store_true", help="also time the spiral++ AE with its pooling fused "
-                                                         "into the convs (a proposal, FusedPoolingAE)")
     a = ap.parse_args()
     torch.manual_seed(0)
     col, src = face_head(1)
@@ -204,13 +166,6 @@ def main():
         if a.bf16:
             e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
             steps["after_bf16"] = stepper(e16, d16, x, bf16=True)
-        if a.fused and key == "spiralpp_ae":
-            fused = FusedPoolingAE(copy.deepcopy(enc), copy.deepcopy(dec))
-            fused_forward = lambda v: fused.decode(fused.encode(v)[0])  # noqa: E731
-            with torch.no_grad():
-                same = (fused_forward(x) - dec(enc(x)[0])).abs().max().item()
-            g_fused = gflop(fused.enc, fused.dec, x, fused_forward)
-            steps["fused"] = stepper(fused.enc, fused.dec, x, forward=fused_forward)
         ts = alternate(steps, a.steps)
         r = {"before_ms": 1e3 * ts["before"], "after_ms": 1e3 * ts["after"], "ratio": ts["before"] / ts["after"],
              "gflop_before": g_old, "gflop_after": g_new, "gflops_before": g_old / ts["before"],
@@ -224,11 +179,6 @@ def main():
             print(f"{'  bf16':<13} {'':>10} {r['after_bf16_ms']:>9.0f} {r['bf16_speedup']:>6.2f}x over fp32; "
                   f"per-step loss deviation (relative) max {max(dev):.2e}, "
                   f"steps {', '.join(f'{d:.1e}' for d in dev)}")
-        if "fused" in steps:
-            r.update({"fused_ms": 1e3 * ts["fused"], "fused_speedup": ts["after"] / ts["fused"],
-                      "fused_max_abs_diff": same, "gflop_fused": g_fused})
-            print(f"{'  fused pool':<13} {'':>10} {r['fused_ms']:>9.0f} {r['fused_speedup']:>6.2f}x over after, "
-                  f"{g_fused:.1f} GFLOP (pooling fused into the convs, a proposal; outputs equal to {same:.1e})")
         result[key] = r
     if a.all:
         result["others"] = {}

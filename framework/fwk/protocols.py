@@ -19,7 +19,8 @@ Roles by kind (``fwk list`` kinds on the left):
 dataset         :class:`Dataset`
 representation  :class:`Representation`
 sampler         :class:`Sampler` (builds a :class:`Hierarchy` of :class:`Level` s)
-conv            :class:`Conv`; with ``strided = True`` also the strided / transposed role
+conv            :class:`Conv`; with ``strided = True`` also the strided / transposed role;
+                optionally :class:`FusedPoolingConv` (computes a pooling or up-sampling with itself)
 model           :class:`Model`, and one family: :class:`ReconstructionModel` or
                 :class:`BlendshapeModel`; optionally :class:`GenerativeModel`,
                 :class:`BandModel` (latent split by frequency band), :class:`NetworkFactory`
@@ -173,6 +174,28 @@ class Conv(Protocol):
 
     def forward(self, x: "torch.Tensor") -> "torch.Tensor": ...
     def reset_parameters(self) -> None: ...
+
+
+@runtime_checkable
+class FusedPoolingConv(Protocol):
+    """Optional conv role: the conv fuses a pooling that keeps a vertex subset, and an
+    up-sampling, into itself (``fuses_pooling = True``), with the same maths and less work:
+
+    - ``forward(x, rows=m)``: (b, n, c_in) -> (b, len(m), c_out), equal to ``forward(x)[:, m]``
+      but computed only at the rows m (an encoder whose pooling D selects one vertex per row,
+      D[i, m_i] = 1, computes pool(act(conv(x))) as act(conv(x, rows=m)));
+    - ``forward_up(x, up)``: (b, n_coarse, c_in) -> (b, n, c_out), equal to ``forward(up @ x)``
+      for a sparse up-sampling ``up`` (n, n_coarse) without forming ``up @ x``.
+
+    Equal up to float rounding (the sums run in another order); gradients too. A model uses it
+    where it is played and ``fuses_pooling`` is True, and pools then convolves otherwise
+    (``fwk.testing.conv.ConvContract`` checks both equalities, values and gradients).
+    """
+
+    fuses_pooling: ClassVar[bool]
+
+    def forward(self, x: "torch.Tensor", rows: "torch.Tensor | None" = None) -> "torch.Tensor": ...
+    def forward_up(self, x: "torch.Tensor", up: "torch.Tensor") -> "torch.Tensor": ...
 
 
 CONV_BUILD_ARGS = ("in_channels", "out_channels", "hierarchy", "level")

@@ -1,6 +1,7 @@
 """ConvContract: the conv role (``fwk.protocols.Conv``), shapes, gradients, batch independence,
 determinism, ``reset_parameters``, 3 and 9 channels, CUDA; the strided / transposed role when
-the class declares ``strided = True``.
+the class declares ``strided = True``; the fused pooling role (``FusedPoolingConv``) when it
+declares ``fuses_pooling = True``.
 
 Subclass it in a test module::
 
@@ -20,7 +21,8 @@ import pytest
 import torch
 
 from fwk.plugins import get_registry
-from fwk.protocols import CONV_BUILD_ARGS, Conv, plays
+from fwk.graph import sparse_apply, torch_sparse
+from fwk.protocols import CONV_BUILD_ARGS, Conv, FusedPoolingConv, plays
 from fwk.testing.sampler import two_components
 
 
@@ -122,6 +124,41 @@ class ConvContract:
             torch.manual_seed(2)
             conv.reset_parameters()
             assert all(torch.equal(p, q) for p, q in zip(a, conv.parameters()))
+
+    # ---- the fused pooling role (FusedPoolingConv, fuses_pooling = True)
+    @pytest.mark.parametrize("threads", [1, 2])
+    def test_fused_pooling_equals_pooling_and_up_sampling_in_value_and_gradient(self, threads):
+        """forward(x, rows=m) = D forward(x) for the suite sampler's selecting D (D[i, m_i] = 1),
+        forward_up(x, U) = forward(U x), values and gradients (x and every parameter)."""
+        if not (plays(self.component, FusedPoolingConv) and self.component.fuses_pooling):
+            pytest.skip(f"{self.component.name} does not fuse pooling (fuses_pooling)")
+        h = self.hierarchy()
+        before = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            for level in range(len(h.down)):
+                D, U = torch_sparse(h.down[level]).coalesce(), torch_sparse(h.up[level])
+                r, kept = D.indices()
+                if not (torch.equal(r, torch.arange(D.shape[0])) and bool((D.values() == 1).all())):
+                    pytest.skip("the suite's sampler does not select vertices: set `sampler` to one that does")
+                conv = self.make(6, 5, level, hierarchy=h)
+                with torch.no_grad():
+                    for p in conv.parameters():  # a non-zero bias, whatever the initialisation
+                        p.add_(0.1 * torch.randn_like(p))
+                pairs = ((lambda v: conv(v, rows=kept), lambda v: sparse_apply(D, conv(v)), h.levels[level].n_vertices),
+                         (lambda v: conv.forward_up(v, U), lambda v: conv(sparse_apply(U, v)), h.levels[level + 1].n_vertices))
+                for fused, plain, n_in in pairs:
+                    x = torch.randn(3, n_in, 6, requires_grad=True)
+                    y = fused(x)
+                    g = torch.randn_like(y)
+                    got = torch.autograd.grad((y * g).sum(), [x, *conv.parameters()])
+                    e = plain(x)
+                    ref = torch.autograd.grad((e * g).sum(), [x, *conv.parameters()])
+                    assert y.shape == e.shape and (y - e).abs().max() <= 1e-5 * (1 + e.abs().max())
+                    for a, b in zip(got, ref):
+                        assert (a - b).abs().max() <= 1e-5 * (1 + b.abs().max())
+        finally:
+            torch.set_num_threads(before)
 
     def test_cuda_when_available(self):
         if not torch.cuda.is_available():

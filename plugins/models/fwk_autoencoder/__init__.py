@@ -52,6 +52,7 @@ from __future__ import annotations
 from typing import Annotated
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 from torch import nn
 
@@ -60,7 +61,7 @@ from fwk.engine import autoencoder_module, fit, fit_features, seed_everything
 from fwk.errors import RecipeError
 from fwk.graph import sparse_apply, torch_sparse
 from fwk.hookspecs import hookimpl
-from fwk.protocols import RECONSTRUCT, Conv, plays
+from fwk.protocols import RECONSTRUCT, Conv, FusedPoolingConv, plays
 from fwk.recipes import Kind, Spec
 from fwk.registry import did_you_mean
 
@@ -81,28 +82,55 @@ class _Sparse(nn.Module):
         return sparse_apply(self.M, x)
 
 
+def _fuses(conv) -> bool:
+    """Whether a built conv computes a pooling or up-sampling with itself (``FusedPoolingConv``)."""
+    return isinstance(conv, FusedPoolingConv) and conv.fuses_pooling
+
+
+def selected_rows(M) -> np.ndarray | None:
+    """The vertex each row of a down-sampling M keeps, if M selects (one entry per row, equal to
+    1: D[i, m_i] = 1, e.g. quadric's), else None (M averages: pool, then nothing to fuse)."""
+    M = sp.csr_matrix(M)
+    if M.nnz != M.shape[0] or not (np.diff(M.indptr) == 1).all() or not (M.data == 1).all():
+        return None
+    return M.indices.astype(np.int64)
+
+
 class Encoder(nn.Module):
-    """Conv, activation and pooling per level, then a linear map to the latent (mu, logvar or None)."""
+    """Conv, activation and pooling per level, then a linear map to the latent (mu, logvar or None).
+
+    Where the conv plays ``FusedPoolingConv`` and the pooling D selects vertices, a level is
+    act(conv(x, rows=m)) = D act(conv(x)) (the activation acts per vertex): the conv is computed
+    only at the vertices the pooling keeps (1/4 of them at factor 4), the same maths."""
 
     def __init__(self, conv, hierarchy, channels, latent, variational, act):
         super().__init__()
         L = len(channels) - 1
         self.convs = nn.ModuleList(conv.build(channels[i], channels[i + 1], hierarchy, i) for i in range(L))
         self.pools = nn.ModuleList(_Sparse(hierarchy.down[i]) for i in range(L))
+        self.kept = []  # per level: the name of a buffer of the rows the pooling keeps, or None
+        for i, c in enumerate(self.convs):
+            rows = selected_rows(hierarchy.down[i]) if _fuses(c) else None
+            self.kept.append(None if rows is None else f"kept_{i}")
+            if rows is not None:  # derived from the hierarchy: not part of a checkpoint
+                self.register_buffer(f"kept_{i}", torch.from_numpy(rows), persistent=False)
         self.act = act()
         d = hierarchy.levels[L].n_vertices * channels[-1]
         self.mu = nn.Linear(d, latent)
         self.logvar = nn.Linear(d, latent) if variational else None
 
     def forward(self, x):
-        for conv, pool in zip(self.convs, self.pools):
-            x = pool(self.act(conv(x)))
+        for conv, pool, kept in zip(self.convs, self.pools, self.kept):
+            x = self.act(conv(x, rows=getattr(self, kept))) if kept else pool(self.act(conv(x)))
         h = x.flatten(1)
         return self.mu(h), (self.logvar(h) if self.logvar is not None else None)
 
 
 class Decoder(nn.Module):
-    """A linear map from the latent, then unpooling, conv and activation per level, and an output conv."""
+    """A linear map from the latent, then unpooling, conv and activation per level, and an output conv.
+
+    Where the conv plays ``FusedPoolingConv`` a level is act(conv.forward_up(x, U)) = act(conv(U x)),
+    the conv's product taken on the coarse vertices before the up-sampling (the same maths)."""
 
     def __init__(self, conv, hierarchy, channels, latent_in, out_channels, act):
         super().__init__()
@@ -116,11 +144,13 @@ class Decoder(nn.Module):
                                    for i in reversed(range(L)))
         self.out = conv.build(channels[1], out_channels, hierarchy, 0)
         self.act = act()
+        self.fused = [_fuses(c) for c in self.convs]
 
     def forward(self, z):
         x = self.fc(z).reshape(len(z), self.n_last, self.c_last)
-        for unpool, conv in zip(self.unpools, self.convs):
-            x = self.act(conv(unpool(x)))
+        for unpool, conv, fused in zip(self.unpools, self.convs, self.fused):
+            # conv(U x) without forming U x where the conv fuses the up-sampling (FusedPoolingConv)
+            x = self.act(conv.forward_up(x, unpool.M) if fused else conv(unpool(x)))
         return self.out(x)
 
 
