@@ -10,11 +10,18 @@ subjects) and is saved as ``models/<label>.pt`` (``fwk.lifecycle``) -> every mod
 every expression of the test subjects from their neutrals (``predict_all``) -> the metrics
 (default: l1, l2, euclidean, DAME, FMPD) against the ground truth.
 
-Report: the per-expression table in the layout of thesis table 5.2 (rows expression x metric,
+Report: one row per expression of each cut-selecting model (PBS) against each baseline (DT) on
+the distance metric and every perceptual one (L1, DAME, FMPD), with the winner (an exact tie is
+no win) and PBS's k (k = 0 and k = n say that one network ran alone, without assembly); the
+per-expression table in the layout of thesis table 5.2 (rows expression x metric,
 a column per method), the end-to-end vs two-step table of table 5.1 where both modes ran,
 PBS's k sweep on validation with the Pareto fronts and the chosen k (figure 5.8: L1 against
 FMPD and against DAME, k labelled, front drawn), the method comparison on test (figure 5.9),
-and renders of ground truth and every method with L1 and DAME maps (figures 5.4-5.6).
+and renders of ground truth and every method with L1 and DAME maps (figures 5.4-5.6); with many
+expressions (a rig) ``render_expressions: 10`` keeps the figures to the ten worst expressions by
+the apply model's distance metric. The run directory also holds ``template.obj``: the topology
+the models expect with its polygons and UVs, on the mean training neutral in the input units
+(``fwk apply`` points a user with another topology to it).
 Models are reported by the roles they play (``fwk.protocols``): a ``CompositeModel`` (``pbs``)
 also reports its parts alone (``<label>:pb-euclidean-std``, the k = n end, and
 ``<label>:pb-dr-norm``, its dr network registered onto the ground truth as the thesis evaluates
@@ -48,6 +55,7 @@ from fwk.recipes import Kind, Spec
 
 #: metrics.json sections (their names are kept from before the roles; they name no component)
 PER_EXPRESSION = "blendshapes"  # name-ok: metrics.json section {expression: {row: metrics}}
+TEMPLATE_OBJ = "template.obj"  # the run directory's topology with UVs (fwk apply points to it)
 CUTS = "pbs"  # name-ok: metrics.json section {label: {k, sweep}} of the cut-selecting models
 
 
@@ -68,6 +76,7 @@ class Blendshapes:
         pbs_ends: bool = True,
         apply_model: str | None = None,
         write_obj: int = 0,
+        render_expressions: int | None = None,
     ):
         if not models:
             raise RecipeError("models: a blendshapes recipe needs at least one model")
@@ -78,6 +87,9 @@ class Blendshapes:
         self.preprocess = preprocess or PreprocessConfig()
         self.metrics, self.renders, self.pbs_ends = metrics, renders, pbs_ends
         self.apply_model, self.write_obj = apply_model, write_obj
+        if render_expressions is not None and render_expressions < 0:
+            raise RecipeError(f"render_expressions: {render_expressions} must be >= 0 (None renders every expression)")
+        self.render_expressions = render_expressions
 
     # ------------------------------------------------------------------ data
     def _prepare(self, col, ctx):
@@ -85,6 +97,9 @@ class Blendshapes:
         t = col.template  # what `fwk apply` needs to check and undo a user's neutral
         ctx.save_npz("stats/template.npz", triangles=t.triangles, n_vertices=np.int64(t.n_vertices),
                      mean_neutral=out[1].mean_neutral)
+        # the topology the model expects, with its polygons and UVs, on the mean training neutral in
+        # the input units: what a user wraps their head to (and `fwk apply RUN RUN/template.obj` runs)
+        write_obj(ctx.path(TEMPLATE_OBJ), out[1].mean_centred, t)
         return out
 
     # ------------------------------------------------------------------ run
@@ -153,7 +168,8 @@ class Blendshapes:
             P = np.concatenate([preds[e][r] for e in have])
             G = np.concatenate([gt[e][2] for e in have])
             results["models"][r] = {"test": evaluate_summary(P, G, template, metrics, scale=pre.scale)}
-        headline = [m for m in (dist, *perceptual[:1]) if m is not None]
+        # the distance metric and every perceptual one (L1, DAME, FMPD) of this run
+        headline = [m for m in (dist, *perceptual) if m is not None and m in shown]
         for e in expressions:
             res = results[PER_EXPRESSION][e]
             ctx.log(f"test {e}: " + "; ".join(
@@ -162,7 +178,14 @@ class Blendshapes:
         apply_label = self.apply_model or next((lb for lb, m in fitted.items() if isinstance(m, CutSelectingModel)),
                                                next(iter(fitted)))
         results["apply_model"] = apply_label
-        figures = self._figures(ctx, template, expressions, gt, preds, results, metrics, dist, perceptual)
+        # renders: every expression, or the worst render_expressions by the apply model's distance metric
+        shown_e = list(expressions)
+        if self.render_expressions is not None and dist is not None:
+            err = {e: results[PER_EXPRESSION][e].get(apply_label, {}).get(dist, {}).get("mean", -np.inf)
+                   for e in expressions}
+            shown_e = sorted(expressions, key=lambda e: -err[e])[:self.render_expressions]
+            results["rendered_expressions"] = shown_e
+        figures = self._figures(ctx, template, expressions, gt, preds, results, metrics, dist, perceptual, shown_e)
         if self.write_obj:
             for e in expressions:
                 idx, _, _ = gt[e]
@@ -209,9 +232,29 @@ class Blendshapes:
         return rows
 
     # ------------------------------------------------------------------ tables
-    def _summary(self, results, expressions, rows, shown, others, headline) -> str:
+    @staticmethod
+    def _k_note(k, n_vertices) -> str:
+        """``k = 12``, or what k = 0 and k = n mean: one network alone, no assembly."""
+        if k is None:
+            return "k = n/a"
+        if int(k) <= 0:
+            return "k = 0 (the dr network alone: no assembly)"
+        if int(k) >= n_vertices:
+            return f"k = n = {int(k)} (the euclidean network alone: no assembly)"
+        return f"k = {int(k)}"
+
+    @staticmethod
+    def _verdict(v, w) -> str:
+        """``win`` / ``loss`` / ``tie`` of value v against w (lower is better); an exact tie is no win."""
+        if v is None or w is None or not (np.isfinite(v) and np.isfinite(w)):
+            return "n/a"
+        return "win" if v < w else ("tie" if v == w else "loss")
+
+    def _summary(self, results, expressions, rows, shown, others, headline, n_vertices) -> str:
         """Plain sentences: does each cut-selecting model (PBS) beat the baselines ``others`` (DT)
-        and its own parts (its single PBs) on the distance metric and the first perceptual one?"""
+        and its own parts (its single PBs) on the distance metric and every perceptual one? An
+        exact tie is said as such, never counted as a win; k = 0 and k = n say that PBS did not
+        assemble."""
         lines = []
         pbs = [r for r in rows if r in results[CUTS]]
         for e in expressions:
@@ -224,20 +267,63 @@ class Blendshapes:
                     if m not in r[p]:
                         continue
                     v = r[p][m]["mean"]
-                    better = [x for x in rivals if v < r[x][m]["mean"]]
-                    worse = [x for x in rivals if v >= r[x][m]["mean"]]
+                    by = {"win": [], "tie": [], "loss": []}
+                    for x in rivals:
+                        by.setdefault(self._verdict(v, r[x][m]["mean"]), []).append(x)
                     parts = []
-                    if better:
-                        parts.append("beats " + ", ".join(f"{x} ({(1 - v / r[x][m]['mean']) * 100:.0f}% lower)" for x in better))
-                    if worse:
-                        parts.append("does not beat " + ", ".join(f"{x} ({(v / r[x][m]['mean'] - 1) * 100:.0f}% higher)" for x in worse))
-                    lines.append(f"- {e}, {shown[m].label}: `{p}` (k = {results[CUTS][p]['k'].get(e, 'n')}) "
+                    if by["win"]:
+                        parts.append("beats " + ", ".join(f"{x} ({(1 - v / r[x][m]['mean']) * 100:.0f}% lower)"
+                                                          for x in by["win"]))
+                    if by["tie"]:
+                        parts.append("ties with " + ", ".join(by["tie"]) + " (equal values)")
+                    if by["loss"]:
+                        parts.append("does not beat " + ", ".join(
+                            f"{x} ({(v / r[x][m]['mean'] - 1) * 100:.0f}% higher)" if r[x][m]["mean"] else f"{x}"
+                            for x in by["loss"]))
+                    k = results[CUTS][p]["k"].get(e)
+                    lines.append(f"- {e}, {shown[m].label}: `{p}` ({self._k_note(k, n_vertices)}) "
                                  + "; ".join(parts) + ".")
         return "\n".join(lines)
 
+    def _versus(self, results, expressions, rows, shown, others, headline, n_vertices) -> str:
+        """One row per expression: each cut-selecting model (PBS) against each baseline (DT) on the
+        distance metric and every perceptual one (L1, DAME, FMPD), the values side by side and who
+        wins (``tie`` for exactly equal values), then the counts over the expressions."""
+        out = []
+        for p in [r for r in rows if r in results[CUTS]]:
+            for x in [r for r in rows if r in others]:
+                cols, body = ["expression", "k"], []
+                for m in headline:
+                    lab = f"{shown[m].label} ×{shown[m].scale:g}"
+                    cols += [f"{lab} {p}", f"{lab} {x}", f"{shown[m].label} winner"]
+                wins = {m: {"win": 0, "tie": 0, "loss": 0, "n/a": 0} for m in headline}
+                for e in expressions:
+                    r = results[PER_EXPRESSION][e]
+                    k = results[CUTS][p]["k"].get(e)
+                    kk = "n/a" if k is None else ("0 (dr alone)" if int(k) <= 0 else
+                                                  ("n (euclidean alone)" if int(k) >= n_vertices else str(int(k))))
+                    row = [e, kk]
+                    for m in headline:
+                        v, w = (r.get(y, {}).get(m, {}).get("mean") for y in (p, x))
+                        verdict = self._verdict(v, w)
+                        wins[m][verdict] += 1
+                        row += [format_value(v, shown[m].scale), format_value(w, shown[m].scale),
+                                {"win": p, "loss": x, "tie": "tie", "n/a": "n/a"}[verdict]]
+                    body.append(row)
+                counts = "; ".join(f"{shown[m].label}: `{p}` wins {wins[m]['win']}, `{x}` wins {wins[m]['loss']}"
+                                   + (f", {wins[m]['tie']} exact ties" if wins[m]["tie"] else "")
+                                   + f" of {len(expressions)}" for m in headline)
+                out.append(f"`{p}` against `{x}` on test, mean over subjects in the evaluation space, lower is "
+                           f"better; an exact tie is no win. {counts}.\n\n" + markdown_table(body, cols))
+        return "\n\n".join(out)
+
     def _tables(self, results, expressions, rows, metric_names, shown, modes, others, headline) -> list:
         sections = []
-        summary = self._summary(results, expressions, rows, shown, others, headline)
+        n_vertices = results["dataset"]["n_vertices"]
+        versus = self._versus(results, expressions, rows, shown, others, headline, n_vertices)
+        if versus:
+            sections.append(("Per expression: PBS against DT (test)", versus))
+        summary = self._summary(results, expressions, rows, shown, others, headline, n_vertices)
         if summary:
             sections.append(("Summary: PBS against DT and the single PBs (test)", summary))
         cols = ["expression", "metric", *rows]
@@ -299,22 +385,24 @@ class Blendshapes:
                     vals.append(float(x))
                 except ValueError:
                     vals.append(np.inf)
-            best = int(np.argmin(vals)) if vals and np.isfinite(min(vals)) else -1
-            out.append(row[:2] + [f"**{x}**" if i == best else x for i, x in enumerate(row[2:])])
+            best = min(vals) if vals and np.isfinite(min(vals)) else None  # equal displayed values: all bold
+            out.append(row[:2] + [f"**{x}**" if best is not None and v == best else x
+                                  for x, v in zip(row[2:], vals)])
         return out
 
     # ------------------------------------------------------------------ figures
-    def _figures(self, ctx, template, expressions, gt, preds, results, metrics, dist, perceptual) -> dict:
+    def _figures(self, ctx, template, expressions, gt, preds, results, metrics, dist, perceptual, rendered) -> dict:
         """Figure 5.8 (each cut-selecting model's k sweep: the distance against each perceptual
         metric it swept, the last first as in the thesis: FMPD, then DAME), figure 5.9 (the methods
-        on test: the distance against each perceptual metric) and the renders."""
+        on test: the distance against each perceptual metric) and the renders, for the expressions
+        ``rendered`` (every one, or the worst ``render_expressions``)."""
         figures = {}
         names = [m.name for m in metrics]
         if dist is None:  # no registered distance metric to plot against
-            return self._renders(ctx, template, expressions, gt, preds, metrics, dist, perceptual) if self.renders else {}
+            return self._renders(ctx, template, rendered, gt, preds, metrics, dist, perceptual) if self.renders else {}
         xlabel = display(dist, ctx.registry).label
         for label, d in results[CUTS].items():
-            for e, s in d["sweep"].items():
+            for e, s in ((e, s) for e, s in d["sweep"].items() if e in rendered):
                 for pm in perceptual[::-1]:
                     if pm not in s or dist not in s:
                         continue
@@ -322,7 +410,7 @@ class Blendshapes:
                     p = scatter_pareto(pts, ctx.path("figures", f"pbs_k_{label}_{e}_{pm}.png"), xlabel,
                                        pm.upper(), f"{e}: k sweep on validation (chosen k = {s['chosen']})")
                     figures[f"{label} {e}: {dist.upper()} against {pm.upper()} for every k (figure 5.8)"] = p
-        for e in expressions:
+        for e in rendered:
             r = results[PER_EXPRESSION][e]
             for pm in perceptual:
                 if pm not in names:
@@ -332,7 +420,7 @@ class Blendshapes:
                                    f"{e}: methods on test")
                 figures[f"{e}: methods, {dist.upper()} against {pm.upper()} on test (figure 5.9)"] = p
         if self.renders:
-            figures.update(self._renders(ctx, template, expressions, gt, preds, metrics, dist, perceptual))
+            figures.update(self._renders(ctx, template, rendered, gt, preds, metrics, dist, perceptual))
         return figures
 
     def _renders(self, ctx, template, expressions, gt, preds, metrics, dist, perceptual) -> dict:
