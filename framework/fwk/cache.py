@@ -1,9 +1,12 @@
 """Content-hash keyed cache for derived data (parsed meshes, operators, eigenbases, ...).
 
 A key covers every input that changes the value (arrays are hashed by dtype, shape and bytes).
-Entries are written atomically (temporary file + rename) with a SHA-256 of their bytes beside
-them; a read that does not verify, or cannot be parsed, is treated as a miss and rebuilt.
-Location: ``Cache(root)``, else ``$FWK_CACHE``, else ``~/.cache/fwk``.
+Every entry (a pickled value, or a large ``.npy`` array that is memory-mapped) is written
+atomically (temporary file + rename, with the process umask's file mode) with the SHA-256 of
+its bytes beside it (``<key>.sha256``). Every read checks the bytes against that hash: an entry
+that does not verify (changed, truncated, half-written by a killed process) or cannot be parsed
+is never used: it is rebuilt, with one warning line on stderr. Location: ``Cache(root)``, else
+``$FWK_CACHE``, else ``~/.cache/fwk``.
 
 ``memo(namespace, key, build)`` is the in-process counterpart (nothing written): values derived
 from a topology or a level (edge structures, spirals, factorisations, metric stencils) built once
@@ -11,15 +14,21 @@ per process and key, at most ``size`` per namespace.
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import io
 import os
 import pickle
+import re
+import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
+
+from .errors import WriteError
 
 
 @runtime_checkable
@@ -62,22 +71,71 @@ def content_key(*parts: Any) -> str:
     return h.hexdigest()[:32]
 
 
+_UMASK_LOCK = threading.Lock()
+
+
+def current_umask() -> int:
+    """The process umask (read from /proc on Linux, else set and restored under a lock)."""
+    try:
+        with open("/proc/self/status", "rb") as f:
+            for line in f:
+                if line.startswith(b"Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    with _UMASK_LOCK:
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
+
+
+def file_mode() -> int:
+    """The mode a plain ``open(path, "w")`` would give a new file: 0o666 less the umask."""
+    return 0o666 & ~current_umask()
+
+
+#: write errors that are the user's to fix (space, quota, permissions): one line, not a traceback
+_USER_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM, errno.EROFS}
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file and a rename: readers see the old file or
-    the new one, never a part."""
+    the new one, never a part. The file gets the mode the umask gives new files (not the
+    temporary file's 0600). A full disk, a quota, a file-size limit or a permission raises
+    ``WriteError`` (an ``FwkError`` and an ``OSError``) naming ``path``; no temporary file stays."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), file_mode())
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        tmp = None
+    except OSError as exc:
+        if exc.errno in _USER_ERRNOS and not isinstance(exc, WriteError):
+            raise WriteError(exc.errno, f"{path}: cannot write ({exc.strerror})") from None
         raise
+    finally:
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def warn(message: str) -> None:
+    """One warning line on stderr: ``fwk: warning: message``."""
+    print(f"fwk: warning: {message}", file=sys.stderr, flush=True)
+
+
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+
+
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a file's bytes, read in 1 MiB blocks."""
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 class Cache:
@@ -93,29 +151,59 @@ class Cache:
         d = self.root / namespace
         return d / f"{key}.bin", d / f"{key}.sha256"
 
+    def _verified(self, data_p: Path, sum_p: Path, digest: Callable[[], str]) -> bool:
+        """Whether the entry at ``data_p`` is whole: its bytes' SHA-256 equals ``sum_p``'s. A
+        missing entry is a plain miss; a present one that does not verify gets one warning line
+        (an entry of an older format, a hash of something else, is rebuilt silently)."""
+        if not data_p.exists():
+            return False
+        try:
+            expected = sum_p.read_text().strip() if sum_p.exists() else None
+            if expected is not None and not _HEX64.match(expected):
+                return False  # an older format's entry: rebuilt without a word
+            if expected is not None and digest() == expected:
+                return True
+        except OSError as exc:
+            warn(f"cache entry {data_p} is unreadable ({exc.strerror}); rebuilt")
+            return False
+        why = "has no content hash (a write was cut short)" if expected is None else \
+            "does not match its content hash (changed or truncated)"
+        warn(f"cache entry {data_p} {why}; rebuilt")
+        return False
+
     def load(self, namespace: str, key: str) -> Any | None:
-        """The value stored under ``key``, or None when missing, corrupt or disabled."""
+        """The value stored under ``key``, or None when missing, corrupt (one warning line) or
+        disabled."""
         data_p, sum_p = self._paths(namespace, key)
-        if not self.enabled or not data_p.exists() or not sum_p.exists():
+        if not self.enabled:
+            return None
+        data = b""
+
+        def digest():
+            nonlocal data
+            data = data_p.read_bytes()
+            return hashlib.sha256(data).hexdigest()
+
+        if not self._verified(data_p, sum_p, digest):
             return None
         try:
-            data = data_p.read_bytes()
-            if hashlib.sha256(data).hexdigest() != sum_p.read_text().strip():
-                return None
             return pickle.loads(data)
-        except Exception:  # corrupt or unreadable: a miss
+        except Exception as exc:  # verified bytes that do not unpickle: written by another version
+            warn(f"cache entry {data_p} cannot be read ({type(exc).__name__}); rebuilt")
             return None
 
     def store(self, namespace: str, key: str, value: Any) -> None:
-        """Store ``value`` under ``key`` (pickled, with its SHA-256); a write error is ignored."""
+        """Store ``value`` under ``key`` (pickled, with its SHA-256); a write error is ignored (a
+        read-only or full cache must not fail the computation)."""
         if not self.enabled:
             return
         data = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
         data_p, sum_p = self._paths(namespace, key)
         try:
+            _remove(sum_p)  # never a new value beside an old hash, should the next write be cut short
             atomic_write_bytes(data_p, data)
             atomic_write_bytes(sum_p, hashlib.sha256(data).hexdigest().encode())
-        except OSError:  # a read-only or full cache must not fail the computation
+        except OSError:
             pass
 
     def get_or_build(self, namespace: str, key_parts: tuple, build: Callable[[], Any]) -> Any:
@@ -132,28 +220,35 @@ class Cache:
         return self.root / namespace / f"{content_key(namespace, *key_parts)}.npy"
 
     def memmap_array(self, namespace: str, key_parts: tuple, build: Callable[[], np.ndarray]) -> np.ndarray:
-        """A read-only memory-mapped cached array; rebuilt if missing or unreadable."""
+        """A read-only memory-mapped cached array, its bytes checked against their SHA-256 on
+        every read; rebuilt (one warning line) if they do not verify or cannot be parsed."""
         p = self.array_path(namespace, key_parts)
         sum_p = p.with_suffix(".sha256")
-        if self.enabled and p.exists() and sum_p.exists():
+        if self.enabled and self._verified(p, sum_p, lambda: file_sha256(p)):
             try:
-                arr = np.load(p, mmap_mode="r")
-                meta = f"{arr.dtype.str}{arr.shape}{p.stat().st_size}"
-                if sum_p.read_text().strip() == meta:
-                    return arr
-            except Exception:
-                pass
+                return np.load(p, mmap_mode="r")
+            except (ValueError, OSError) as exc:
+                warn(f"cache entry {p} cannot be read ({exc}); rebuilt")
         arr = np.ascontiguousarray(build())
         if not self.enabled:
             return arr
         buf = io.BytesIO()
         np.save(buf, arr)
+        data = buf.getvalue()
         try:
-            atomic_write_bytes(p, buf.getvalue())
-            atomic_write_bytes(sum_p, f"{arr.dtype.str}{arr.shape}{p.stat().st_size}".encode())
+            _remove(sum_p)
+            atomic_write_bytes(p, data)
+            atomic_write_bytes(sum_p, hashlib.sha256(data).hexdigest().encode())
             return np.load(p, mmap_mode="r")
         except OSError:
             return arr
+
+
+def _remove(path: Path) -> None:
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
 
 
 _DEFAULT: Cache | None = None

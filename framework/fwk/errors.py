@@ -24,3 +24,17 @@ class DataError(FwkError):
 
 class TopologyError(DataError):
     """A mesh does not share the template's topology. The message names the file and what differs."""
+
+
+class PathError(FwkError):
+    """A folder the user gave (``--runs-dir``, ``$FWK_RUNS_DIR``, ``$FWK_CACHE``, ``--out``) cannot
+    take the output: not a folder, a file in the way, not writable, no space. Names the path."""
+
+
+class WriteError(FwkError, OSError):
+    """A file could not be written for a reason the user can fix (no space, a quota, a file-size
+    limit, permissions). Also an ``OSError`` (with its ``errno``), so callers that tolerate write
+    failures (the cache) still do."""
+
+    def __str__(self):
+        return str(self.strerror) if self.strerror else super().__str__()

@@ -30,7 +30,7 @@ from .errors import FwkError, RecipeError
 from .protocols import FAMILIES, Model
 from .recipes import Spec, resolve
 from .registry import Registry
-from .runs import RunContext
+from .runs import RunContext, require_complete
 
 
 def state_path(run_dir: Path, label: str) -> Path:
@@ -39,7 +39,11 @@ def state_path(run_dir: Path, label: str) -> Path:
 
 def build_model(spec: Spec, label: str, family: str, ctx: RunContext):
     """The model of ``models.<label>``, checked to be a model of ``family``."""
-    model = spec.build() if isinstance(spec, Spec) else ctx.build("model", spec)
+    try:
+        model = spec.build() if isinstance(spec, Spec) else ctx.build("model", spec)
+    except RecipeError as exc:  # a constructor's check names its parameter: add the recipe key
+        msg = str(exc)
+        raise RecipeError(msg if msg.startswith("models.") else f"models.{label}.{msg}") from None
     if not isinstance(model, Model) or model.task_family not in FAMILIES:
         raise RecipeError(f"models.{label}: {spec.name} does not play the model role "
                           f"(fit, state_dict, load_state_dict, task_family; see fwk.protocols.Model)")
@@ -57,7 +61,8 @@ def load_model_state(model, path: Path, ctx: RunContext | None) -> None:
 def fit_or_resume(model, label: str, data, ctx: RunContext) -> float:
     """Fit ``model`` on ``data`` (its checkpoints scoped to ``label``) and save it as
     ``models/<label>.pt``; with ``ctx.resume`` and that file present, load it instead.
-    Returns the seconds spent."""
+    A ``RecipeError`` the model raises while fitting (a parameter the data refutes) is prefixed
+    with ``models.<label>.``. Returns the seconds spent."""
     path = state_path(ctx.run_dir, label)
     t0 = time.perf_counter()
     if ctx.resume and path.exists():
@@ -65,7 +70,11 @@ def fit_or_resume(model, label: str, data, ctx: RunContext) -> float:
         load_model_state(model, path, ctx)
     else:
         ctx.log(f"[{label}] fitting {model.name}")
-        model.fit(data, ctx.scoped(label))
+        try:
+            model.fit(data, ctx.scoped(label))
+        except RecipeError as exc:  # a parameter the data refutes (too many components): name its key
+            msg = str(exc)
+            raise RecipeError(msg if msg.startswith("models.") else f"models.{label}.{msg}") from None
         ctx.save_torch(f"models/{label}.pt", model.state_dict())
     return time.perf_counter() - t0
 
@@ -134,12 +143,14 @@ class OpenedRun:
 
 def open_run(run_dir, registry: Registry | None = None, quiet: bool = True, task: str | None = None) -> OpenedRun:
     """Reopen a finished run directory (its ``recipe.yaml`` validated against today's registry);
-    ``task`` (optional) is the task it must be a run of."""
+    ``task`` (optional) is the task it must be a run of. A run that failed, was killed or is
+    still running (``fwk.runs.run_state``) is refused with the command that continues it."""
     from .plugins import get_registry
 
     run_dir = Path(run_dir)
     if not (run_dir / "recipe.yaml").exists():
         raise FwkError(f"{run_dir}: not a run directory (no recipe.yaml)")
+    require_complete(run_dir)  # a failed, killed or running run's files are not used
     registry = registry or get_registry()
     data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
     try:

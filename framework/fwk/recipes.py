@@ -29,6 +29,7 @@ from typing import Annotated, Any, get_args, get_origin
 
 import yaml
 
+from .data.template import check_units
 from .engine.config import TrainConfig
 from .errors import RecipeError
 from .plugins import get_registry
@@ -256,6 +257,8 @@ def make_spec(kind: str, value, path: str, registry: Registry | None = None) -> 
         raise RecipeError(f"{path}: expected a {kind} name or a mapping with `name`, got {value!r}")
     cls = registry.get(kind, name, key_path=f"{path}.name" if isinstance(value, dict) else path)
     params = validate_params(cls, params, path, registry, label=name)
+    if kind == "dataset" and "units" in params:  # a dataset's `units` names its meshes' unit (Template.units)
+        check_units(params["units"], f"{path}.units")
     return Spec(kind, name, params, cls, path)
 
 

@@ -1,21 +1,38 @@
 """Run directories and the run context every task and model receives.
 
 ``fwk run recipes/x.yaml`` writes ``runs/<name>-<UTC yyyymmdd-HHMMSS>/`` (or under
-``--runs-dir`` / ``FWK_RUNS_DIR``), never overwriting; every file is written atomically.
-A user's mistake found while validating writes no run directory; one found while running
-(a bad mesh file, say) removes the directory this invocation created.
+``--runs-dir`` / ``FWK_RUNS_DIR``), never overwriting; every file is written atomically, with the
+mode the process umask gives new files. The output folders (the runs folder, ``$FWK_CACHE``)
+are checked before anything is written (``fwk.paths.check_dir``).
+
+A run directory is complete, or says why not:
+
+- while a process writes it, it holds ``RUNNING`` (its pid, host and start), locked with
+  ``flock``: a second ``fwk run --resume`` of the same directory is refused while the first
+  lives, and a reader tells a live run (locked) from a killed one (``RUNNING``, unlocked);
+- an exception of any kind (a bug, an interrupt, a full disk) replaces ``RUNNING`` by
+  ``FAILED``: the error's line, its traceback and the command that resumes;
+- on success neither is left. ``run_state(run_dir)`` reads this; ``fwk report`` and
+  ``fwk.lifecycle.open_run`` refuse a run that is not complete.
+
+A user's mistake found while validating writes no run directory; one found while running (a
+bad mesh file, say) removes the directory this invocation created, unless it already holds a
+trained model or a checkpoint (then it is marked ``FAILED`` and ``--resume`` continues it).
 """
 from __future__ import annotations
 
 import copy
 import datetime as _dt
+import fcntl
 import io
 import json
 import os
 import platform
 import shutil
+import socket
 import subprocess
 import sys
+import traceback
 from pathlib import Path
 from typing import Iterable
 
@@ -24,10 +41,11 @@ import yaml
 from tqdm.auto import tqdm
 
 from . import __version__
-from .cache import Cache, atomic_write_bytes
+from .cache import Cache, atomic_write_bytes, file_mode
 from .engine.config import TrainConfig
 from .engine.threads import register
-from .errors import FwkError
+from .errors import FwkError, PathError
+from .paths import check_dir
 from .plugins import get_registry
 from .recipes import Spec, load_recipe, make_spec, resolve, to_plain
 from .registry import Registry
@@ -176,14 +194,30 @@ def make_test_context(tmp_path, seed: int = 0, registry: Registry | None = None,
 
 def runs_root(runs_dir: str | None = None) -> Path:
     """Where run directories go: ``runs_dir``, else ``$FWK_RUNS_DIR``, else ``./runs``."""
-    return Path(runs_dir or os.environ.get("FWK_RUNS_DIR") or "runs")
+    return Path(runs_dir or os.environ.get("FWK_RUNS_DIR") or "runs").expanduser()
+
+
+def check_runs_root(runs_dir: str | None = None) -> Path:
+    """``runs_root(runs_dir)``, checked to be a writable folder with space (``PathError`` naming
+    ``--runs-dir`` or ``$FWK_RUNS_DIR`` otherwise)."""
+    what = "--runs-dir" if runs_dir else ("$FWK_RUNS_DIR" if os.environ.get("FWK_RUNS_DIR") else "the runs folder")
+    return check_dir(runs_root(runs_dir), what)
+
+
+def check_cache_dir() -> None:
+    """``$FWK_CACHE``, where set, checked to be a writable folder with space (``PathError``)."""
+    if os.environ.get("FWK_CACHE"):
+        check_dir(os.environ["FWK_CACHE"], "$FWK_CACHE")
 
 
 def new_run_dir(root: Path, name: str) -> Path:
     """A new directory ``root/<name>-<UTC yyyymmdd-HHMMSS>`` (suffixed -2, -3... if taken), never an
-    existing one."""
+    existing one, even when several processes start at once."""
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d-%H%M%S")
-    root.mkdir(parents=True, exist_ok=True)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PathError(f"runs folder {root}: cannot create it ({exc.strerror})") from None
     base = root / f"{name}-{stamp}"
     p, i = base, 1
     while True:
@@ -193,6 +227,128 @@ def new_run_dir(root: Path, name: str) -> Path:
         except FileExistsError:
             i += 1
             p = Path(f"{base}-{i}")
+        except OSError as exc:
+            raise PathError(f"runs folder {root}: cannot create {p.name} ({exc.strerror})") from None
+
+
+# ----------------------------------------------------------------------------- run state
+
+RUNNING, FAILED = "RUNNING", "FAILED"
+
+
+class RunLock:
+    """``RUNNING`` in a run directory, held with ``flock`` for as long as this process writes
+    the run (the kernel drops the lock when the process dies, however it dies)."""
+
+    def __init__(self, run_dir: Path):
+        self.run_dir = Path(run_dir)
+        self.path = self.run_dir / RUNNING
+        self.fd: int | None = None
+
+    def acquire(self) -> bool:
+        """Take the lock; True when a ``RUNNING`` of a killed process was found (taken over).
+        Raises FwkError while another live process holds it."""
+        while True:
+            existed = self.path.exists()
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, file_mode())
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                who = os.read(fd, 4096).decode(errors="replace").splitlines()[:1]
+                os.close(fd)
+                raise FwkError(f"{self.run_dir}: another fwk process is writing this run "
+                               f"({who[0] if who else 'see RUNNING'}); wait for it to end") from None
+            try:
+                same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if not same:  # the holder finished and removed it between our open and lock: again
+                os.close(fd)
+                continue
+            started = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+            os.ftruncate(fd, 0)
+            os.write(fd, (f"pid {os.getpid()} on {socket.gethostname()}, started {started}\n"
+                          f"If that process is gone the run was killed: fwk run --resume {self.run_dir}\n").encode())
+            self.fd = fd
+            return existed
+
+    def release(self, remove: bool = True) -> None:
+        """Drop the lock, removing ``RUNNING`` first when ``remove``."""
+        if self.fd is None:
+            return
+        if remove:
+            try:
+                os.unlink(self.path)
+            except FileNotFoundError:
+                pass
+        os.close(self.fd)
+        self.fd = None
+
+
+def run_state(run_dir) -> tuple[str, str]:
+    """(state, detail) of a run directory: ``complete``, ``running`` (a live process holds its
+    lock), ``killed`` (``RUNNING`` left by a process that is gone) or ``failed`` (``FAILED``:
+    detail is the error's line)."""
+    run_dir = Path(run_dir)
+    failed = run_dir / FAILED
+    if failed.exists():
+        try:
+            return "failed", failed.read_text(errors="replace").splitlines()[0]
+        except (OSError, IndexError):
+            return "failed", "see FAILED"
+    running = run_dir / RUNNING
+    if running.exists():
+        try:
+            fd = os.open(running, os.O_RDONLY)
+        except FileNotFoundError:  # it finished just now
+            return "complete", ""
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            who = os.read(fd, 4096).decode(errors="replace").splitlines()[:1]
+            return "running", who[0] if who else ""
+        finally:
+            os.close(fd)
+        return "killed", "the process that wrote it is gone"
+    return "complete", ""
+
+
+def require_complete(run_dir, what: str = "") -> None:
+    """Raise FwkError unless ``run_dir`` is a complete run (see ``run_state``)."""
+    state, detail = run_state(run_dir)
+    if state == "complete":
+        return
+    lead = f"{what} {run_dir}" if what else str(run_dir)
+    if state == "running":
+        raise FwkError(f"{lead}: still running ({detail}); wait for it to finish")
+    raise FwkError(f"{lead}: the run {'failed' if state == 'failed' else 'was killed'} ({detail}); "
+                   f"continue it with fwk run --resume {run_dir}")
+
+
+def _worth_keeping(run_dir: Path) -> bool:
+    """Whether a run directory holds work a resume would reuse: a trained model or a checkpoint."""
+    return any(p.is_file() for sub in ("models", "checkpoints") for p in (run_dir / sub).rglob("*"))
+
+
+def _write_failed(run_dir: Path, exc: BaseException) -> None:
+    """``FAILED``: the error in one line, the traceback, the command that resumes (best effort:
+    on a full disk there may be no room even for this)."""
+    if isinstance(exc, KeyboardInterrupt):
+        line = "interrupted (Ctrl-C)"
+    elif isinstance(exc, FwkError):
+        line = str(exc)
+    else:
+        line = f"{type(exc).__name__}: {exc}".splitlines()[0]
+    tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+    text = f"{line}\n\nContinue with: fwk run --resume {run_dir}\n\n{tb}"
+    try:
+        atomic_write_bytes(run_dir / FAILED, text.encode())
+    except OSError:
+        try:
+            with open(run_dir / FAILED, "w") as f:
+                f.write(line + "\n")
+        except OSError:
+            pass
 
 
 def versions(registry: Registry) -> dict:
@@ -226,12 +382,15 @@ def run_task(resolved, ctx: RunContext) -> None:
 def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str | None = None,
             resume: str | None = None, quiet: bool = False, registry: Registry | None = None,
             cache: Cache | None = None, device: str | None = None) -> Path:
-    """``fwk run``: validate everything first, then create the run directory and run. The process
-    registers among those that share the cores (``fwk.engine.threads``)."""
+    """``fwk run``: validate the recipe and the output folders first, then create the run
+    directory and run (see the module docstring for what a run directory holds when it fails).
+    The process registers among those that share the cores (``fwk.engine.threads``)."""
     registry = registry or get_registry()
     register()
     if resume:
         run_dir = Path(resume)
+        if not run_dir.is_dir():
+            raise FwkError(f"--resume {resume}: not a folder")
         if not (run_dir / "recipe.yaml").exists():
             raise FwkError(f"--resume {resume}: not a run directory (no recipe.yaml)")
         data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
@@ -241,12 +400,25 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             if to_plain(fresh) != {k: v for k, v in data.items()}:
                 raise FwkError(f"--resume {resume}: the recipe differs from the one the run was started with")
         resolved = resolve(data, registry)
+        check_dir(run_dir, "--resume")
+        if cache is None:
+            check_cache_dir()
         created = False
     else:
         data = load_recipe(recipe_path, overrides)
         resolved = resolve(data, registry)
-        run_dir = new_run_dir(runs_root(runs_dir), resolved.name)
+        root = check_runs_root(runs_dir)
+        if cache is None:
+            check_cache_dir()
+        run_dir = new_run_dir(root, resolved.name)
         created = True
+    lock = RunLock(run_dir)
+    try:
+        killed = lock.acquire()
+    except BaseException:
+        if created:
+            shutil.rmtree(run_dir, ignore_errors=True)
+        raise
     try:
         ctx = RunContext(run_dir, registry, cache, resolved.seed, recipe=resolved.data, train=resolved.train,
                          device=device, quiet=quiet, resume=bool(resume))
@@ -258,10 +430,26 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             ctx.write_text("recipe.yaml", yaml.safe_dump(plain, sort_keys=False))
             ctx.write_json("versions.json", versions(registry))
         ctx.log(f"fwk run {resolved.name}: task {resolved.task.name}, run directory {run_dir}")
+        if resume:
+            failed = run_dir / FAILED
+            if failed.exists():
+                why = (failed.read_text(errors="replace").splitlines() or ["?"])[0]
+                ctx.log(f"resuming a run that failed ({why})")
+                failed.unlink()
+            elif killed:
+                ctx.log("resuming a run whose process was killed")
         run_task(resolved, ctx)
         ctx.log(f"done: {run_dir}")
-    except FwkError:
-        if created:
+    except BaseException as exc:
+        if isinstance(exc, FwkError) and created and not _worth_keeping(run_dir):
+            lock.release()
             shutil.rmtree(run_dir, ignore_errors=True)
+            raise
+        _write_failed(run_dir, exc)
+        lock.release()
+        if not isinstance(exc, FwkError) and not quiet:
+            print(f"fwk: the run failed; {run_dir / FAILED} holds the error; "
+                  f"continue with: fwk run --resume {run_dir}", file=sys.stderr)
         raise
+    lock.release()
     return run_dir

@@ -10,6 +10,10 @@ back as an OBJ that drops into the user's pipeline unchanged.
 
 Face lines are parsed once per topology: a file whose face block is byte-identical to one
 seen before reuses the parsed Template (the ~158 ICT files share one).
+
+Errors name the file and the line: ``head.obj, line 812: a vertex line with 2 numbers, expected
+3 (the file may be cut short)``. Line numbers are found only when something is wrong, so that
+reading a good file pays nothing for them.
 """
 from __future__ import annotations
 
@@ -35,55 +39,115 @@ def _split_lines(data: bytes):
     return v_lines, face_block
 
 
-def _parse_vertices(v_lines, path) -> np.ndarray:
+def line_number(data: bytes, predicate, nth: int = 0) -> int | None:
+    """The 1-based number of the ``nth`` (0-based) line of ``data`` for which ``predicate(line)``
+    (a stripped bytes line) holds; None if there is none."""
+    seen = 0
+    for i, line in enumerate(data.splitlines(), 1):
+        if predicate(line.strip()):
+            if seen == nth:
+                return i
+            seen += 1
+    return None
+
+
+def _at(path, data: bytes | None, predicate, nth: int = 0) -> str:
+    """``path, line N`` where line N is found, else ``path``."""
+    n = line_number(data, predicate, nth) if data is not None else None
+    return f"{path}, line {n}" if n is not None else str(path)
+
+
+def _is_v(line: bytes) -> bool:
+    return line.startswith((b"v ", b"v\t"))
+
+
+def _parse_vertices(v_lines, path, data: bytes | None = None) -> np.ndarray:
     if not v_lines:
         raise DataError(f"{path}: no vertices (no `v` lines)")
     try:
         flat = np.array(b" ".join(v_lines).split(), dtype=np.float64)
         if flat.size % len(v_lines) == 0 and flat.size // len(v_lines) >= 3:
             return np.ascontiguousarray(flat.reshape(len(v_lines), -1)[:, :3])
-        # lines of different lengths (some with colours): the first three numbers of each
-        return np.array([[float(x) for x in ln.split()[:3]] for ln in v_lines], dtype=np.float64)
-    except ValueError as exc:
-        raise DataError(f"{path}: unreadable vertex line ({exc})") from None
+    except ValueError:
+        pass  # a word that is no number: found below, with its line
+    # lines of different lengths (some with colours): the first three numbers of each; a line with
+    # fewer than three numbers, or a word that is no number, is named with its line number
+    out = np.empty((len(v_lines), 3), dtype=np.float64)
+    for k, ln in enumerate(v_lines):
+        parts = ln.split()
+        try:
+            nums = [float(x) for x in parts[:3]]
+        except ValueError:
+            bad = next(x for x in parts[:3] if not _is_float(x)).decode("utf-8", "replace")
+            raise DataError(f"{_at(path, data, _is_v, k)}: {bad!r} in a vertex line is not a number") from None
+        if len(nums) < 3:
+            raise DataError(f"{_at(path, data, _is_v, k)}: a vertex line with {len(nums)} number"
+                            f"{'' if len(nums) == 1 else 's'}, expected 3 (is the file cut short?)")
+        out[k] = nums
+    return out
+
+
+def _is_float(x: bytes) -> bool:
+    try:
+        float(x)
+        return True
+    except ValueError:
+        return False
+
+
+class _LineError(Exception):
+    """A face-block line that cannot be read: its raw (stripped) text and what is wrong."""
+
+    def __init__(self, raw: bytes, what: str):
+        super().__init__(what)
+        self.raw, self.what = raw, what
 
 
 def _parse_topology(face_block, n_vertices: int, path) -> Template:
     uvs, uv_lines, poly_v, poly_t, offsets, extra = [], [], [], [], [0], []
+    raws = []  # the face line of every polygon, to name the one that is wrong
     n_vt = 0
     for raw in face_block:
         line = raw.decode("utf-8", "replace").strip()
         tag, _, rest = line.partition(" ")
-        if tag == "vt":
-            parts = rest.split()
-            uvs.append([float(parts[0]), float(parts[1]) if len(parts) > 1 else 0.0])
-            uv_lines.append(line)
-            n_vt += 1
-        elif tag == "f":
-            corners = rest.split()
-            if len(corners) < 3:
-                raise DataError(f"{path}: a face with fewer than 3 corners: {line!r}")
-            for c in corners:
-                bits = c.split("/")
-                vi = int(bits[0])
-                vi = vi - 1 if vi > 0 else n_vertices + vi
-                poly_v.append(vi)
-                if len(bits) > 1 and bits[1]:
-                    ti = int(bits[1])
-                    poly_t.append(ti - 1 if ti > 0 else n_vt + ti)
-                else:
-                    poly_t.append(-1)
-            offsets.append(len(poly_v))
-        elif tag in ("vn", "vp", "l", "p"):
-            continue  # normals are recomputed; lines and points are not surfaces
-        else:
-            extra.append((len(offsets) - 1, line))
+        try:
+            if tag == "vt":
+                parts = rest.split()
+                uvs.append([float(parts[0]), float(parts[1]) if len(parts) > 1 else 0.0])
+                uv_lines.append(line)
+                n_vt += 1
+            elif tag == "f":
+                corners = rest.split()
+                if len(corners) < 3:
+                    raise _LineError(raw, f"a face with fewer than 3 corners: {line!r} (is the file cut short?)")
+                for c in corners:
+                    bits = c.split("/")
+                    vi = int(bits[0])
+                    vi = vi - 1 if vi > 0 else n_vertices + vi
+                    poly_v.append(vi)
+                    if len(bits) > 1 and bits[1]:
+                        ti = int(bits[1])
+                        poly_t.append(ti - 1 if ti > 0 else n_vt + ti)
+                    else:
+                        poly_t.append(-1)
+                offsets.append(len(poly_v))
+                raws.append(raw)
+            elif tag in ("vn", "vp", "l", "p"):
+                continue  # normals are recomputed; lines and points are not surfaces
+            else:
+                extra.append((len(offsets) - 1, line))
+        except (ValueError, IndexError):
+            what = "texture" if tag == "vt" else "face"
+            raise _LineError(raw, f"unreadable {what} line {line!r}") from None
     if len(offsets) == 1:
         raise DataError(f"{path}: no faces (no `f` lines)")
     poly_v = np.asarray(poly_v, dtype=np.int64)
-    if poly_v.min() < 0 or poly_v.max() >= n_vertices:
-        raise DataError(f"{path}: a face refers to a vertex that does not exist")
     offsets = np.asarray(offsets, dtype=np.int64)
+    bad = np.flatnonzero((poly_v < 0) | (poly_v >= n_vertices))
+    if len(bad):
+        p = int(np.searchsorted(offsets, bad[0], side="right") - 1)
+        raise _LineError(raws[p], f"a face refers to vertex {int(poly_v[bad[0]]) + 1}, but the file has "
+                                  f"{n_vertices} vertices (is the file cut short?)")
     triangles = fan_triangulate(poly_v, offsets)
     poly_t = np.asarray(poly_t, dtype=np.int64)
     has_uv = bool(uvs) and (poly_t >= 0).any()
@@ -120,13 +184,13 @@ def read_obj(path, units: str = "unit") -> tuple[np.ndarray, Template]:
     except OSError as exc:
         raise DataError(f"{path}: cannot read ({exc.strerror})") from None
     v_lines, face_block = _split_lines(data)
-    V = _parse_vertices(v_lines, path)
+    V = _parse_vertices(v_lines, path, data)
     key = hashlib.sha256(b"\n".join(face_block) + str(len(V)).encode()).hexdigest()
     def build():
         try:
             return _parse_topology(face_block, len(V), path)
-        except (ValueError, IndexError) as exc:
-            raise DataError(f"{path}: unreadable face or texture line ({exc})") from None
+        except _LineError as exc:
+            raise DataError(f"{_at(path, data, lambda line: line == exc.raw)}: {exc.what}") from None
 
     # parsed once per topology: in memory, and on disk in the content-hash cache (files whose
     # face block is byte-identical share it)

@@ -5,12 +5,28 @@ import dataclasses
 import hashlib
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Literal, get_args
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, RecipeError
 from ..geometry.topology import connected_components, edges
 from ..registry import did_you_mean
+
+
+#: The units a dataset's meshes may be in (``unit``: not stated). Reports and metrics write
+#: distances in them; a dataset parameter ``units`` is checked against this list when the
+#: recipe is validated, and every MeshCollection's on construction.
+Units = Literal["unit", "m", "cm", "mm", "um", "in", "ft"]
+UNITS: tuple[str, ...] = get_args(Units)
+
+
+def check_units(units, key: str = "dataset.units") -> str:
+    """``units`` when it is one of ``UNITS``, else a RecipeError naming ``key``."""
+    if units not in UNITS:
+        raise RecipeError(f"{key}: {units!r} is not a unit fwk knows (units: {', '.join(UNITS)}; "
+                          f"unit: not stated)")
+    return units
 
 
 @dataclass(eq=False)
@@ -29,7 +45,7 @@ class Template:
                   exactly as the user's file had it
     regions       name -> vertex indices (e.g. ``face``, ``eyes``)
     landmarks     name -> vertex index
-    units         the input units (``cm``, ``mm``, ``unit``)
+    units         the input units, one of ``UNITS`` (``cm``, ``mm``, ``unit``: not stated)
     """
 
     vertices: np.ndarray
@@ -119,6 +135,7 @@ class MeshCollection:
             )
         if self.present is None:
             self.present = np.ones((S, E), dtype=bool)
+        check_units(self.template.units, f"dataset {self.name}: units")
 
     @property
     def units(self) -> str:

@@ -9,7 +9,10 @@ coordinates (always the case for meshes), so it costs O(m^2 nc), not O(m (nc)^2)
 samples than ``GRAM_MAX`` a truncated SVD (scipy's ``svds``, ARPACK) computes only the top K.
 
 ``n_components: 0`` is the mean-shape baseline: every reconstruction and sample is mu, the
-training mean (what a model must beat to have learnt anything about a subject).
+training mean (what a model must beat to have learnt anything about a subject). m training
+shapes carry at most m - 1 components of non-zero variance: a larger ``n_components`` is
+refused when fitting (before any other work on the data), naming the training set's size;
+the default (none given) keeps min(64, m - 1).
 """
 from __future__ import annotations
 
@@ -24,6 +27,7 @@ from fwk.protocols import RECONSTRUCT
 from fwk.recipes import Kind, Spec, make_spec
 
 GRAM_MAX = 4000  # samples up to which the (m x m) Gram matrix is eigendecomposed densely
+DEFAULT_COMPONENTS = 64  # kept when the recipe gives none (and the training set carries as many)
 
 
 def top_singular(X: np.ndarray, k: int):
@@ -56,9 +60,10 @@ class PCA:
     name = "pca"
     task_family = RECONSTRUCT
 
-    def __init__(self, n_components: int = 64,
+    def __init__(self, n_components: int | None = None,
                  representation: Annotated[Spec, Kind("representation")] = {"name": "euclidean", "scaling": "none"}):
-        if not isinstance(n_components, int) or isinstance(n_components, bool) or n_components < 0:
+        if n_components is not None and (not isinstance(n_components, int) or isinstance(n_components, bool)
+                                         or n_components < 0):
             raise RecipeError(f"n_components: expected an integer >= 0 (0: the mean shape), got {n_components!r}")
         self.n_components = n_components
         self.representation_spec = make_spec("representation", representation, "representation")
@@ -71,21 +76,36 @@ class PCA:
 
     @property
     def latent_size(self) -> int:
-        """The number of components kept: ``n_components`` until fit, then at most the number of
-        training shapes - 1 (components of zero variance are dropped)."""
-        return self.n_components if self.components is None else int(len(self.components))
+        """The number of components kept: ``n_components`` (64 when none given) until fit, then
+        at most the number of training shapes - 1 (components of zero variance are dropped)."""
+        if self.components is not None:
+            return int(len(self.components))
+        return DEFAULT_COMPONENTS if self.n_components is None else self.n_components
+
+    def check_data(self, n_train: int) -> int:
+        """The number of components to compute from ``n_train`` training shapes; a RecipeError
+        when ``n_components`` asks for more than the m - 1 they carry."""
+        most = max(n_train - 1, 0)
+        if self.n_components is None:
+            return min(DEFAULT_COMPONENTS, most)
+        if self.n_components > most:
+            raise RecipeError(f"n_components: {self.n_components} components, but the training split holds "
+                              f"{n_train} meshes, which carry at most {most}; give n_components <= {most} "
+                              f"(or leave it out: min(64, training meshes - 1))")
+        return self.n_components
 
     def fit(self, data, ctx=None) -> None:
         """Principal components of ``data.stack("train")`` (a ``FitData``)."""
         P = data.stack("train")
         if len(P) == 0:
             raise DataError("pca: the training split holds no shapes")
+        n_wanted = self.check_data(len(P))
         self.rep = self._make_rep(ctx)
         self.rep.fit(P, None, data.template)
         F = self.rep.encode(P).astype(np.float64).reshape(len(P), -1)
         self.mean = F.mean(axis=0)
         X = F - self.mean
-        k = int(min(self.n_components, max(len(P) - 1, 1), X.shape[1]))
+        k = int(min(n_wanted, X.shape[1]))
         # right singular vectors (k, nc); components of zero variance are dropped
         if k == 0:  # n_components 0: the mean shape
             self.singular_values, self.components = np.zeros(0), np.zeros((0, X.shape[1]))
