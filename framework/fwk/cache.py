@@ -153,22 +153,23 @@ class Cache:
 
     def _verified(self, data_p: Path, sum_p: Path, digest: Callable[[], str]) -> bool:
         """Whether the entry at ``data_p`` is whole: its bytes' SHA-256 equals ``sum_p``'s. A
-        missing entry is a plain miss; a present one that does not verify gets one warning line
-        (an entry of an older format, a hash of something else, is rebuilt silently)."""
+        missing entry, or one without its hash (a write cut short: the hash is written last), is
+        a plain miss; one whose bytes do not match gets one warning line (an entry of an older
+        format, whose hash file holds something else, is rebuilt silently)."""
         if not data_p.exists():
             return False
         try:
-            expected = sum_p.read_text().strip() if sum_p.exists() else None
-            if expected is not None and not _HEX64.match(expected):
+            if not sum_p.exists():  # a write cut short (or under way in another process): a miss
+                return False
+            expected = sum_p.read_text().strip()
+            if not _HEX64.match(expected):
                 return False  # an older format's entry: rebuilt without a word
-            if expected is not None and digest() == expected:
+            if digest() == expected:
                 return True
         except OSError as exc:
             warn(f"cache entry {data_p} is unreadable ({exc.strerror}); rebuilt")
             return False
-        why = "has no content hash (a write was cut short)" if expected is None else \
-            "does not match its content hash (changed or truncated)"
-        warn(f"cache entry {data_p} {why}; rebuilt")
+        warn(f"cache entry {data_p} does not match its content hash (changed or truncated); rebuilt")
         return False
 
     def load(self, namespace: str, key: str) -> Any | None:

@@ -1,6 +1,8 @@
 """The ``fwk`` command: list | show | run | eval | report | sample | apply.
 
 A user's mistake (an FwkError) prints one line and exits 2; ``--debug`` shows the traceback.
+The folders a command writes into (``--runs-dir``, ``$FWK_RUNS_DIR``, ``$FWK_CACHE``) are
+checked before it starts (``fwk.paths.check_dir``).
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from .generate import add_sample_parser, run_sample
 from .hookspecs import KINDS
 from .plugins import get_registry
 from .registry import did_you_mean
-from .runs import execute
+from .runs import check_cache_dir, execute
 
 #: Subcommands whose logic lives in their own modules: name -> (add its parser, run it).
 EXTRA_COMMANDS = {
@@ -183,6 +185,8 @@ def main(argv=None) -> int:
     if args.command in COMPUTING:
         register()  # counted by other fwk processes until this one exits
     try:
+        if args.command in COMPUTING and args.command != "run":  # `fwk run` checks its folders itself
+            check_cache_dir()
         status = int(args.func(args) or 0)
         sys.stdout.flush()  # a reader that went away shows here, not at exit
         return status

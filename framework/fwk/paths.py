@@ -27,9 +27,9 @@ def _existing_ancestor(p: Path) -> Path:
     return a
 
 
-def check_dir(path, what: str, min_free_mb: float = MIN_FREE_MB) -> Path:
+def check_dir(path, what: str, min_free_mb: float | None = None) -> Path:
     """``path`` (``~`` expanded) checked to be, or to be creatable as, a writable folder with at
-    least ``min_free_mb`` MB free; ``what`` names where it came from (``--runs-dir``). Raises
+    least ``min_free_mb`` MB free (default ``MIN_FREE_MB``); ``what`` names where it came from (``--runs-dir``). Raises
     ``PathError`` with one line, else returns the path (not created)."""
     p = Path(path).expanduser()
     where = f"{what} {p}"
@@ -55,6 +55,7 @@ def check_dir(path, what: str, min_free_mb: float = MIN_FREE_MB) -> Path:
         if exc.errno == errno.EROFS:
             raise PathError(f"{where}: on a read-only file system") from None
         raise PathError(f"{where}: cannot create files under {a} ({exc.strerror})") from None
+    min_free_mb = MIN_FREE_MB if min_free_mb is None else min_free_mb
     try:
         st = os.statvfs(a)
         free_mb = st.f_bavail * st.f_frsize / 2**20

@@ -1,13 +1,22 @@
 """``fwk report RUN_DIR...``: rebuild one run's report from its metrics.json, or combine several
-runs into one comparison table and L1/DAME (and L1/FMPD) scatter plots with the Pareto front."""
+runs into one comparison table and L1/DAME (and L1/FMPD) scatter plots with the Pareto front.
+
+Only complete runs are read (a failed, killed or running one is refused with the command that
+continues it: ``fwk.runs.run_state``). Runs of different tasks, or on different datasets (the
+recipe's ``dataset`` and ``split``), give numbers that do not compare: they are refused unless
+``--mix`` is given, and then the report says what differs.
+"""
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import yaml
+
 from ..cache import atomic_write_bytes
 from ..errors import FwkError
-from ..runs import write_json
+from ..paths import check_dir
+from ..runs import require_complete, write_json
 from .report import standard_scatters, write_report
 
 
@@ -40,8 +49,46 @@ class _Dir:
         return self.path(rel)
 
 
-def combine(runs: list[Path], out: Path) -> Path:
-    """One comparison report in ``out`` of the models of several runs (labelled ``run:model``)."""
+def identity(run: Path) -> dict:
+    """What must agree for two runs' numbers to compare: the task and the data (the recipe's
+    ``dataset`` and ``split``; without a recipe, metrics.json's dataset name, size and units)."""
+    recipe = {}
+    if (run / "recipe.yaml").exists():
+        try:
+            recipe = yaml.safe_load((run / "recipe.yaml").read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise FwkError(f"{run}/recipe.yaml: unreadable ({str(exc).splitlines()[0]})") from None
+    ds = _load(run).get("dataset", {})
+    dataset = recipe.get("dataset")
+    if dataset is None:
+        dataset = {k: ds[k] for k in ("name", "n_vertices", "units") if k in ds} or None
+    return {"task": recipe.get("task"), "dataset": dataset, "split": recipe.get("split")}
+
+
+def _describe(value) -> str:
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {_describe(v)}" for k, v in value.items()) + "}"
+    return "none" if value is None else str(value)
+
+
+def differences(runs: list[Path]) -> list[str]:
+    """One line per key (task, dataset, split) on which the runs disagree, naming each run's."""
+    ids = {r: identity(r) for r in runs}
+    out = []
+    for key in ("task", "dataset", "split"):
+        values = [ids[r][key] for r in runs]
+        if any(v != values[0] for v in values[1:]):
+            out.append(f"{key}: " + "; ".join(f"{r.name} {_describe(ids[r][key])}" for r in runs))
+    return out
+
+
+def combine(runs: list[Path], out: Path, mix: bool = False) -> Path:
+    """One comparison report in ``out`` of the models of several runs (labelled ``run:model``).
+    Runs of different tasks or data are refused unless ``mix``."""
+    diff = differences(runs)
+    if diff and not mix:
+        raise FwkError("fwk report: these runs do not compare (" + " | ".join(diff) + "); "
+                       "give --mix to put them in one table anyway")
     merged = {"models": {}, "runs": {}}
     groups = {}
     for r in runs:
@@ -55,22 +102,33 @@ def combine(runs: list[Path], out: Path) -> Path:
     ctx = _Dir(out)
     figures = standard_scatters(ctx, merged, "test", groups=groups if len(runs) > 1 else None)
     title = "Comparison of " + ", ".join(r.name for r in runs)
-    return write_report(ctx, title, merged, figures, notes=[f"runs: {', '.join(map(str, runs))}"])
+    notes = [f"runs: {', '.join(map(str, runs))}"]
+    if diff:
+        notes.append("mixed with --mix: the runs differ in " + "; ".join(diff) +
+                     ". Their numbers (and the Pareto front) do not compare like with like")
+    return write_report(ctx, title, merged, figures, notes=notes)
 
 
 def add_report_parser(sub):
+    """The ``fwk report`` subcommand's parser."""
     p = sub.add_parser("report", help="rebuild a run's report, or combine several runs into one comparison")
     p.add_argument("runs", nargs="+", metavar="RUN_DIR")
     p.add_argument("--out", help="where the combined report goes (default: the run itself, or ./report-combined)")
+    p.add_argument("--mix", action="store_true",
+                   help="combine runs of different tasks or datasets (refused otherwise: their numbers do not compare)")
     return p
 
 
 def run_report(args) -> int:
+    """``fwk report``: rebuild one run's report, or combine several (see the module docstring)."""
     runs = [Path(r) for r in args.runs]
     for r in runs:
         if not r.is_dir():
             raise FwkError(f"{r}: not a folder")
+        require_complete(r)
     out = Path(args.out) if args.out else (runs[0] if len(runs) == 1 else Path("report-combined"))
+    if out != runs[0] or len(runs) > 1:
+        check_dir(out, "--out" if args.out else "the report folder")
     if len(runs) == 1 and not args.out:
         m = _load(runs[0])
         figs = m.get("figures", {})
@@ -78,5 +136,5 @@ def run_report(args) -> int:
                      {k: v for k, v in figs.items()}, notes=m.get("notes", []))
         print(runs[0] / "report.md")
         return 0
-    print(combine(runs, out))
+    print(combine(runs, out, mix=args.mix))
     return 0

@@ -1,11 +1,21 @@
-"""Scatter plots with the Pareto front (thesis figures 3.3, 4.9, 4.12, 5.8, 5.9) and line plots."""
+"""Scatter plots with the Pareto front (thesis figures 3.3, 4.9, 4.12, 5.8, 5.9) and line plots.
+
+Point labels never overprint (``place_labels``): the front's points are labelled first, each
+label tries four places around its point, and one that fits nowhere is left out. Figures are
+written atomically (a reader never sees half a PNG).
+"""
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 
+from ..cache import atomic_write_bytes
 from .core import pareto_front
+
+#: where a point's label may go: (dx, dy) in points, horizontal and vertical alignment
+_PLACES = ((4, 3, "left", "bottom"), (4, -3, "left", "top"), (-4, 3, "right", "bottom"), (-4, -3, "right", "top"))
 
 
 def _plt():
@@ -28,16 +38,41 @@ def _finish(fig, ax, path, xlabel, ylabel, title):
     ax.grid(alpha=0.3)
     fig.tight_layout()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    buf = io.BytesIO()
+    fig.savefig(buf, format=path.suffix.lstrip(".") or "png")
     plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
     return path
+
+
+def place_labels(ax, points, labels, first=(), fontsize: float = 7) -> list:
+    """Annotate ``points`` (k, 2, data coordinates) with ``labels`` without overprinting: the
+    points ``first`` (indices) are labelled first, then the others in order; each label takes
+    the first of four places around its point where it overlaps no earlier label, or is left
+    out. Returns the placed matplotlib Text objects (a label left out has none)."""
+    fig = ax.figure
+    fig.canvas.draw()  # the limits and layout the labels are placed in
+    renderer = fig.canvas.get_renderer()
+    order = [int(i) for i in first] + [i for i in range(len(labels)) if i not in set(int(j) for j in first)]
+    placed, boxes = [], []
+    for i in order:
+        for dx, dy, ha, va in _PLACES:
+            t = ax.annotate(str(labels[i]), tuple(points[i]), fontsize=fontsize, xytext=(dx, dy),
+                            textcoords="offset points", ha=ha, va=va)
+            box = t.get_window_extent(renderer)
+            if not any(box.overlaps(b) for b in boxes):
+                placed.append(t)
+                boxes.append(box)
+                break
+            t.remove()
+    return placed
 
 
 def scatter_pareto(points: dict, path, xlabel: str, ylabel: str, title: str | None = None,
                    annotate: bool = True, groups: dict | None = None) -> Path:
     """``points``: label -> (x, y), both minimised; the non-dominated points are joined by the
-    front line and ringed. ``groups`` (label -> group name) colours points by group."""
+    front line and ringed. ``groups`` (label -> group name) colours points by group. Labels
+    that would overprint are left out, the front's kept first (``place_labels``)."""
     plt = _plt()
     labels = list(points)
     P = np.array([points[k] for k in labels], dtype=np.float64).reshape(-1, 2)
@@ -55,9 +90,13 @@ def scatter_pareto(points: dict, path, xlabel: str, ylabel: str, title: str | No
     if len(front):
         ax.plot(P[front, 0], P[front, 1], "--", color="#c0392b", zorder=2, label="Pareto front")
         ax.scatter(P[front, 0], P[front, 1], s=120, facecolors="none", edgecolors="#c0392b", zorder=4)
-    if annotate:
-        for i, k in enumerate(labels):
-            ax.annotate(str(k), P[i], fontsize=7, xytext=(3, 3), textcoords="offset points")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    if annotate and len(P):
+        place_labels(ax, P, labels, first=front)
     return _finish(fig, ax, path, xlabel, ylabel, title)
 
 

@@ -43,6 +43,18 @@ def bare_unit(units: str) -> str:
     return "" if (not units or "input" in units or units == "1") else units
 
 
+def axis_unit(units: str, input_units: bool) -> str:
+    """What an axis or colour-bar title says of a metric's unit: in the dataset's units
+    (``input_units``) the unit itself (``cm``, ``cm^2``, ``rad``; ``unitless`` for ``1``);
+    in the evaluation space ``evaluation space`` for the positions' own units (``input``,
+    scaled into [-1, 1]), else the unit."""
+    if not units or units == "1":
+        return "unitless"
+    if "input" in units:
+        return "evaluation space" if not input_units else units.replace("input", "input units")
+    return units
+
+
 class Display(NamedTuple):
     """How a metric is shown: tables give ``value / scale`` under ``label``; ``units`` and
     ``power`` as the metric class declares them (``fwk.protocols.Metric``)."""

@@ -8,7 +8,7 @@ from ..registry import Registry
 from .core import evaluate
 from .curves import training_section, training_summary
 from .plots import scatter_pareto
-from .presentation import bare_unit, display, figure_metrics, format_value
+from .presentation import axis_unit, display, figure_metrics, format_value
 from .render import colour_limits, render_grid
 
 SPLIT_ORDER = ("train", "val", "test")
@@ -120,7 +120,7 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
     parts = [f"# {title}", ""]
     ds = results.get("dataset")
     if ds:
-        parts.append("Dataset: " + ", ".join(f"{k} {v}" for k, v in ds.items()) + "\n")
+        parts.append("Dataset: " + dataset_line(ds) + "\n")
     for n in notes or []:
         parts.append(f"- {n}")
     parts.append("")
@@ -146,6 +146,23 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
     return ctx.write_text("report.md", "\n".join(parts) + "\n")
 
 
+def dataset_line(ds: dict) -> str:
+    """The report's dataset line in words: ``name synthetic-heads, n_vertices 605, units cm,
+    subjects 34 train / 2 val / 4 test`` (nested mappings written out, not as Python reprs)."""
+    def words(v) -> str:
+        if isinstance(v, dict):
+            if v and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v.values()):
+                return " / ".join(f"{x:g} {k}" for k, x in v.items())
+            return ", ".join(f"{k} {words(x)}" for k, x in v.items())
+        if isinstance(v, (list, tuple)):
+            return ", ".join(words(x) for x in v)
+        if isinstance(v, float):
+            return f"{v:.6g}"
+        return str(v)
+
+    return ", ".join(f"{k} {words(v)}" for k, v in ds.items())
+
+
 def _relative(p, run_dir) -> str:
     """A figure path as report.md (in run_dir) must link it."""
     p, run_dir = Path(p), Path(run_dir)
@@ -156,10 +173,12 @@ def _relative(p, run_dir) -> str:
 
 
 def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metrics, n_rows: int = 2,
-                           split: str = "test", registry: Registry | None = None) -> dict:
+                           split: str = "test", registry: Registry | None = None, scale: float | None = None) -> dict:
     """Renders (ground truth first, then each model) with error maps of the figure metrics
     (``figure_metrics``: the point-wise distance, then the first perceptual metric, where
-    ``metrics`` has them), shared colour limits per metric."""
+    ``metrics`` has them), shared colour limits per metric. With ``scale`` (the preprocessing's:
+    evaluation space = ``scale`` x input) the maps are in the template's units (a metric of
+    power p divided by ``scale**p``); each colour bar's title names its unit."""
     figures = {}
     distance, perceptual = figure_metrics(registry)
     names = [m.name for m in metrics]
@@ -172,6 +191,11 @@ def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metri
         for label, d in predictions.items():
             if split in d:
                 maps[label] = evaluate(d[split][:n], P[:n], template, [by[k] for k in keys])
+                if scale is not None:
+                    for k in keys:
+                        maps[label][k]["maps"] = maps[label][k]["maps"] / float(scale) ** by[k].power
+        units_of = {k: axis_unit(by[k].units.replace("input", template.units or "input") if scale is not None
+                                 else by[k].units, scale is not None) for k in keys}
         for key in keys:
             clim = colour_limits([row for l in maps for row in maps[l][key]["maps"]])
             cmap = "inferno" if key in perceptual else "viridis"
@@ -180,7 +204,8 @@ def reconstruction_figures(ctx, template, stacks: dict, predictions: dict, metri
                 row = [{"V": P[i], "label": f"ground truth {i}"}]
                 for label in maps:
                     row.append({"V": predictions[label][split][i], "scalars": maps[label][key]["maps"][i],
-                                "clim": clim, "label": label, "bar": key.upper(), "cmap": cmap})
+                                "clim": clim, "label": label, "bar": f"{key.upper()} ({units_of[key]})",
+                                "cmap": cmap})
                 rows.append(row)
             try:
                 figures[f"{split} reconstructions with {key.upper()} error maps (front)"] = render_grid(
@@ -196,22 +221,26 @@ def scatter_figure(ctx, results: dict, split: str = "test", x: str | None = None
                    name: str | None = None, groups: dict | None = None, registry: Registry | None = None):
     """Scatter of the models' mean ``x`` against mean ``y`` on ``split`` with the Pareto front;
     None when no model has both. ``x`` and ``y`` default to the figure metrics
-    (``figure_metrics``: the point-wise distance against the first perceptual metric)."""
+    (``figure_metrics``: the point-wise distance against the first perceptual metric). Each axis
+    is in the dataset's units (``mean_input``) where every model has them, else in the
+    evaluation space; its label says which (``L1 (test, cm)``, ``FMPD (test, unitless)``)."""
     if x is None or y is None:
         distance, perceptual = figure_metrics(registry)
         x = x if x is not None else distance
         y = y if y is not None else next(iter(perceptual), None)
-    pts = {}
-    for label, per in results.get("models", {}).items():
-        r = per.get(split, {})
-        if x in r and y in r:
-            pts[label] = (r[x]["mean"], r[y]["mean"])
-    if not pts:
+    models = {label: per.get(split, {}) for label, per in results.get("models", {}).items()}
+    models = {k: r for k, r in models.items() if x in r and y in r}
+    if not models:
         return None
+    # in the dataset's units where every model has them (runs of several scales compare there),
+    # else in the evaluation space
+    space = {m: "mean_input" if all("mean_input" in r[m] for r in models.values()) else "mean" for m in (x, y)}
+    pts = {label: (r[x][space[x]], r[y][space[y]]) for label, r in models.items()}
 
     def label(m):
-        u = bare_unit(_units_of(results, m))
-        return f"{m.upper()} ({split}{', ' + u if u else ''})"
+        u = axis_unit(_units_of(results, m, "units_input") if space[m] == "mean_input" else _units_of(results, m),
+                      space[m] == "mean_input")
+        return f"{m.upper()} ({split}, {u})"
 
     groups = {k: g for k, g in (groups or {}).items() if k in pts} or None
     return scatter_pareto(pts, ctx.path("figures", name or f"{split}_{x}_{y}_scatter.png"), label(x), label(y),
