@@ -1,4 +1,5 @@
-"""``fwk apply RUN_DIR NEUTRAL.obj|FOLDER --out DIR``: personalised blendshapes for your own head.
+"""``fwk apply RUN_DIR NEUTRAL.obj|FOLDER --out DIR [--format obj,gltf,usd] [--naming arkit]``:
+personalised blendshapes for your own head, as OBJs and as a rig.
 
 A finished ``blendshapes`` run holds everything a new neutral needs: the fitted preprocessing
 (``stats/preprocess.npz``: the mean training neutral and the dataset scale), the topology
@@ -10,9 +11,22 @@ against the run's, centre it, register it rigidly to the mean neutral and scale 
 registration and scale, and write ``<expression>.obj`` with the neutral's polygons, ``vt`` and
 material lines, vertex order unchanged. A folder of neutrals gives one sub-folder per neutral.
 
-Every input is read and checked before anything is written; results are written into a
-temporary folder beside ``--out`` and moved into place at the end, so a wrong topology, NaNs or
-an unreadable file raise one error naming the file and leave nothing half-written.
+``--format`` (comma-separated) adds rig files beside the OBJs (``fwk.rig``): ``gltf`` writes
+``<neutral>.glb`` (glTF 2.0 binary, one morph target per expression), ``usd`` ``<neutral>.usdc``
+(``usda`` for text; a UsdSkel rig, one BlendShape per expression). ``--naming arkit`` renames
+ICT-FaceKit's shapes to Apple ARKit's names in every format (``fwk.rig.arkit``).
+
+The model's topology is the run's ``template.obj`` (with its UVs). A neutral with another vertex
+count is refused with both counts and that file named; one exception: a neutral whose first n
+vertices and first polygons are the run's n vertices and polygons (the full mesh a region such
+as ICT-FaceKit's face-head was cut from, 11,248 of 26,719 vertices) is accepted: the region is
+predicted, the rest of the mesh is left as it is, and the full mesh is written back.
+
+Every input is read and checked before anything is written, and ``--out`` is checked before the
+run is loaded (a file in the way, a folder that cannot be created or written: one line, exit 2);
+results are written into a temporary folder beside ``--out`` and moved into place at the end, so
+a wrong topology, NaNs or an unreadable file raise one error naming the file and leave nothing
+half-written. Files are created with the process umask (0644 under the usual 022).
 """
 from __future__ import annotations
 
@@ -26,11 +40,17 @@ import numpy as np
 
 from .data import Template
 from .data.io import check_topology, read_obj, write_obj
-from .errors import DataError, FwkError
+from .errors import DataError, FwkError, TopologyError
 from .lifecycle import choose_model, open_run
 from .protocols import BlendshapeModel, CutSelectingModel
+from .rig.arkit import NAMINGS, rename
+from .rig.gltf import write_glb
+from .rig.usd import write_usd
 
 MESH_SUFFIXES = (".obj",)
+#: --format values -> the file suffix written (``obj``: one OBJ per expression)
+FORMATS = {"obj": ".obj", "gltf": ".glb", "glb": ".glb", "usd": ".usdc", "usdc": ".usdc", "usda": ".usda"}
+TEMPLATE_OBJ = "template.obj"  # the run directory's topology with UVs (written by the blendshapes task)
 
 
 def add_apply_parser(subparsers):
@@ -44,6 +64,10 @@ def add_apply_parser(subparsers):
     p.add_argument("--model", default=None, help="model label of the run (default: the run's apply_model, else "
                    "the first model choosing its spectral cut, else the first)")
     p.add_argument("--expressions", nargs="*", default=None, help="only these expressions (default: all trained)")
+    p.add_argument("--format", default="obj", help="comma-separated: obj (one OBJ per expression), gltf (.glb with "
+                   "one morph target per expression), usd (.usdc UsdSkel rig; usda for text); default obj")
+    p.add_argument("--naming", default="source", choices=NAMINGS, help="shape names: the run's (source) or Apple "
+                   "ARKit's for ICT-FaceKit's shapes (arkit; table in docs/rig-quickstart.md)")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -68,6 +92,27 @@ class Applier:
         with np.load(tpl) as z:
             self.template = Template(z["mean_neutral"], z["triangles"])
         self.expressions = list(self.model.expressions or [])
+        self.units = str((run.metrics.get("dataset") or {}).get("units") or "unit")
+        obj = run.run_dir / TEMPLATE_OBJ
+        self.template_obj = obj if obj.exists() else tpl  # runs from before template.obj: the npz
+
+    def check(self, path, tpl: Template) -> slice | None:
+        """None when ``tpl`` (a neutral's topology) is the model's; ``slice(0, n)`` when it is a
+        larger mesh whose first n vertices and first triangles are the model's (the full mesh a
+        region was cut from); else a TopologyError naming both vertex counts and template.obj."""
+        n = self.template.n_vertices
+        m = len(self.template.triangles)
+        if tpl.n_vertices == n:
+            try:
+                check_topology(self.template, tpl, path)
+            except TopologyError as exc:
+                raise TopologyError(f"{exc} (the model's topology with its UVs: {self.template_obj})") from None
+            return None
+        if (tpl.n_vertices > n and len(tpl.triangles) > m
+                and np.array_equal(tpl.triangles[:m], self.template.triangles)):
+            return slice(0, n)
+        raise TopologyError(f"{path}: {tpl.n_vertices} vertices, the model expects {n}: wrap your head to the "
+                            f"model's topology, {self.template_obj} (its polygons and UVs)")
 
     def predict(self, neutrals: list[np.ndarray], expressions: list[str] | None = None, batch: int = 16) -> list[dict]:
         """For each neutral (n, 3) in its own units and place: {expression: (n, 3)} likewise."""
@@ -99,52 +144,120 @@ def _inputs(path: Path) -> list[Path]:
     return [path]
 
 
+def parse_formats(text) -> list[str]:
+    """``obj,gltf,usd`` -> the distinct formats in order (a one-line error for an unknown one)."""
+    items = [f.strip().lower() for f in (text.split(",") if isinstance(text, str) else text) if f.strip()]
+    for f in items:
+        if f not in FORMATS:
+            raise FwkError(f"--format {f}: unknown format (formats: {', '.join(FORMATS)})")
+    if not items:
+        raise FwkError("--format: give at least one of " + ", ".join(FORMATS))
+    out = []
+    for f in items:
+        if FORMATS[f] not in [FORMATS[x] for x in out]:
+            out.append(f)
+    return out
+
+
+def check_out(out: Path) -> None:
+    """Refuse an ``--out`` that cannot be written before any work: a file in the way, a parent
+    that is a file, a folder that cannot be created or written (a probe is created and removed)."""
+    if out.exists() and not out.is_dir():
+        raise FwkError(f"--out {out}: a file is in the way (give a folder)")
+    base = out
+    while not base.exists():
+        if base.parent == base:
+            break
+        base = base.parent
+    if not base.is_dir():
+        raise FwkError(f"--out {out}: {base} is a file, not a folder")
+    try:
+        probe = Path(tempfile.mkdtemp(prefix=".fwk-apply-probe.", dir=base))
+        probe.rmdir()
+    except OSError as exc:
+        raise FwkError(f"--out {out}: cannot write in {base} ({exc.strerror or exc})") from None
+
+
+def _file_mode() -> int:
+    """The mode a new file gets under the process umask (0644 under the usual 022)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str] | None = None,
-          log=print, registry=None) -> list[Path]:
-    """Write the blendshapes of one neutral (``out/<expression>.obj``) or of a folder of neutrals
-    (``out/<stem>/<expression>.obj``); returns the written files."""
+          log=print, registry=None, formats="obj", naming: str = "source") -> list[Path]:
+    """Write the blendshapes of one neutral (``out/<expression>.obj``, ``out/<neutral>.glb``,
+    ``out/<neutral>.usdc`` as ``formats`` asks) or of a folder of neutrals (the same in
+    ``out/<stem>/``); returns the written files."""
     t0 = time.perf_counter()
+    fmts = parse_formats(formats)
+    if naming not in NAMINGS:
+        raise FwkError(f"--naming {naming}: unknown naming (namings: {', '.join(NAMINGS)})")
+    neutral, out = Path(neutral), Path(out)
+    check_out(out)
     app = Applier(run_dir, model, registry)
     t_load = time.perf_counter() - t0
-    neutral, out = Path(neutral), Path(out)
     files = _inputs(neutral)
     meshes = []
     for f in files:  # read and check everything before writing anything
         V, tpl = read_obj(f)
-        check_topology(app.template, tpl, f)
+        region = app.check(f, tpl)
         if not np.all(np.isfinite(V)):
             raise DataError(f"{f}: vertex positions contain NaN or infinite values")
-        meshes.append((f, V, tpl))
+        meshes.append((f, V, tpl, region))
     t1 = time.perf_counter()
-    preds = app.predict([V for _, V, _ in meshes], expressions)
+    preds = app.predict([V if r is None else V[r] for _, V, _, r in meshes], expressions)
     t2 = time.perf_counter()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    written = []
+    for (f, V, _, region), P in zip(meshes, preds):
+        for e in list(P):
+            if not np.all(np.isfinite(P[e])):
+                raise FwkError(f"{f}: the model produced non-finite positions for {e}")
+            if region is not None:  # the full mesh back: the region predicted, the rest unchanged
+                full = V.copy()
+                full[region] = P[e]
+                P[e] = full
     try:
-        for (f, _, tpl), P in zip(meshes, preds):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    except OSError as exc:
+        raise FwkError(f"--out {out}: cannot write there ({exc.strerror or exc})") from None
+    written, mode = [], _file_mode()
+    try:
+        for (f, V, tpl, region), P in zip(meshes, preds):
             sub = tmp if not neutral.is_dir() else tmp / f.stem
-            for e, V in P.items():
-                if not np.all(np.isfinite(V)):
-                    raise FwkError(f"{f}: the model produced non-finite positions for {e}")
-                write_obj(sub / f"{e}.obj", V, tpl)
+            sub.mkdir(parents=True, exist_ok=True)
+            shapes = rename(P, V, naming)
+            for fmt in fmts:
+                if fmt == "obj":
+                    for e, X in shapes.items():
+                        write_obj(sub / f"{e}.obj", X, tpl)
+                elif FORMATS[fmt] == ".glb":
+                    write_glb(sub / f"{f.stem}.glb", V, tpl, shapes, units=app.units, name=f.stem)
+                else:
+                    write_usd(sub / f"{f.stem}{FORMATS[fmt]}", V, tpl, shapes, units=app.units, name=f.stem)
         out.mkdir(parents=True, exist_ok=True)
-        for p in sorted(tmp.rglob("*.obj")):
+        for p in sorted(q for q in tmp.rglob("*") if q.is_file()):
+            os.chmod(p, mode)  # the umask's mode, not the 0600 of a temporary file
             dest = out / p.relative_to(tmp)
             dest.parent.mkdir(parents=True, exist_ok=True)
             os.replace(p, dest)
             written.append(dest)
+    except OSError as exc:
+        raise FwkError(f"--out {out}: writing failed ({exc.strerror or exc})") from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     n = len(meshes)
     log(f"fwk apply: {n} neutral(s) x {len(preds[0]) if preds else 0} expression(s) with model {app.label} -> {out} "
-        f"(loading the run {t_load:.2f} s, predicting {(t2 - t1) / max(n, 1):.2f} s per neutral, "
+        f"({', '.join(fmts)}; loading the run {t_load:.2f} s, predicting {(t2 - t1) / max(n, 1):.2f} s per neutral, "
         f"total {time.perf_counter() - t0:.2f} s)")
     return written
 
 
 def run_apply(args) -> int:
+    """``fwk apply``'s entry (cli.EXTRA_COMMANDS)."""
     quiet = getattr(args, "quiet", False)
     apply(args.run_dir, args.neutral, args.out, getattr(args, "model", None), getattr(args, "expressions", None),
-          log=(lambda *_: None) if quiet else print)
+          log=(lambda *_: None) if quiet else print, formats=getattr(args, "format", "obj"),
+          naming=getattr(args, "naming", "source"))
     return 0

@@ -1,0 +1,51 @@
+"""Rig files: a neutral head and its blendshapes in the formats DCC tools and engines open.
+
+``fwk apply RUN NEUTRAL.obj --out DIR --format obj,gltf,usd [--naming arkit]`` predicts every
+expression of a blendshapes run for a neutral and hands the neutral and the expressions (each a
+full set of positions on the neutral's topology, in its units) to these writers:
+
+* ``gltf.write_glb``: glTF 2.0 binary (pygltflib): the neutral as the base mesh with its UVs and
+  normals, one morph target per expression (POSITION and NORMAL deltas), names in
+  ``mesh.extras.targetNames``; the vertices split at UV seams as glTF needs, the original vertex
+  of each in the ``_VERTEX_INDEX`` attribute; positions in the neutral's units, the node scaled
+  to metres (glTF's unit).
+* ``usd.write_usd``: a UsdSkel rig (usd-core): SkelRoot > Skeleton (one root joint, an
+  Animation with a weight per shape) and Mesh (polygons as in the OBJ, UVs as the ``st``
+  primvar) with one BlendShape per expression (sparse offsets), the stage's metersPerUnit set.
+* ``arkit``: ICT-FaceKit's blendshape names to Apple ARKit's 52 (the table is in
+  docs/rig-quickstart.md).
+
+pygltflib, usd-core and open3d (``fwk view``) are the optional extra ``rig``
+(``pip install 'fwk[rig]'``): each writer imports its library when it runs, and says how to
+install it when it is missing.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import FwkError
+
+
+def missing(package: str, what: str) -> FwkError:
+    """The one-line error for a missing optional dependency of the ``rig`` extra."""
+    return FwkError(f"{what} needs the Python package {package}: pip install 'fwk[rig]' (or pip install {package})")
+
+
+def vertex_normals(V: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(n, 3) unit area-weighted vertex normals (the sum of the incident triangles' cross
+    products, normalised); a vertex with no area gets (0, 0, 1)."""
+    V = np.asarray(V, dtype=np.float64)
+    a, b, c = V[triangles[:, 0]], V[triangles[:, 1]], V[triangles[:, 2]]
+    fn = np.cross(b - a, c - a)
+    N = np.zeros_like(V)
+    for k in range(3):
+        np.add.at(N, triangles[:, k], fn)
+    norm = np.linalg.norm(N, axis=1, keepdims=True)
+    out = np.tile([0.0, 0.0, 1.0], (len(V), 1))
+    ok = norm[:, 0] > 0
+    out[ok] = N[ok] / norm[ok]
+    return out
+
+
+#: metres per unit of the units fwk records (``Template.units``); anything else is taken as 1
+METRES_PER_UNIT = {"m": 1.0, "cm": 0.01, "mm": 0.001}

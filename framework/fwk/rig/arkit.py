@@ -1,0 +1,74 @@
+"""ICT-FaceKit blendshape names to Apple ARKit's 52 ``ARFaceAnchor.BlendShapeLocation`` names.
+
+ICT-FaceKit names its shapes as ARKit does with ``_L``/``_R`` for ``Left``/``Right``, plus a few
+of its own. ``--naming arkit`` renames every shape of ``ICT_TO_ARKIT``; ICT-FaceKit splits two
+of ARKit's symmetric shapes in halves (``browInnerUp_L``/``_R``, ``cheekPuff_L``/``_R``): those
+halves keep their names and ARKit's whole shape is added as their sum (``COMBINED``: blendshape
+deltas add, so the sum is exact). Shapes with no ARKit name (``cheekRaiser_L``/``_R``,
+``PupilDilate_L``/``_R``, any other name) keep theirs. ARKit's ``tongueOut`` has no ICT-FaceKit
+shape. With every ICT-FaceKit expression trained, the rig has 51 of ARKit's 52 names.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import FwkError
+
+#: Apple ARKit's 52 blendshape names (ARFaceAnchor.BlendShapeLocation), in Apple's order
+ARKIT_NAMES = (
+    "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft", "eyeSquintLeft",
+    "eyeWideLeft", "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight", "eyeLookOutRight", "eyeLookUpRight",
+    "eyeSquintRight", "eyeWideRight", "jawForward", "jawLeft", "jawRight", "jawOpen", "mouthClose", "mouthFunnel",
+    "mouthPucker", "mouthLeft", "mouthRight", "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft",
+    "mouthFrownRight", "mouthDimpleLeft", "mouthDimpleRight", "mouthStretchLeft", "mouthStretchRight",
+    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthPressLeft", "mouthPressRight",
+    "mouthLowerDownLeft", "mouthLowerDownRight", "mouthUpperUpLeft", "mouthUpperUpRight", "browDownLeft",
+    "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight", "cheekPuff", "cheekSquintLeft",
+    "cheekSquintRight", "noseSneerLeft", "noseSneerRight", "tongueOut",
+)
+
+#: ICT-FaceKit name -> ARKit name (one to one)
+ICT_TO_ARKIT = {
+    "eyeBlink_L": "eyeBlinkLeft", "eyeLookDown_L": "eyeLookDownLeft", "eyeLookIn_L": "eyeLookInLeft",
+    "eyeLookOut_L": "eyeLookOutLeft", "eyeLookUp_L": "eyeLookUpLeft", "eyeSquint_L": "eyeSquintLeft",
+    "eyeWide_L": "eyeWideLeft", "eyeBlink_R": "eyeBlinkRight", "eyeLookDown_R": "eyeLookDownRight",
+    "eyeLookIn_R": "eyeLookInRight", "eyeLookOut_R": "eyeLookOutRight", "eyeLookUp_R": "eyeLookUpRight",
+    "eyeSquint_R": "eyeSquintRight", "eyeWide_R": "eyeWideRight", "jawForward": "jawForward", "jawLeft": "jawLeft",
+    "jawRight": "jawRight", "jawOpen": "jawOpen", "mouthClose": "mouthClose", "mouthFunnel": "mouthFunnel",
+    "mouthPucker": "mouthPucker", "mouthLeft": "mouthLeft", "mouthRight": "mouthRight",
+    "mouthSmile_L": "mouthSmileLeft", "mouthSmile_R": "mouthSmileRight", "mouthFrown_L": "mouthFrownLeft",
+    "mouthFrown_R": "mouthFrownRight", "mouthDimple_L": "mouthDimpleLeft", "mouthDimple_R": "mouthDimpleRight",
+    "mouthStretch_L": "mouthStretchLeft", "mouthStretch_R": "mouthStretchRight", "mouthRollLower": "mouthRollLower",
+    "mouthRollUpper": "mouthRollUpper", "mouthShrugLower": "mouthShrugLower", "mouthShrugUpper": "mouthShrugUpper",
+    "mouthPress_L": "mouthPressLeft", "mouthPress_R": "mouthPressRight", "mouthLowerDown_L": "mouthLowerDownLeft",
+    "mouthLowerDown_R": "mouthLowerDownRight", "mouthUpperUp_L": "mouthUpperUpLeft",
+    "mouthUpperUp_R": "mouthUpperUpRight", "browDown_L": "browDownLeft", "browDown_R": "browDownRight",
+    "browOuterUp_L": "browOuterUpLeft", "browOuterUp_R": "browOuterUpRight", "cheekSquint_L": "cheekSquintLeft",
+    "cheekSquint_R": "cheekSquintRight", "noseSneer_L": "noseSneerLeft", "noseSneer_R": "noseSneerRight",
+}
+
+#: ARKit's symmetric shapes that ICT-FaceKit splits in halves: ARKit name -> (left, right)
+COMBINED = {"browInnerUp": ("browInnerUp_L", "browInnerUp_R"), "cheekPuff": ("cheekPuff_L", "cheekPuff_R")}
+
+NAMINGS = ("source", "arkit")
+
+
+def rename(shapes: dict[str, np.ndarray], neutral: np.ndarray, naming: str = "source") -> dict[str, np.ndarray]:
+    """The shapes (name -> positions) under ``naming``: ``source`` keeps the names; ``arkit``
+    renames ICT-FaceKit's names to ARKit's and adds ARKit's symmetric shapes whose halves are
+    present (their deltas from ``neutral`` summed). Order: the input's, the added shapes last."""
+    if naming not in NAMINGS:
+        raise FwkError(f"--naming {naming}: unknown naming (namings: {', '.join(NAMINGS)})")
+    if naming == "source":
+        return dict(shapes)
+    out = {}
+    for name, V in shapes.items():
+        new = ICT_TO_ARKIT.get(name, name)
+        if new in out or (new != name and new in shapes):
+            raise FwkError(f"--naming arkit: two shapes would be called {new} ({name} and another); "
+                           "rename one of the run's expressions")
+        out[new] = V
+    for whole, (left, right) in COMBINED.items():
+        if left in shapes and right in shapes and whole not in out:
+            out[whole] = shapes[left] + shapes[right] - neutral
+    return out
