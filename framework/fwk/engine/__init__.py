@@ -6,19 +6,23 @@
   e is a function of (seed, e) and the RNG states are stored in every checkpoint, so a run
   killed after any epoch and resumed ends with the same weights as an uninterrupted run;
 * Adam with per-epoch exponential learning-rate decay (``make_optimizer``);
-* validation and a checkpoint every epoch (``checkpoints/<name>/last.ckpt`` plus the newest ``keep_checkpoints`` epoch files);
-* TensorBoard scalars under ``tb/<name>/``; a progress bar on a terminal unless quiet;
+* validation and a checkpoint every epoch (``checkpoints/<name>/last.ckpt`` plus the newest
+  ``keep_checkpoints`` epoch files, older ones removed when training ends, a resumed one too);
+* TensorBoard scalars under ``tb/<name>/``; a progress bar on a terminal unless quiet, and plain
+  progress lines (epoch, losses, elapsed, time left; at most one every 5 s) elsewhere;
 * the per-epoch train and validation losses and why training ended (``max_epochs`` or the
   optional ``early_stopping`` rule on validation loss, and at which epoch) in
   ``curves/<name>.json``, written every epoch; the reports draw them;
 * torch's thread count shared among the live fwk processes, re-checked every epoch;
 * CUDA when available (``accelerator: auto``); several devices and DDP are settings
-  (``devices``, ``strategy``), not a rewrite;
+  (``devices``, ``strategy``), not a rewrite: ``strategy: ddp`` uses fwk's launcher
+  (``distributed``), whose extra ranks rebuild the run from its recipe and join the training;
 * modules with several optimisers (Deep Spectral Meshes: one Adam per band) use Lightning's
   manual optimisation and return one ``make_optimizer(...)`` per parameter group from
   ``configure_optimizers``; the engine steps their per-epoch schedulers (unless the module did);
-* ``ctx.resume``: continue from ``last.ckpt`` (or the newest readable epoch checkpoint), or load
-  a finished training without repeating it; without it a name's old checkpoints are discarded.
+* ``ctx.resume``: continue from ``last.ckpt`` (or the newest readable epoch checkpoint), saying
+  from which epoch, or load a finished training without repeating it; without it a name's old
+  checkpoints are discarded.
   A name identifies one network within a (scoped) run context.
 
 Modules:
@@ -29,8 +33,9 @@ Modules:
   processes; ``FWK_THREADS`` / ``OMP_NUM_THREADS`` override), no torch at import;
 * ``loading``: ``EpochSampler``, ``make_loader``, ``fit_features`` (a representation fitted, its features);
 * ``trainer``: ``fit``, ``seed_everything``, ``make_optimizer``, ``predict_batches``;
-* ``callbacks``: ``RNGState``, ``ManualSchedulers``, ``ThreadShare``, ``TrainingCurves`` (the
-  Lightning callbacks ``fit`` adds);
+* ``callbacks``: ``RNGState``, ``ManualSchedulers``, ``ThreadShare``, ``TrainingCurves``,
+  ``ProgressLines`` (the Lightning callbacks ``fit`` adds);
+* ``distributed``: DDP with fwk's launcher (ranks started as ``python -m fwk.engine.distributed``);
 * ``modules``: ``LossModule``, ``AutoencoderModule`` (the LightningModules of the built-in models);
 * ``factories``: ``loss_module``, ``autoencoder_module`` (their call forms for plugins);
 * ``variational``: ``kl_divergence``, ``reparameterize``.
@@ -48,7 +53,7 @@ from typing import TYPE_CHECKING
 from .config import EarlyStopping, TrainConfig
 
 if TYPE_CHECKING:  # what the lazy names below are, for type checkers and editors
-    from .callbacks import ManualSchedulers, RNGState, ThreadShare, TrainingCurves
+    from .callbacks import ManualSchedulers, ProgressLines, RNGState, ThreadShare, TrainingCurves
     from .factories import autoencoder_module, loss_module
     from .loading import EpochSampler, fit_features, make_loader
     from .modules import AutoencoderModule, LossModule
@@ -60,6 +65,7 @@ _HOME = {
     "EpochSampler": "loading", "make_loader": "loading", "fit_features": "loading",
     "fit": "trainer", "make_optimizer": "trainer", "seed_everything": "trainer", "predict_batches": "trainer",
     "RNGState": "callbacks", "ManualSchedulers": "callbacks", "ThreadShare": "callbacks", "TrainingCurves": "callbacks",
+    "ProgressLines": "callbacks",
     "LossModule": "modules", "AutoencoderModule": "modules",
     "loss_module": "factories", "autoencoder_module": "factories",
     "kl_divergence": "variational", "reparameterize": "variational",
@@ -67,7 +73,7 @@ _HOME = {
 
 __all__ = ["TrainConfig", "fit", "fit_features", "make_optimizer", "seed_everything", "predict_batches", "make_loader", "EpochSampler",
            "kl_divergence", "reparameterize", "autoencoder_module", "loss_module", "LossModule", "AutoencoderModule",
-           "RNGState", "ManualSchedulers", "ThreadShare", "TrainingCurves", "EarlyStopping"]
+           "RNGState", "ManualSchedulers", "ThreadShare", "TrainingCurves", "ProgressLines", "EarlyStopping"]
 
 
 def __getattr__(name: str):

@@ -1,10 +1,12 @@
-"""The Lightning callbacks ``fit`` adds to every training: exact resume, manual schedulers,
-thread sharing, and the training curves with the optional stopping rule."""
+"""The Lightning callbacks ``fit`` adds to every training: exact resume (and per-rank noise
+under DDP), manual schedulers, thread sharing, the training curves with the optional stopping
+rule, and progress as plain lines where no progress bar is shown."""
 from __future__ import annotations
 
 import json
 import math
 import random
+import sys
 import time
 from pathlib import Path
 
@@ -34,10 +36,31 @@ def _set_rng_state(st: dict) -> None:
         torch.cuda.set_rng_state_all(st["cuda"])
 
 
+def rank_seed(seed: int, epoch: int, rank: int) -> int:
+    """The seed of the sampling noise of ``epoch`` (0-based) on DDP rank ``rank``."""
+    return ((int(seed) * 1_000_003 + int(epoch)) * 10_007 + int(rank)) % (2**63 - 1)
+
+
 class RNGState(pl.Callback):
     """Store the torch, NumPy, Python (and CUDA) RNG states in every checkpoint, under
     ``fwk_rng``, and restore them on resume, so that a resumed run draws what an uninterrupted
-    one would (dropout, sampling noise)."""
+    one would (dropout, sampling noise).
+
+    With several processes (DDP) and a ``seed``, every epoch instead seeds the global RNGs of
+    each rank with ``rank_seed(seed, epoch, rank)``: the ranks draw different noise, and a
+    resumed run the noise an uninterrupted one drew (the checkpoint holds rank 0's state only).
+    """
+
+    def __init__(self, seed: int | None = None):
+        self.seed = seed
+
+    def on_train_epoch_start(self, trainer, module):
+        if self.seed is None or trainer.world_size <= 1:
+            return
+        s = rank_seed(self.seed, trainer.current_epoch, trainer.global_rank)
+        torch.manual_seed(s)
+        np.random.seed(s % (2**32))
+        random.seed(s)
 
     def on_save_checkpoint(self, trainer, module, checkpoint):
         checkpoint["fwk_rng"] = _rng_state()
@@ -145,6 +168,11 @@ class TrainingCurves(pl.Callback):
         for key, value in sorted(trainer.callback_metrics.items()):
             if key.startswith(("train_", "val_")) and (not torch.is_tensor(value) or value.numel() == 1):
                 rec[key] = float(value)
+        if trainer.world_size > 1:  # every rank's epoch means, averaged over the ranks (equal sample counts)
+            keys = [k for k in rec if k != "epoch"]
+            mean = trainer.strategy.reduce(torch.tensor([rec[k] for k in keys], dtype=torch.float64),
+                                           reduce_op="mean")
+            rec.update({k: float(v) for k, v in zip(keys, mean.tolist())})
         rec["seconds"] = round(time.perf_counter() - self._t0, 3) if self._t0 is not None else None
         rec["threads"] = torch.get_num_threads()
         # a resumed epoch replaces whatever a killed run had recorded for it
@@ -159,7 +187,8 @@ class TrainingCurves(pl.Callback):
             if d["stop"]:
                 self.stop = {"epoch": d["epoch"], "reason": d["reason"]}
                 trainer.should_stop = True
-        self.write()
+        if trainer.is_global_zero:
+            self.write()
 
     # the record -------------------------------------------------------------------
     def summary(self) -> dict:
@@ -200,3 +229,82 @@ class TrainingCurves(pl.Callback):
         self.path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(self.path, text.encode())
         return self.path
+
+
+def duration(seconds: float) -> str:
+    """``seconds`` as a person reads it: ``42 s``, ``3 min 05 s``, ``2 h 07 min``."""
+    s = max(0, int(round(seconds)))
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} min"
+
+
+#: the least time between two progress lines
+PROGRESS_EVERY_S = 5.0
+
+
+class ProgressLines(pl.Callback):
+    """Progress as plain lines, for a log file or a pipe (where no progress bar is drawn): the
+    network, the epoch (and batch, within a long epoch), the last epoch's losses, the time
+    elapsed and an estimate of the time left (at the rate of the batches trained so far; early
+    stopping may end sooner), at most one line every ``every_s`` seconds, and always one for
+    the last epoch. Rank 0 only under DDP."""
+
+    def __init__(self, network: str, max_epochs: int, every_s: float = PROGRESS_EVERY_S, out=None, clock=None):
+        self.network, self.max_epochs, self.every_s = network, int(max_epochs), float(every_s)
+        self.out = out
+        self.clock = clock or time.monotonic
+        self._t0 = self._last = None
+        self._first = 0
+
+    def _print(self, text: str) -> None:
+        print(f"[{self.network}] {text}", file=self.out or sys.stdout, flush=True)
+
+    def on_train_start(self, trainer, module):
+        if not trainer.is_global_zero:
+            return
+        self._t0 = self._last = self.clock()
+        self._first = trainer.current_epoch
+        what = f"epochs {self._first + 1}-{self.max_epochs}" if self._first else f"{self.max_epochs} epochs"
+        self._print(f"training {what}, {trainer.num_training_batches} batches each")
+
+    def _done_left(self, trainer, batches_in_epoch: int) -> tuple[float, float | None]:
+        nb = max(1, trainer.num_training_batches if math.isfinite(trainer.num_training_batches) else 1)
+        done = (trainer.current_epoch - self._first) * nb + batches_in_epoch
+        total = (self.max_epochs - self._first) * nb
+        elapsed = self.clock() - self._t0
+        left = elapsed / done * (total - done) if done > 0 else None
+        return elapsed, left
+
+    def _line(self, trainer, where: str, batches_in_epoch: int, losses: str = "", final: bool = False) -> None:
+        elapsed, left = self._done_left(trainer, batches_in_epoch)
+        tail = f", {duration(elapsed)} elapsed"
+        if not final and left is not None:
+            tail += f", about {duration(left)} left"
+        self._print(f"{where}{losses}{tail}")
+        self._last = self.clock()
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        if self._t0 is None or self.clock() - self._last < self.every_s:
+            return
+        nb = trainer.num_training_batches
+        self._line(trainer, f"epoch {trainer.current_epoch + 1}/{self.max_epochs}, batch {batch_idx + 1}/{nb}",
+                   batch_idx + 1)
+
+    def on_train_epoch_end(self, trainer, module):
+        if self._t0 is None:
+            return
+        epoch = trainer.current_epoch + 1
+        last = epoch >= self.max_epochs or trainer.should_stop
+        if not last and self.clock() - self._last < self.every_s:
+            return
+        values = []
+        for key in sorted(trainer.callback_metrics):
+            v = trainer.callback_metrics[key]
+            if key.endswith("_loss") and key.startswith(("train_", "val_")) and (not torch.is_tensor(v) or v.numel() == 1):
+                values.append(f"{key} {float(v):.4g}")
+        nb = trainer.num_training_batches if math.isfinite(trainer.num_training_batches) else 0
+        where = f"epoch {epoch}/{self.max_epochs}" + (" (stopping early)" if trainer.should_stop and epoch < self.max_epochs else "")
+        self._line(trainer, where, int(nb), (", " + ", ".join(values)) if values else "", final=last)

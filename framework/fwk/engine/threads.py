@@ -13,7 +13,12 @@ CPU quota) and the live processes are those registered (this one included). ``fi
 the rule when it starts and again at the start of every epoch, so a training that started
 alone gives up threads when a second one starts, and takes them back when it ends.
 
-An explicit count wins: ``FWK_THREADS=n`` (``fwk --threads n``), else ``OMP_NUM_THREADS``.
+An explicit count wins: ``FWK_THREADS=n`` (``fwk --threads n``); then an allocation an executor
+made for this process, ``FWK_ALLOCATED_CPUS=n`` (a grid member running as a Ray task sets it to
+the CPUs Ray reserved for it; the ranks of a DDP training launched by fwk split it among
+themselves), which replaces the count of live processes: the executor already shares the cores;
+then ``OMP_NUM_THREADS`` (Ray sets it in its workers as well, which is why the allocation comes
+first).
 
 Registrations are small files ``<pid>`` (holding the pid and the process's start time, so a
 reused pid is not mistaken for it) in a per-user folder: ``$FWK_RUNTIME_DIR``, else
@@ -43,6 +48,7 @@ from threadpoolctl import threadpool_limits
 from ..errors import FwkError
 
 ENV_THREADS = "FWK_THREADS"
+ENV_ALLOCATED = "FWK_ALLOCATED_CPUS"
 ENV_RUNTIME_DIR = "FWK_RUNTIME_DIR"
 
 _registered: dict[Path, str] = {}  # registration file -> its content, for this process
@@ -196,13 +202,15 @@ def _explicit(env, key: str, strict: bool) -> int | None:
 
 def thread_budget(env=None, cores: int | None = None, live: int | None = None,
                   directory: Path | None = None) -> tuple[int, str]:
-    """(threads, why): ``FWK_THREADS``, else ``OMP_NUM_THREADS`` (where set), else
-    ``max(1, cores // live)`` with ``live`` the live registered fwk processes, this one counted
-    whether registered or not."""
+    """(threads, why): ``FWK_THREADS``, else ``FWK_ALLOCATED_CPUS`` (an executor's allocation),
+    else ``OMP_NUM_THREADS`` (where set), else ``max(1, cores // live)`` with ``live`` the live
+    registered fwk processes, this one counted whether registered or not."""
     env = os.environ if env is None else env
-    for key, strict in ((ENV_THREADS, True), ("OMP_NUM_THREADS", False)):
+    for key, strict in ((ENV_THREADS, True), (ENV_ALLOCATED, True), ("OMP_NUM_THREADS", False)):
         n = _explicit(env, key, strict)
         if n is not None:
+            if key == ENV_ALLOCATED:
+                return n, f"{n} CPU{'s' if n > 1 else ''} allocated to this process"
             return n, f"{key}={n}"
     cores = cores if cores is not None else available_cores()
     if live is None:

@@ -2,6 +2,7 @@
 prediction."""
 from __future__ import annotations
 
+import contextlib
 import logging
 import random
 import sys
@@ -11,8 +12,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import DataError
+from ..errors import DataError, FwkError
 from .config import TrainConfig
+from .distributed import DistEnv, RankDone, make_job, make_strategy, rank_job, wants_ddp
 from .loading import make_loader
 from .threads import apply_threads, register
 
@@ -53,11 +55,7 @@ def _loadable(path: Path):
 def _resume_point(ckdir: Path):
     """The newest readable checkpoint (a run killed while writing ``last.ckpt`` leaves it
     truncated; the previous epoch's file then serves): (path, checkpoint dict) or (None, None)."""
-    def epoch_of(p):
-        digits = "".join(ch for ch in p.stem if ch.isdigit())
-        return int(digits) if digits else -1
-
-    cands = [ckdir / "last.ckpt"] + sorted(ckdir.glob("epoch*.ckpt"), key=epoch_of, reverse=True)
+    cands = [ckdir / "last.ckpt"] + sorted(ckdir.glob("epoch*.ckpt"), key=_epoch_of, reverse=True)
     for p in cands:
         if p.exists():
             ck = _loadable(p)
@@ -87,6 +85,37 @@ def _epochs_done(ck: dict) -> int:
         return int(ck.get("epoch", -1)) + 1
 
 
+def _epoch_of(p: Path) -> int:
+    digits = "".join(ch for ch in p.stem if ch.isdigit())
+    return int(digits) if digits else -1
+
+
+def prune_checkpoints(ckdir: Path, keep: int) -> list[Path]:
+    """Keep ``last.ckpt`` and the newest ``keep`` epoch files of ``ckdir``; remove the other
+    epoch files (a run resumed from an older epoch file, or killed between writing an epoch's
+    file and removing the previous one, leaves them). Returns the removed files."""
+    files = sorted(Path(ckdir).glob("epoch*.ckpt"), key=_epoch_of, reverse=True)
+    removed = []
+    for p in files[max(1, keep):]:
+        try:
+            p.unlink()
+            removed.append(p)
+        except OSError:
+            pass
+    return removed
+
+
+def _world_size(devices, on_cpu: bool) -> int:
+    """How many processes ``devices`` means (an int, a list of device indices, ``auto`` / -1)."""
+    if isinstance(devices, (list, tuple)):
+        return max(1, len(devices))
+    if isinstance(devices, str) and devices.strip().lstrip("-").isdigit():
+        devices = int(devices)
+    if isinstance(devices, int) and devices > 0:
+        return devices
+    return 1 if on_cpu else max(1, torch.cuda.device_count())
+
+
 def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     """Train ``module`` (a LightningModule) on ``train`` (tensors or a Dataset), validating on
     ``val`` (or None) every epoch; checkpoints under ``ctx.path('checkpoints', name)``.
@@ -114,7 +143,7 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
     from lightning.pytorch.loggers import TensorBoardLogger
 
-    from .callbacks import ManualSchedulers, RNGState, ThreadShare, TrainingCurves
+    from .callbacks import ManualSchedulers, ProgressLines, RNGState, ThreadShare, TrainingCurves
 
     _quiet_lightning()
     config = config or ctx.train
@@ -126,20 +155,36 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     def curves(rule=config.early_stopping, note=None):
         return TrainingCurves(ctx.path("curves", f"{name}.json"), network, config.epochs, rule, note)
 
+    job = rank_job()  # in a DDP rank > 0 process: the one training it joins
+    target = job is not None and Path(job["ckdir"]) == ckdir.resolve()
     ckpt_path = None
-    if ctx.resume:
+    if target:
+        ckpt_path = Path(job["ckpt"]) if job["ckpt"] else None  # rank 0's choice
+    elif ctx.resume:
         ckpt_path, ck = _resume_point(ckdir)
-        if ck is not None and (_epochs_done(ck) >= config.epochs or _stopped_early(ck)):
+        done = _epochs_done(ck) if ck is not None else 0
+        if ck is not None and (done >= config.epochs or _stopped_early(ck)):
+            ctx.log(f"{network}: training finished before ({done} epoch{'s' if done != 1 else ''}); "
+                    f"loaded from {ckpt_path.name}")
             module.on_load_checkpoint(ck)  # a LightningModule hook: no-op unless the module overrides it
             module.load_state_dict(ck["state_dict"])
             if ck.get("fwk_curves"):  # the record, as the finished training left it
                 curves().restore(ck["fwk_curves"]).write()
+            prune_checkpoints(ckdir, config.keep_checkpoints)
             module.eval()
             return module
+        if ck is not None:
+            ctx.log(f"{network}: resuming from {ckpt_path.name}: {done} of {config.epochs} epochs done, "
+                    f"continuing with epoch {done + 1}")
+        else:
+            ctx.log(f"{network}: no checkpoint to resume from; training from epoch 1")
     else:
         for p in list(ckdir.glob("*.ckpt")):
             p.unlink()
         ctx.path("curves", f"{name}.json").unlink(missing_ok=True)
+    if job is not None and not target:
+        raise FwkError(f"train.strategy ddp: this rank would train {network} before the training it joins "
+                       f"({job['ckdir']}); the run's finished trainings differ from rank 0's")
     register()  # this process counts among those that share the cores (fwk.engine.threads)
     n, why, changed = apply_threads()
     if changed:
@@ -159,24 +204,35 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     if accelerator == "auto" and ctx.device == "cpu":
         accelerator = "cpu"
     on_cpu = accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
+    strategy, world, dist_env = config.strategy, 1, contextlib.nullcontext()
+    if wants_ddp(config):
+        world = _world_size(config.devices, on_cpu)
+        strategy = make_strategy(job if job is not None else make_job(ctx, ckdir, ckpt_path), config.devices, world)
+        if job is None:
+            dist_env = DistEnv(world)
+            ctx.log(f"{network}: DDP on {world} {'CPU processes' if on_cpu else 'devices'}, "
+                    f"{config.batch_size} samples each per step (effective batch {world * config.batch_size})")
     checkpoint = ModelCheckpoint(dirpath=ckdir, filename="epoch{epoch:03d}", auto_insert_metric_name=False,
                                  save_last=True, save_top_k=max(1, config.keep_checkpoints), monitor="epoch",
                                  mode="max", every_n_epochs=1,
                                  # at the end of the epoch, after TrainingCurves' record and decision
                                  save_on_train_epoch_end=True)
     show_bar = not ctx.quiet and sys.stderr.isatty()
+    callbacks = [checkpoint, LearningRateMonitor("epoch"), RNGState(ctx.seed), ManualSchedulers(),
+                 ThreadShare(ctx.log), recorder]
+    if not ctx.quiet and not show_bar:  # a log file, a pipe: plain lines, a few seconds apart
+        callbacks.append(ProgressLines(network, config.epochs))
     det = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), dist_env:
             _quiet_lightning()
             trainer = pl.Trainer(
                 max_epochs=config.epochs, accelerator=accelerator, devices=config.devices,
-                strategy=config.strategy, precision=config.precision,
+                strategy=strategy, precision=config.precision,
                 # bit-exact on CPU; on GPUs some scatter kernels have no deterministic variant
                 deterministic=True if on_cpu else "warn",
                 logger=TensorBoardLogger(str(tbdir), name="", version=""),
-                callbacks=[checkpoint, LearningRateMonitor("epoch"), RNGState(), ManualSchedulers(),
-                           ThreadShare(ctx.log), recorder],
+                callbacks=callbacks,
                 enable_progress_bar=show_bar, enable_model_summary=False,
                 log_every_n_steps=config.log_every_n_steps, num_sanity_val_steps=0, default_root_dir=str(ckdir),
                 use_distributed_sampler=False,
@@ -185,6 +241,9 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
                         weights_only=False)
     finally:
         torch.use_deterministic_algorithms(det[0], warn_only=det[1])
+    if job is not None:
+        raise RankDone()  # a DDP rank > 0: its part is over; rank 0 writes everything
+    prune_checkpoints(ckdir, config.keep_checkpoints)
     module.eval()
     return module
 

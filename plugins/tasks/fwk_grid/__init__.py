@@ -10,6 +10,14 @@ stopped (``fwk run --resume``). The grid's report has one row per configuration 
 L1, L2, DAME and FMPD on train and test (``columns``), and the L1/DAME and L1/FMPD scatters
 with their Pareto fronts.
 
+``executor`` says where the members run (``fwk_grid.executors``): ``local`` (default: one after
+another in this process) or ``ray`` (Ray tasks declaring ``cpus`` / ``gpus`` each, on a local
+Ray instance or the cluster at ``address``: ``fwk run grid.yaml executor=ray
+executor.address=ray://head:10001``). Either way each member writes its own sub-run, so a grid
+is resumable whichever executor ran it, and its report is the same. A member that fails is
+logged with its error, gets a ``FAILED`` file in its sub-run, and is listed in the report; the
+others go on, and ``fwk run --resume`` reruns only the members without ``metrics.json``.
+
 ``sweep: models.dsm.k`` (a dotted key of the members' recipes, numeric in each) names the value a
 study varies: the report then also plots every metric against it, one line per split (the k
 study of thesis figure 4.11).
@@ -22,26 +30,30 @@ from typing import Annotated
 
 import yaml
 
-from fwk.errors import FwkError, RecipeError
+from fwk.cache import atomic_write_bytes
+from fwk.errors import RecipeError
 from fwk.evaluation import display, markdown_table, standard_scatters, write_report
 from fwk.evaluation.plots import line_plot
 from fwk.hookspecs import hookimpl
 from fwk.recipes import Kind, Spec, deep_merge, load_recipe, resolve
-from fwk.runs import RunContext, run_task
+
+from .executors import FAILED, Executor, member_job, run_local, run_ray
 
 
 class Grid:
     """Run a list of recipes (or configurations of one base recipe) and compare them.
 
     ``columns``: the metrics of the combined table and sweep plots (default: the thesis's L1,
-    L2, DAME and FMPD of tables 3.3-3.5)."""
+    L2, DAME and FMPD of tables 3.3-3.5). ``executor``: ``local``, ``ray``, or a mapping
+    ``{name, address, cpus, gpus, num_cpus, num_gpus}`` (``fwk_grid.executors.Executor``)."""
 
     name = "grid"
 
     def __init__(self, recipes: list[str] | None = None, base: str | None = None,
                  configs: dict[str, dict] | None = None, splits: list[str] | None = None,
                  sweep: str | None = None,
-                 columns: Annotated[list[Spec], Kind("metric")] = ("l1", "l2", "dame", "fmpd")):
+                 columns: Annotated[list[Spec], Kind("metric")] = ("l1", "l2", "dame", "fmpd"),
+                 executor: str | dict | None = "local"):
         if not recipes and not configs:
             raise RecipeError("recipes: a grid needs `recipes` or `base` with `configs`")
         if configs and not base:
@@ -51,6 +63,7 @@ class Grid:
         self.sweep = sweep
         # a recipe's columns arrive as Specs, the default as names
         self.columns = [c.name if isinstance(c, Spec) else c for c in columns]
+        self.executor = Executor.from_recipe(executor)
 
     def sweep_values(self, members: dict[str, dict]) -> dict[str, float]:
         """The value of ``sweep`` in each member's recipe (a RecipeError naming the member if absent)."""
@@ -91,25 +104,35 @@ class Grid:
                 resolved[name] = resolve(data, ctx.registry)
             except RecipeError as exc:
                 raise RecipeError(f"grid member {name}: {exc}") from None
-        for i, (name, r) in enumerate(resolved.items()):
+        jobs = []
+        for name, r in resolved.items():
             sub = ctx.run_dir / name
             if (sub / "metrics.json").exists():
-                ctx.log(f"[{i + 1}/{len(resolved)}] {name}: finished before, not run again")
+                ctx.log(f"{name}: finished before, not run again")
                 continue
-            ctx.log(f"[{i + 1}/{len(resolved)}] {name}")
             sub.mkdir(parents=True, exist_ok=True)
             plain = {k: v for k, v in r.data.items() if k != "_source"}
-            (sub / "recipe.yaml").write_text(yaml.safe_dump(plain, sort_keys=False))
-            child = RunContext(sub, ctx.registry, ctx.cache, r.seed, recipe=r.data, train=r.train, device=ctx.device,
-                               quiet=ctx.quiet, resume=True, log_file=ctx.log_file)
-            child.source = r.source
-            run_task(r, child)
+            atomic_write_bytes(sub / "recipe.yaml", yaml.safe_dump(plain, sort_keys=False).encode())
+            jobs.append(member_job(name, sub, r, ctx))
+        if jobs and self.executor.name == "ray":
+            outcomes = run_ray(jobs, self.executor, ctx.log)
+        elif jobs:
+            outcomes = run_local(jobs, ctx.log, ctx.registry)
+        else:
+            outcomes = {}
+        failed = {n: o["error"] for n, o in outcomes.items() if not o["ok"]}
+        for name in resolved:  # a member that failed without a word (a killed worker) is failed too
+            if name not in failed and not (ctx.run_dir / name / "metrics.json").exists():
+                failed[name] = "wrote no metrics.json" + (
+                    " (on Ray across machines the runs folder must be shared: docs/scaling.md)"
+                    if self.executor.name == "ray" and self.executor.address else "")
         results = {"models": {}, "members": list(resolved)}
+        if failed:
+            results["failed"] = failed
         for name in resolved:
-            p = ctx.run_dir / name / "metrics.json"
-            if not p.exists():
-                raise FwkError(f"grid member {name} wrote no metrics.json")
-            m = json.loads(p.read_text())
+            if name in failed:
+                continue
+            m = json.loads((ctx.run_dir / name / "metrics.json").read_text())
             for label, per in m.get("models", {}).items():
                 key = name if len(m["models"]) == 1 else f"{name}/{label}"
                 results["models"][key] = per
@@ -118,12 +141,21 @@ class Grid:
         cols = ["configuration"] + [f"{m}{shown[m].suffix} {s}" for s in self.splits for m in self.columns]
         rows = [[key] + [shown[m].format(per.get(s, {}).get(m, {}).get("mean")) for s in self.splits for m in self.columns]
                 for key, per in results["models"].items()]
-        figures = standard_scatters(ctx, results, "test", registry=ctx.registry)
+        figures = standard_scatters(ctx, results, "test", registry=ctx.registry) if results["models"] else {}
         if xs:
             f = self._sweep_figures(ctx, results, xs)
             figures.update(f)
+        sections = [("All configurations", markdown_table(rows, cols))]
+        if failed:
+            sections.append(("Failed members", markdown_table(
+                [[n, e.replace("|", "/")] for n, e in failed.items()], ["member", "error"])
+                + f"\n\nEach failed member's sub-run holds a `{FAILED}` file with the error; "
+                  "`fwk run --resume` reruns only the members without `metrics.json`."))
         write_report(ctx, f"Grid: {ctx.recipe.get('name', self.name)} ({len(rows)} configurations)", results, figures,
-                     sections=[("All configurations", markdown_table(rows, cols))], registry=ctx.registry)
+                     sections=sections, registry=ctx.registry)
+        if failed:
+            ctx.log(f"grid: {len(failed)} of {len(resolved)} members failed ({', '.join(failed)}); "
+                    f"fwk run --resume {ctx.run_dir} reruns them")
 
     def _sweep_figures(self, ctx, results: dict, xs: dict[str, float]) -> dict:
         """Each metric against the swept value, one line per split and model (figure 4.11)."""
