@@ -267,8 +267,12 @@ class ProgressLines(pl.Callback):
             return
         self._t0 = self._last = self.clock()
         self._first = trainer.current_epoch
-        what = f"epochs {self._first + 1}-{self.max_epochs}" if self._first else f"{self.max_epochs} epochs"
-        self._print(f"training {what}, {trainer.num_training_batches} batches each")
+        if self._first:
+            what = f"epochs {self._first + 1}-{self.max_epochs}"
+        else:
+            what = f"{self.max_epochs} epoch{'s' if self.max_epochs != 1 else ''}"
+        nb = trainer.num_training_batches
+        self._print(f"training {what}, {nb} batch{'es' if nb != 1 else ''} each")
 
     def _done_left(self, trainer, batches_in_epoch: int) -> tuple[float, float | None]:
         nb = max(1, trainer.num_training_batches if math.isfinite(trainer.num_training_batches) else 1)
