@@ -87,7 +87,7 @@ def combine(runs: list[Path], out: Path, mix: bool = False) -> Path:
     Runs of different tasks or data are refused unless ``mix``."""
     diff = differences(runs)
     if diff and not mix:
-        raise FwkError("fwk report: these runs do not compare (" + " | ".join(diff) + "); "
+        raise FwkError("these runs do not compare (" + " | ".join(diff) + "); "
                        "give --mix to put them in one table anyway")
     merged = {"models": {}, "runs": {}}
     groups = {}
