@@ -37,7 +37,8 @@ Expressions, personalised (never one displacement added to every neutral):
 * ``oo-brow-raise-eyes-wide``: lips puckered and pushed forward into an "o", brows and
   forehead raised with forehead wrinkles (deeper with age), upper lids raised.
 
-Each expression has a per-subject gain (log-normal, sd 0.25) and identity-dependent amplitudes
+Each expression has a per-subject gain (log-normal, ``gain_sd`` 0.25 by default: how strongly the
+subject performed it, which nothing in the neutral tells) and identity-dependent amplitudes
 (jaw, lips, cheekbones) and acts on the subject's own geometry, so the displacement differs
 across subjects beyond a global scale. Generation is vectorised over subjects (200 x 4 shapes
 at 6k vertices take a few seconds) and cached by content hash.
@@ -253,7 +254,7 @@ class SyntheticHeads:
     name = "synthetic-heads"
 
     def __init__(self, n_subjects: int = 200, n_vertices: int = 6000, shapes: list[str] | None = None,
-                 seed: int = 0, wrinkles: float = 1.0, units: str = "cm"):
+                 seed: int = 0, wrinkles: float = 1.0, units: str = "cm", gain_sd: float = 0.25):
         if n_subjects < 1:
             raise RecipeError(f"dataset.n_subjects: at least 1, got {n_subjects}")
         if n_vertices < 200 or n_vertices > 200_000:
@@ -266,11 +267,13 @@ class SyntheticHeads:
         if "neutral" not in shapes:
             shapes = ["neutral", *shapes]
         self.n_subjects, self.n_vertices, self.shapes = n_subjects, n_vertices, shapes
-        self.seed, self.wrinkles, self.units = seed, wrinkles, units
+        if not (isinstance(gain_sd, (int, float)) and not isinstance(gain_sd, bool) and gain_sd >= 0):
+            raise RecipeError(f"dataset.gain_sd: a number >= 0, got {gain_sd!r}")
+        self.seed, self.wrinkles, self.units, self.gain_sd = seed, wrinkles, units, float(gain_sd)
 
     # ------------------------------------------------------------------ public
     def load(self, cache=None) -> MeshCollection:
-        key = (self.n_subjects, self.n_vertices, tuple(self.shapes), self.seed, self.wrinkles, VERSION)
+        key = (self.n_subjects, self.n_vertices, tuple(self.shapes), self.seed, self.wrinkles, self.gain_sd, VERSION)
         if cache is not None:
             positions = cache.memmap_array(self.name, key, self._generate)
         else:
@@ -311,7 +314,8 @@ class SyntheticHeads:
         extra = {
             "phases": rng.uniform(0, 2 * PI, (S, 8)),
             "relief_k": rng.normal(0, 1, (S, 6, 3)),
-            "gain": {e: np.exp(0.25 * rng.standard_normal(S)) for e in EXPRESSIONS},
+            # the same draws whatever gain_sd, so that gain_sd changes only the gains
+            "gain": {e: np.exp(self.gain_sd * rng.standard_normal(S)) for e in EXPRESSIONS},
         }
         return p, extra
 
