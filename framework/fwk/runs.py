@@ -431,6 +431,8 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             ctx.write_json("versions.json", versions(registry))
         ctx.log(f"fwk run {resolved.name}: task {resolved.task.name}, run directory {run_dir}")
         if resume:
+            for tmp in run_dir.rglob(".*.tmp"):  # writes a killed process cut short (this one holds the lock)
+                tmp.unlink()
             failed = run_dir / FAILED
             if failed.exists():
                 why = (failed.read_text(errors="replace").splitlines() or ["?"])[0]
