@@ -5,7 +5,9 @@ Every entry (a pickled value, or a large ``.npy`` array that is memory-mapped) i
 atomically (temporary file + rename, with the process umask's file mode) with the SHA-256 of
 its bytes beside it (``<key>.sha256``). Every read checks the bytes against that hash: an entry
 that does not verify (changed, truncated, half-written by a killed process) or cannot be parsed
-is never used: it is rebuilt, with one warning line on stderr. Location: ``Cache(root)``, else
+is never used: it is rebuilt, with one warning line on stderr (an entry without its hash, a
+write cut short, is a plain miss). Temporary files that killed writers left are removed (after
+``STALE_S``) when the folder is next written. Location: ``Cache(root)``, else
 ``$FWK_CACHE``, else ``~/.cache/fwk``.
 
 ``memo(namespace, key, build)`` is the in-process counterpart (nothing written): values derived
@@ -23,6 +25,7 @@ import re
 import sys
 import tempfile
 import threading
+import time
 from pathlib import Path
 from typing import Any, Callable, Protocol, runtime_checkable
 
@@ -200,6 +203,7 @@ class Cache:
             return
         data = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
         data_p, sum_p = self._paths(namespace, key)
+        _sweep(data_p.parent)
         try:
             _remove(sum_p)  # never a new value beside an old hash, should the next write be cut short
             atomic_write_bytes(data_p, data)
@@ -236,6 +240,7 @@ class Cache:
         buf = io.BytesIO()
         np.save(buf, arr)
         data = buf.getvalue()
+        _sweep(p.parent)
         try:
             _remove(sum_p)
             atomic_write_bytes(p, data)
@@ -243,6 +248,22 @@ class Cache:
             return np.load(p, mmap_mode="r")
         except OSError:
             return arr
+
+
+#: a temporary file older than this in a cache folder was left by a write a killed process cut short
+STALE_S = 3600.0
+
+
+def _sweep(folder: Path) -> None:
+    """Remove the temporary files writes cut short left in ``folder`` (older than ``STALE_S``: a
+    write under way in another process is seconds old)."""
+    try:
+        old = time.time() - STALE_S
+        for p in folder.glob(".*.tmp"):
+            if p.stat().st_mtime < old:
+                p.unlink()
+    except OSError:
+        pass
 
 
 def _remove(path: Path) -> None:

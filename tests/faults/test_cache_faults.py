@@ -132,3 +132,22 @@ def test_killed_between_entry_and_hash(tmp_path, env, baseline):
     assert_complete(d)
     assert models(d) == baseline()
     assert npy.with_suffix(".sha256").exists()
+
+
+def test_temporary_files_of_killed_writes_are_swept(tmp_path):
+    """A write killed between its temporary file and the rename leaves ``.<name>.XXXX.tmp``; the
+    next write into that folder removes it once it is stale (a fresh one may be a live writer's)."""
+    import os
+    import time
+
+    from fwk.cache import STALE_S
+
+    c = Cache(tmp_path)
+    c.get_or_build("ns", ("a",), lambda: 1)
+    stale, fresh = tmp_path / "ns" / ".x.bin.abc.tmp", tmp_path / "ns" / ".y.bin.def.tmp"
+    for p in (stale, fresh):
+        p.write_bytes(b"half")
+    old = time.time() - STALE_S - 10
+    os.utime(stale, (old, old))
+    c.get_or_build("ns", ("b",), lambda: 2)
+    assert not stale.exists() and fresh.exists()

@@ -1,14 +1,17 @@
 """``fwk eval A B``: metrics between two meshes, or two folders of meshes matched by relative path."""
 from __future__ import annotations
 
+import io
 import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from ..cache import atomic_write_bytes
 from ..data.io import read_mesh
 from ..errors import DataError, TopologyError
+from ..paths import check_dir
 from ..plugins import get_registry
 from .core import evaluate, summarise
 from .presentation import default_metrics
@@ -77,15 +80,17 @@ def compare_paths(a, b, metrics: list[str] | None = None, maps_dir=None, registr
            for m in ms}
     if maps_dir is not None:
         d = Path(maps_dir)
-        d.mkdir(parents=True, exist_ok=True)
         for i, (pa, _) in enumerate(pairs):
             name = str(pa.relative_to(a) if Path(a).is_dir() else pa.name).replace("/", "__")
-            np.savez(d / f"{name}.npz", **{m.name: res[m.name]["maps"][i] for m in ms})
+            buf = io.BytesIO()
+            np.savez(buf, **{m.name: res[m.name]["maps"][i] for m in ms})
+            atomic_write_bytes(d / f"{name}.npz", buf.getvalue())
     return {"metrics": out, "units": {m.name: m.units for m in ms}, "pairs": len(pairs),
             "unmatched": [str(p) for p in lonely]}
 
 
 def add_eval_parser(sub):
+    """The ``fwk eval`` subcommand's parser."""
     p = sub.add_parser("eval", help="metrics between two meshes or two folders (matched by relative path)")
     p.add_argument("a", help="predicted mesh or folder")
     p.add_argument("b", help="reference (ground-truth) mesh or folder")
@@ -96,6 +101,9 @@ def add_eval_parser(sub):
 
 
 def run_eval(args) -> int:
+    """``fwk eval``: print the metrics' table (or JSON); ``--maps`` checked before any work."""
+    if args.maps:
+        check_dir(args.maps, "--maps")
     r = compare_paths(args.a, args.b, args.metrics, args.maps)
     if r["unmatched"]:
         more = f" and {len(r['unmatched']) - 3} more" if len(r["unmatched"]) > 3 else ""

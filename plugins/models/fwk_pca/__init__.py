@@ -82,9 +82,14 @@ class PCA:
             return int(len(self.components))
         return DEFAULT_COMPONENTS if self.n_components is None else self.n_components
 
-    def check_data(self, n_train: int) -> int:
-        """The number of components to compute from ``n_train`` training shapes; a RecipeError
-        when ``n_components`` asks for more than the m - 1 they carry."""
+    def check_data(self, data) -> None:
+        """Raise a RecipeError (before any fitting) when ``n_components`` asks for more
+        components than the training shapes of ``data`` (a ``FitData``) carry: m - 1."""
+        self._components_for(len(data.stack("train")))
+
+    def _components_for(self, n_train: int) -> int:
+        """The number of components to compute from ``n_train`` training shapes (see
+        ``check_data``)."""
         most = max(n_train - 1, 0)
         if self.n_components is None:
             return min(DEFAULT_COMPONENTS, most)
@@ -99,7 +104,7 @@ class PCA:
         P = data.stack("train")
         if len(P) == 0:
             raise DataError("pca: the training split holds no shapes")
-        n_wanted = self.check_data(len(P))
+        n_wanted = self._components_for(len(P))
         self.rep = self._make_rep(ctx)
         self.rep.fit(P, None, data.template)
         F = self.rep.encode(P).astype(np.float64).reshape(len(P), -1)
