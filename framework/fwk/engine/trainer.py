@@ -241,8 +241,10 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
                         weights_only=False)
     finally:
         torch.use_deterministic_algorithms(det[0], warn_only=det[1])
-    if job is not None:
-        raise RankDone()  # a DDP rank > 0: its part is over; rank 0 writes everything
+    if job is not None:  # a DDP rank > 0: its part is over; rank 0 writes everything
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+        raise RankDone()
     prune_checkpoints(ckdir, config.keep_checkpoints)
     module.eval()
     return module
