@@ -100,6 +100,28 @@ def test_explicit_counts_win():
             thread_budget({"FWK_THREADS": bad}, cores=8, live=1)
 
 
+def test_an_executors_allocation_replaces_the_count_of_live_processes():
+    """A Ray member (FWK_ALLOCATED_CPUS) computes with its allocation, whatever else runs and
+    whatever OMP_NUM_THREADS Ray set; an explicit FWK_THREADS still wins."""
+    alloc = {"FWK_ALLOCATED_CPUS": "3", "OMP_NUM_THREADS": "1"}
+    assert thread_budget(alloc, cores=8, live=4) == (3, "3 CPUs allocated to this process")
+    assert thread_budget({"FWK_ALLOCATED_CPUS": "1"}, cores=8, live=1) == (1, "1 CPU allocated to this process")
+    assert thread_budget({**alloc, "FWK_THREADS": "2"}, cores=8, live=4) == (2, "FWK_THREADS=2")
+    with pytest.raises(FwkError, match="FWK_ALLOCATED_CPUS"):
+        thread_budget({"FWK_ALLOCATED_CPUS": "0"}, cores=8, live=1)
+
+
+def test_a_ddp_training_splits_the_allocation_among_its_ranks(monkeypatch):
+    from fwk.engine.distributed import DistEnv
+
+    monkeypatch.setenv("FWK_ALLOCATED_CPUS", "4")
+    monkeypatch.delenv("MASTER_PORT", raising=False)
+    with DistEnv(2):
+        assert os.environ["FWK_ALLOCATED_CPUS"] == "2"
+        os.environ["MASTER_PORT"] = "12345"  # what the launcher sets
+    assert os.environ["FWK_ALLOCATED_CPUS"] == "4" and "MASTER_PORT" not in os.environ
+
+
 def test_runtime_dir(monkeypatch, tmp_path):
     monkeypatch.delenv("FWK_RUNTIME_DIR", raising=False)
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))

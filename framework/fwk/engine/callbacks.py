@@ -291,9 +291,9 @@ class ProgressLines(pl.Callback):
         self._last = self.clock()
 
     def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
-        if self._t0 is None or self.clock() - self._last < self.every_s:
-            return
         nb = trainer.num_training_batches
+        if self._t0 is None or self.clock() - self._last < self.every_s or batch_idx + 1 >= nb:
+            return  # (an epoch's last batch: the epoch's end decides, with the losses)
         self._line(trainer, f"epoch {trainer.current_epoch + 1}/{self.max_epochs}, batch {batch_idx + 1}/{nb}",
                    batch_idx + 1)
 
