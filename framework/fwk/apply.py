@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from .data import Template
-from .data.io import check_topology, read_obj, write_obj
+from .data.io import check_topology, obj_text, read_obj
 from .errors import DataError, FwkError, TopologyError
 from .lifecycle import choose_model, open_run
 from .protocols import BlendshapeModel, CutSelectingModel
@@ -144,6 +144,34 @@ def _inputs(path: Path) -> list[Path]:
     return [path]
 
 
+class ObjWriter:
+    """OBJ text of many shapes on one topology: ``fwk.data.io.obj_text``'s lines around the ``v``
+    block (polygons, ``vt`` and material lines) formatted once, the ``v`` lines per shape in the
+    same format (``%.9g``); byte-identical to ``obj_text`` (tested), 20-50x faster for a rig."""
+
+    def __init__(self, template: Template):
+        self.template = template
+        n = template.n_vertices
+        lines = obj_text(np.zeros((n, 3)), template).split("\n")
+        first = next((i for i, ln in enumerate(lines) if ln.startswith("v ")), len(lines))
+        self.head = "".join(ln + "\n" for ln in lines[:first])
+        self.tail = "\n".join(lines[first + n:])
+
+    def text(self, V: np.ndarray) -> str:
+        """The OBJ text of positions V (n, 3)."""
+        V = np.asarray(V, dtype=np.float64)
+        if V.shape != (self.template.n_vertices, 3):
+            raise ValueError(f"ObjWriter: positions of shape {V.shape}, template has {self.template.n_vertices} vertices")
+        body = ("v %.9g %.9g %.9g\n" * len(V)) % tuple(V.ravel().tolist())  # one C-level format call
+        return self.head + body + self.tail
+
+    def write(self, path: Path, V: np.ndarray) -> Path:
+        """Write the OBJ of V to ``path`` (inside apply's temporary folder: moved into place later)."""
+        with open(path, "w") as f:
+            f.write(self.text(V))
+        return path
+
+
 def parse_formats(text) -> list[str]:
     """``obj,gltf,usd`` -> the distinct formats in order (a one-line error for an unknown one)."""
     items = [f.strip().lower() for f in (text.split(",") if isinstance(text, str) else text) if f.strip()]
@@ -230,8 +258,9 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
             shapes = rename(P, V, naming)
             for fmt in fmts:
                 if fmt == "obj":
+                    writer = ObjWriter(tpl)
                     for e, X in shapes.items():
-                        write_obj(sub / f"{e}.obj", X, tpl)
+                        writer.write(sub / f"{e}.obj", X)
                 elif FORMATS[fmt] == ".glb":
                     write_glb(sub / f"{f.stem}.glb", V, tpl, shapes, units=app.units, name=f.stem)
                 else:
@@ -247,10 +276,10 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
         raise FwkError(f"--out {out}: writing failed ({exc.strerror or exc})") from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    n = len(meshes)
+    n, t3 = len(meshes), time.perf_counter()
     log(f"fwk apply: {n} neutral(s) x {len(preds[0]) if preds else 0} expression(s) with model {app.label} -> {out} "
-        f"({', '.join(fmts)}; loading the run {t_load:.2f} s, predicting {(t2 - t1) / max(n, 1):.2f} s per neutral, "
-        f"total {time.perf_counter() - t0:.2f} s)")
+        f"({', '.join(fmts)}; loading the run {t_load:.2f} s; per neutral: reading {(t1 - t0 - t_load) / max(n, 1):.2f} s, "
+        f"predicting {(t2 - t1) / max(n, 1):.2f} s, writing {(t3 - t2) / max(n, 1):.2f} s; total {t3 - t0:.2f} s)")
     return written
 
 

@@ -155,3 +155,48 @@ def test_two_step_freezes_the_neutral_encoder(tmp_path):
     m.fit(data, make_test_context(tmp_path, epochs=1, batch_size=4))
     assert all(not p.requires_grad for p in m.nets["b0"].enc.parameters())
     assert any(p.requires_grad for p in m.nets["b0"].dec.parameters())
+
+
+def _data3(n_subjects=8, n_vertices=250):
+    """Like _data with all three synthetic expressions."""
+    from fwk.plugins import get_registry
+
+    shapes = ["neutral", "face-compression", "mouth-wide", "oo-brow-raise-eyes-wide"]
+    col = get_registry().get("dataset", "synthetic-heads")(n_subjects=n_subjects, n_vertices=n_vertices,
+                                                            shapes=shapes).load(None)
+    tr = n_subjects - 3
+    pre = Preprocessor().fit(np.asarray(col.positions[:tr, 0]), np.asarray(col.positions[:tr]))
+    X, _ = pre.transform(np.asarray(col.positions), np.asarray(col.positions[:, 0]))
+    col.positions = X
+    return FitData(col.template.with_vertices(pre.mean_neutral), col.select(np.arange(tr)),
+                   col.select(np.arange(tr, n_subjects)), shapes)
+
+
+def test_conditional_predict_all_batched_equals_one_expression_at_a_time(tmp_path):
+    """A conditional model's predict_all decodes every expression in one batch (fwk apply's
+    speed); it equals predict one expression at a time (the reference) to float32 rounding, for
+    PBS (both branches, dr placed, assembled at each k) and for a dr PB with a target."""
+    from fwk_pb import PB, PBS
+
+    data = _data3()
+    exprs = ["face-compression", "mouth-wide", "oo-brow-raise-eyes-wide"]
+    N = np.asarray(data.val.positions[:, 0])
+    G = {e: np.asarray(data.val.positions[:, j]) for j, e in enumerate(exprs, start=1)}
+    for cls, kw in [(PBS, {"conditional": True, "k": {"face-compression": 0, "mouth-wide": 30}}),
+                    (PB, {"conditional": True, "representation": "dr"})]:
+        m = cls(network=NET, **kw)
+        m.fit(data, make_test_context(tmp_path / cls.name, epochs=1, batch_size=4))
+        target = G if cls is PB else None
+        batched = m.predict_all(N, exprs, target)
+        assert list(batched) == exprs
+        for e in exprs:
+            one = m.predict(N, e, G[e] if cls is PB else None)
+            assert batched[e].shape == N.shape
+            assert np.abs(batched[e] - one).max() < 1e-5, (cls.name, e)
+        # the expressions differ from each other (the condition reached the decoder)
+        assert not np.allclose(batched["mouth-wide"], batched["face-compression"], atol=1e-4)
+        # decoder batches smaller than the expressions: the same values
+        F1 = m.branch_features_many(N, exprs, 0, batch=1)
+        F64 = m.branch_features_many(N, exprs, 0)
+        for e in exprs:
+            assert np.allclose(F1[e], F64[e], atol=1e-5)

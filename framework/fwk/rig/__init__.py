@@ -22,6 +22,7 @@ install it when it is missing.
 from __future__ import annotations
 
 import numpy as np
+from scipy import sparse
 
 from ..errors import FwkError
 
@@ -32,19 +33,22 @@ def missing(package: str, what: str) -> FwkError:
 
 
 def vertex_normals(V: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(n, 3) unit area-weighted vertex normals (the sum of the incident triangles' cross
-    products, normalised); a vertex with no area gets (0, 0, 1)."""
+    """(n, 3) unit area-weighted vertex normals of V (n, 3), or (S, n, 3) of a stack V (S, n, 3):
+    the sum of the incident triangles' cross products, normalised (one sparse product for the
+    stack); a vertex with no area gets (0, 0, 1)."""
     V = np.asarray(V, dtype=np.float64)
-    a, b, c = V[triangles[:, 0]], V[triangles[:, 1]], V[triangles[:, 2]]
-    fn = np.cross(b - a, c - a)
-    N = np.zeros_like(V)
-    for k in range(3):
-        np.add.at(N, triangles[:, k], fn)
-    norm = np.linalg.norm(N, axis=1, keepdims=True)
-    out = np.tile([0.0, 0.0, 1.0], (len(V), 1))
-    ok = norm[:, 0] > 0
+    stack = V if V.ndim == 3 else V[None]
+    S, n = stack.shape[:2]
+    a, b, c = (stack[:, triangles[:, k]] for k in range(3))
+    fn = np.cross(b - a, c - a)  # (S, m, 3)
+    m = len(triangles)
+    inc = sparse.csr_matrix((np.ones(3 * m), (triangles.T.reshape(-1), np.tile(np.arange(m), 3))), shape=(n, m))
+    N = (inc @ fn.transpose(1, 0, 2).reshape(m, 3 * S)).reshape(n, S, 3).transpose(1, 0, 2)
+    norm = np.linalg.norm(N, axis=2, keepdims=True)
+    out = np.broadcast_to(np.array([0.0, 0.0, 1.0]), N.shape).copy()
+    ok = norm[..., 0] > 0
     out[ok] = N[ok] / norm[ok]
-    return out
+    return out if V.ndim == 3 else out[0]
 
 
 #: metres per unit of the units fwk records (``Template.units``); anything else is taken as 1

@@ -81,14 +81,15 @@ def write_glb(path, neutral: np.ndarray, template: Template, shapes: dict[str, n
         attrs.TEXCOORD_0 = add(st.astype(np.float32), g.VEC2, ARRAY_BUFFER)
     attrs._VERTEX_INDEX = add(vert.astype(np.float32), g.SCALAR, ARRAY_BUFFER)
     targets = []
-    for V in shapes.values():
+    shape_normals = vertex_normals(np.stack([np.asarray(V, dtype=np.float64) for V in shapes.values()]),
+                                   template.triangles) if normals and shapes else None
+    for i, V in enumerate(shapes.values()):
         V = np.asarray(V, dtype=np.float64)
         # the delta of the float32 positions: base + delta reads back as V to float32 precision
         d = ((V - centre)[vert].astype(np.float32).astype(np.float64) - p32.astype(np.float64)).astype(np.float32)
         t = {"POSITION": add(d, g.VEC3, ARRAY_BUFFER, True)}
         if normals:
-            t["NORMAL"] = add((vertex_normals(V, template.triangles) - n0)[vert].astype(np.float32), g.VEC3,
-                              ARRAY_BUFFER)
+            t["NORMAL"] = add((shape_normals[i] - n0)[vert].astype(np.float32), g.VEC3, ARRAY_BUFFER)
         targets.append(t)
     idx = tris.reshape(-1).astype(np.uint16 if len(vert) < 65535 else np.uint32)
     indices = add(idx, g.SCALAR, ELEMENT_ARRAY_BUFFER)
