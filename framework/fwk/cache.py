@@ -97,6 +97,12 @@ def file_mode() -> int:
     return 0o666 & ~current_umask()
 
 
+def dir_mode() -> int:
+    """The mode a plain ``mkdir`` would give a new folder: 0o777 less the umask (for a folder
+    made with ``tempfile.mkdtemp``, 0700, before it is renamed into place)."""
+    return 0o777 & ~current_umask()
+
+
 #: write errors that are the user's to fix (space, quota, permissions): one line, not a traceback
 _USER_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM, errno.EROFS}
 

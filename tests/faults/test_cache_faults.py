@@ -151,3 +151,15 @@ def test_temporary_files_of_killed_writes_are_swept(tmp_path):
     os.utime(stale, (old, old))
     c.get_or_build("ns", ("b",), lambda: 2)
     assert not stale.exists() and fresh.exists()
+
+
+def test_modes_follow_the_umask():
+    import os
+
+    from fwk.cache import current_umask, dir_mode, file_mode
+
+    old = os.umask(0o027)
+    try:
+        assert current_umask() == 0o027 and file_mode() == 0o640 and dir_mode() == 0o750
+    finally:
+        os.umask(old)
