@@ -330,6 +330,14 @@ def _worth_keeping(run_dir: Path) -> bool:
     return any(p.is_file() for sub in ("models", "checkpoints") for p in (run_dir / sub).rglob("*"))
 
 
+def _append(exc: FwkError, text: str) -> None:
+    """Add ``text`` to the one line ``exc`` prints (an OSError's through its strerror)."""
+    if isinstance(exc, OSError) and exc.strerror:
+        exc.strerror = f"{exc.strerror}{text}"
+    else:
+        exc.args = (f"{exc}{text}",)
+
+
 def _write_failed(run_dir: Path, exc: BaseException) -> None:
     """``FAILED``: the error in one line, the traceback, the command that resumes (best effort:
     on a full disk there may be no room even for this)."""
@@ -449,7 +457,9 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             raise
         _write_failed(run_dir, exc)
         lock.release()
-        if not isinstance(exc, FwkError) and not quiet:
+        if isinstance(exc, FwkError):  # still one line: what to fix, then where the work so far is
+            _append(exc, f"; the run so far is kept: fwk run --resume {run_dir}")
+        elif not quiet:
             print(f"fwk: the run failed; {run_dir / FAILED} holds the error; "
                   f"continue with: fwk run --resume {run_dir}", file=sys.stderr)
         raise

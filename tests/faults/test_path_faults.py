@@ -126,7 +126,9 @@ def test_full_destination_after_the_model_then_resume(tmp_path, env, capsys, mon
     monkeypatch.setattr(fwk.runs, "atomic_write_bytes", full)
     r = recipe(tmp_path)
     rc, d = fwk_run(r, tmp_path / "runs")
-    assert rc == 2 and "No space left on device" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "No space left on device" in err
+    assert f"the run so far is kept: fwk run --resume {d}" in err
     assert (d / "FAILED").read_text().startswith(f"{d / 'metrics.json'}: cannot write (No space left on device)")
     assert (d / "models" / "pca.pt").exists() and not (d / "metrics.json").exists()
     monkeypatch.setattr(fwk.runs, "atomic_write_bytes", real)
