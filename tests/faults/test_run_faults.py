@@ -146,3 +146,15 @@ def test_resume_of_a_run_another_process_writes_is_refused(tmp_path, env, capsys
         lock.release()
     after = {p: p.read_bytes() for p in d.rglob("*") if p.is_file()}
     assert after == before  # the refused resume wrote nothing
+
+
+def test_run_directories_made_at_once_are_distinct(tmp_path):
+    """Sixteen run directories of one name asked for in the same second, from sixteen threads:
+    sixteen distinct folders (mkdir is the arbiter), none shared."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fwk.runs import new_run_dir
+
+    with ThreadPoolExecutor(16) as pool:
+        made = list(pool.map(lambda _: new_run_dir(tmp_path / "runs", "same"), range(16)))
+    assert len(set(made)) == 16 and sorted(made) == run_dirs(tmp_path / "runs")
