@@ -84,3 +84,21 @@ def test_ply_round_trip(tmp_path):
     write_ply(tmp_path / "a.ply", t.vertices, t)
     V, t2 = read_ply(tmp_path / "a.ply")
     assert np.allclose(V, t.vertices) and np.array_equal(t2.triangles, t.triangles)
+
+
+@pytest.mark.parametrize("edit,expect", [
+    (lambda L: L[:5] + ["v 1 2"] + L[5:], "line 6: a vertex line with 2 numbers"),
+    (lambda L: L[:5] + ["v 1 x 2"] + L[5:], "line 6: 'x' in a vertex line is not a number"),
+    (lambda L: L + ["f 1 2"], "line {n}: a face with fewer than 3 corners"),
+    (lambda L: L + ["f 1 2 99"], "line {n}: a face refers to vertex 99, but the file has 6 vertices"),
+    (lambda L: L + ["vt 0 q"], "line {n}: unreadable texture line 'vt 0 q'"),
+    (lambda L: L + ["f 1 2 z"], "line {n}: unreadable face line 'f 1 2 z'"),
+])
+def test_obj_errors_name_file_and_line(tmp_path, edit, expect):
+    """A broken line is named by file and line number (counted in the file as written)."""
+    lines = edit(OBJ.splitlines())
+    p = tmp_path / "bad.obj"
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError) as e:
+        read_obj(p)
+    assert expect.format(n=len(lines)) in str(e.value) and str(e.value).startswith(f"{p}, line ")
