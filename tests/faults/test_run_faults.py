@@ -122,7 +122,7 @@ def test_two_runs_started_together_into_one_folder(tmp_path, env, baseline):
              for _ in range(2)]
     outs = [p.communicate(timeout=300) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [o[1][-2000:] for o in outs]
-    assert not any("warning" in o[1] for o in outs), [o[1] for o in outs]
+    assert not any("fwk: warning: cache entry" in o[1] for o in outs), [o[1] for o in outs]
     a, b = run_dirs(runs)
     for d in (a, b):
         assert_complete(d)
