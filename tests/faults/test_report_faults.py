@@ -19,7 +19,7 @@ def _run(folder, task, dataset, l1, dame, scale=0.1, units="cm"):
                                                   sort_keys=False))
     res = {"models": {"m": {"test": {"l1": {"mean": l1, "units": "input", "mean_input": l1 / scale, "units_input": units},
                                      "dame": {"mean": dame, "units": "rad", "mean_input": dame, "units_input": "rad"}}}},
-           "dataset": {"name": dataset["name"], "n_vertices": 500, "units": units,
+           "dataset": {"name": dataset if isinstance(dataset, str) else dataset["name"], "n_vertices": 500, "units": units,
                        "subjects": {"train": 17, "val": 2, "test": 5}}}
     write_report(_Dir(folder), folder.name, res)
     return folder
@@ -31,7 +31,7 @@ def test_runs_of_different_tasks_or_datasets_are_refused_unless_mixed(tmp_path, 
     c = _run(tmp_path / "c", "reconstruct", {"name": "synthetic-heads", "n_vertices": 600}, 0.002, 0.04)
     d = _run(tmp_path / "d", "reconstruct", {"name": "synthetic-heads", "n_vertices": 600}, 0.001, 0.05)
     out = tmp_path / "out"
-    for pair, what in (((a, b), "task: a blendshapes; b reconstruct"), ((b, c), "dataset: b {name: synthetic-heads, n_vertices: 500}")):
+    for pair, what in (((a, b), "task: a blendshapes; b reconstruct"), ((b, c), "dataset: b {n_vertices: 500}; c {n_vertices: 600}")):
         capsys.readouterr()
         assert main(["report", *map(str, pair), "--out", str(out)]) == 2
         err = capsys.readouterr().err
@@ -42,6 +42,10 @@ def test_runs_of_different_tasks_or_datasets_are_refused_unless_mixed(tmp_path, 
     assert "mixed with --mix: the runs differ in task: a blendshapes; b reconstruct" in text
     assert main(["report", str(c), str(d), "--out", str(tmp_path / "same")]) == 0  # like with like: no word
     assert "--mix" not in (tmp_path / "same" / "report.md").read_text()
+    # the same data written two ways (a name; a mapping with a default spelled out) compares equal
+    e = _run(tmp_path / "e", "reconstruct", {"name": "synthetic-heads", "n_vertices": 6000, "seed": 0}, 0.1, 0.2)
+    f = _run(tmp_path / "f", "reconstruct", "synthetic-heads", 0.2, 0.1)
+    assert main(["report", str(e), str(f), "--out", str(tmp_path / "ef")]) == 0
 
 
 def test_dataset_line_in_words(tmp_path):

@@ -8,13 +8,18 @@ recipe's ``dataset`` and ``split``), give numbers that do not compare: they are 
 """
 from __future__ import annotations
 
+import dataclasses
+import inspect
 import json
 from pathlib import Path
 
 import yaml
 
 from ..cache import atomic_write_bytes
-from ..errors import FwkError
+from ..data.split import SplitConfig
+from ..errors import FwkError, RecipeError
+from ..plugins import get_registry
+from ..recipes import to_plain
 from ..paths import check_dir
 from ..runs import require_complete, write_json
 from .report import standard_scatters, write_report
@@ -49,20 +54,52 @@ class _Dir:
         return self.path(rel)
 
 
+def _with_defaults(value):
+    """A recipe's ``dataset`` as a mapping with every constructor default filled in, so that
+    ``synthetic-heads`` and ``{name: synthetic-heads, n_vertices: 6000}`` compare equal; as it
+    is when its dataset is not registered (a plugin since removed)."""
+    if isinstance(value, str):
+        value = {"name": value}
+    if not isinstance(value, dict) or not isinstance(value.get("name"), str):
+        return value
+    try:
+        cls = get_registry().get("dataset", value["name"])
+    except FwkError:
+        return value
+    sig = inspect.signature(cls.__init__)  # justified: the constructor is the recipe schema (fwk.hookspecs)
+    defaults = {n: p.default for n, p in sig.parameters.items()
+                if n != "self" and p.default is not p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}
+    return {"name": value["name"], **to_plain(defaults), **{k: v for k, v in value.items() if k != "name"}}
+
+
+def _split(value):
+    """A recipe's ``split`` with its defaults (``fwk.data.split.SplitConfig``) filled in."""
+    if value is None:
+        return to_plain(SplitConfig())
+    if not isinstance(value, dict) or not set(value) <= {f.name for f in dataclasses.fields(SplitConfig)}:
+        return value  # not a split this fwk reads: compared as written
+    try:
+        return to_plain(SplitConfig(**value))
+    except RecipeError:
+        return value
+
+
 def identity(run: Path) -> dict:
     """What must agree for two runs' numbers to compare: the task and the data (the recipe's
-    ``dataset`` and ``split``; without a recipe, metrics.json's dataset name, size and units)."""
+    ``dataset``, its defaults filled in, and ``split``; without a recipe, metrics.json's dataset
+    name, size and units)."""
     recipe = {}
     if (run / "recipe.yaml").exists():
         try:
             recipe = yaml.safe_load((run / "recipe.yaml").read_text()) or {}
         except yaml.YAMLError as exc:
             raise FwkError(f"{run}/recipe.yaml: unreadable ({str(exc).splitlines()[0]})") from None
-    ds = _load(run).get("dataset", {})
-    dataset = recipe.get("dataset")
-    if dataset is None:
-        dataset = {k: ds[k] for k in ("name", "n_vertices", "units") if k in ds} or None
-    return {"task": recipe.get("task"), "dataset": dataset, "split": recipe.get("split")}
+    if not recipe:
+        ds = _load(run).get("dataset", {})
+        return {"task": None, "dataset": {k: ds[k] for k in ("name", "n_vertices", "units") if k in ds} or None,
+                "split": None}
+    return {"task": recipe.get("task"), "dataset": _with_defaults(recipe.get("dataset")),
+            "split": _split(recipe.get("split"))}
 
 
 def _describe(value) -> str:
@@ -72,13 +109,18 @@ def _describe(value) -> str:
 
 
 def differences(runs: list[Path]) -> list[str]:
-    """One line per key (task, dataset, split) on which the runs disagree, naming each run's."""
+    """One line per key (task, dataset, split) on which the runs disagree, naming each run's
+    value (of a mapping, only the entries that differ)."""
     ids = {r: identity(r) for r in runs}
     out = []
     for key in ("task", "dataset", "split"):
         values = [ids[r][key] for r in runs]
         if any(v != values[0] for v in values[1:]):
-            out.append(f"{key}: " + "; ".join(f"{r.name} {_describe(ids[r][key])}" for r in runs))
+            if all(isinstance(v, dict) for v in values):
+                keys = [k for k in dict.fromkeys(k for v in values for k in v)
+                        if any(v.get(k) != values[0].get(k) for v in values)]
+                values = [{k: v.get(k) for k in keys} for v in values]
+            out.append(f"{key}: " + "; ".join(f"{r.name} {_describe(v)}" for r, v in zip(runs, values)))
     return out
 
 
