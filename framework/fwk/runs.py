@@ -326,8 +326,10 @@ def require_complete(run_dir, what: str = "") -> None:
 
 
 def _worth_keeping(run_dir: Path) -> bool:
-    """Whether a run directory holds work a resume would reuse: a trained model or a checkpoint."""
-    return any(p.is_file() for sub in ("models", "checkpoints") for p in (run_dir / sub).rglob("*"))
+    """Whether a run directory holds work a resume would reuse: a trained model or a checkpoint,
+    its own or a sub-run's (``reconstruct/models/`` of edit, a grid's configurations)."""
+    keep = {"models", "checkpoints"}
+    return any(p.is_file() and keep & set(p.relative_to(run_dir).parts[:-1]) for p in run_dir.rglob("*"))
 
 
 def _append(exc: FwkError, text: str) -> None:

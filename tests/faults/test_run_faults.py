@@ -158,3 +158,18 @@ def test_run_directories_made_at_once_are_distinct(tmp_path):
     with ThreadPoolExecutor(16) as pool:
         made = list(pool.map(lambda _: new_run_dir(tmp_path / "runs", "same"), range(16)))
     assert len(set(made)) == 16 and sorted(made) == run_dirs(tmp_path / "runs")
+
+
+def test_work_of_sub_runs_is_worth_keeping(tmp_path):
+    """An fwk error late in a run removes its directory only when nothing in it would be reused:
+    a sub-run's trained model (edit's reconstruct/models/) counts."""
+    from fwk.runs import _worth_keeping
+
+    d = tmp_path / "run"
+    (d / "figures").mkdir(parents=True)
+    (d / "figures" / "a.png").write_bytes(b"x")
+    assert not _worth_keeping(d)
+    (d / "reconstruct" / "models").mkdir(parents=True)
+    assert not _worth_keeping(d)  # an empty folder is no work
+    (d / "reconstruct" / "models" / "vae.pt").write_bytes(b"x")
+    assert _worth_keeping(d)
