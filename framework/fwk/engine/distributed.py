@@ -30,8 +30,10 @@ a scheduler's variables say); several machines share work through a grid on Ray
 """
 from __future__ import annotations
 
+import ctypes
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -78,6 +80,15 @@ def make_job(ctx, ckdir: Path, ckpt: Path | None) -> dict:
             "ckdir": str(Path(ckdir).resolve()), "ckpt": str(ckpt) if ckpt else None,
             "cache": str(Path(ctx.cache.root).resolve()), "cache_enabled": bool(ctx.cache.enabled),
             "device": ctx.device}
+
+
+def _die_with_parent() -> None:
+    """In a rank process before it runs (Linux): be killed when rank 0 dies, however it dies
+    (``kill -9`` included), rather than wait in a collective for the process group's timeout."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass  # not Linux: the observer and Lightning's kill on error remain
 
 
 class _Observer(threading.Thread):
@@ -145,7 +156,8 @@ def make_strategy(job: dict, devices, world: int):
             self.procs = []
             cmd = [sys.executable, "-m", "fwk.engine.distributed", json.dumps(job)]
             for rank in range(1, self.num_processes):
-                self.procs.append(subprocess.Popen(cmd, env={**os.environ, "LOCAL_RANK": str(rank)}))
+                self.procs.append(subprocess.Popen(cmd, env={**os.environ, "LOCAL_RANK": str(rank)},
+                                                   preexec_fn=_die_with_parent))
 
     class FwkDDP(DDPStrategy):
         """DDP on this machine's processes, ranks started by fwk (``fwk.engine.distributed``)."""
