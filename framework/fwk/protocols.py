@@ -156,7 +156,8 @@ class Conv(Protocol):
     convention).
 
     **Strided role** (``strided = True``): the class also accepts ``mode``,
-    ``residual_rate`` and ``activation``: ``mode="down"`` maps level l -> l + 1
+    ``residual_rate`` and ``activation``, supplied by the model (its ``build_args`` are
+    ``CONV_BUILD_ARGS + STRIDED_BUILD_ARGS``, so a recipe cannot set them): ``mode="down"`` maps level l -> l + 1
     ((b, n_l, c_in) -> (b, n_{l+1}, c_out)), ``mode="up"`` maps level l + 1 -> l,
     ``mode="same"`` is the plain convolution; ``activation`` (a ``torch.nn.Module`` or None
     for the identity, supplied by the model, not a recipe key) acts on the conv branch, and
@@ -199,6 +200,9 @@ class FusedPoolingConv(Protocol):
 
 
 CONV_BUILD_ARGS = ("in_channels", "out_channels", "hierarchy", "level")
+#: what a model supplies besides to a conv playing the strided role; with CONV_BUILD_ARGS its
+#: ``build_args``, so that a recipe cannot set them (recipe validation refuses them)
+STRIDED_BUILD_ARGS = ("mode", "residual_rate", "activation")
 
 
 # ----------------------------------------------------------------------------- metrics, assemblers

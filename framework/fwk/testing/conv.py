@@ -22,7 +22,7 @@ import torch
 
 from fwk.plugins import get_registry
 from fwk.graph import sparse_apply, torch_sparse
-from fwk.protocols import CONV_BUILD_ARGS, Conv, FusedPoolingConv, plays
+from fwk.protocols import CONV_BUILD_ARGS, STRIDED_BUILD_ARGS, Conv, FusedPoolingConv, plays
 from fwk.testing.sampler import two_components
 
 
@@ -44,8 +44,9 @@ class ConvContract:
         c = self.component
         assert plays(c, Conv), "a conv class defines name, build_args, strided, forward and reset_parameters"
         assert isinstance(c.name, str) and c.name
-        assert tuple(c.build_args) == CONV_BUILD_ARGS, "the model supplies (in_channels, out_channels, hierarchy, level)"
         assert isinstance(c.strided, bool), "strided: a class attribute, True or False"
+        expect = CONV_BUILD_ARGS + (STRIDED_BUILD_ARGS if c.strided else ())
+        assert tuple(c.build_args) == expect, f"the model supplies {expect}, not the recipe"
         assert (c.__doc__ or "").strip(), "the first docstring line is the `fwk list` summary"
         assert isinstance(self.make(3, 4), torch.nn.Module)
 

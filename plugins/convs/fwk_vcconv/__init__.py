@@ -57,7 +57,7 @@ from torch.nn.utils import skip_init
 from fwk.errors import RecipeError
 from fwk.graph import adjacency, buckets, padded_rows, reach
 from fwk.hookspecs import hookimpl
-from fwk.protocols import CONV_BUILD_ARGS
+from fwk.protocols import CONV_BUILD_ARGS, STRIDED_BUILD_ARGS
 
 MODES = ("same", "down", "up")
 ORDERS = ("auto", "sum", "basis", "kernel")  # evaluation order of the same sum (see the module docstring)
@@ -152,7 +152,7 @@ class VCConv(nn.Module):
     """
 
     name = "vcconv"
-    build_args = CONV_BUILD_ARGS
+    build_args = CONV_BUILD_ARGS + STRIDED_BUILD_ARGS  # the model supplies all of them, not the recipe
     strided = True
 
     def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0, weight_num: int = 35,
