@@ -37,6 +37,9 @@ def test_runs_of_different_tasks_or_datasets_are_refused_unless_mixed(tmp_path, 
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and what in err and "--mix" in err, err
         assert not out.exists()
+    before = (a / "metrics.json").read_bytes()
+    assert main(["report", str(a), str(b), "--out", str(a), "--mix"]) == 2  # into a run: its numbers would go
+    assert "a run directory" in capsys.readouterr().err and (a / "metrics.json").read_bytes() == before
     assert main(["report", str(a), str(b), "--out", str(out), "--mix"]) == 0
     text = (out / "report.md").read_text()
     assert "mixed with --mix: the runs differ in task: a blendshapes; b reconstruct" in text

@@ -170,6 +170,9 @@ def run_report(args) -> int:
         require_complete(r)
     out = Path(args.out) if args.out else (runs[0] if len(runs) == 1 else Path("report-combined"))
     if out != runs[0] or len(runs) > 1:
+        if (out / "recipe.yaml").exists():  # a combined report would replace the run's own numbers
+            raise FwkError(f"--out {out}: a run directory (its metrics.json and report.md would be replaced "
+                           f"by the comparison); give another folder")
         check_dir(out, "--out" if args.out else "the report folder")
     if len(runs) == 1 and not args.out:
         m = _load(runs[0])
