@@ -180,6 +180,9 @@ def run_ray(jobs: list[dict], executor: Executor, log) -> dict[str, dict]:
             kw["address"] = executor.address
         else:
             kw["num_cpus"] = executor.num_cpus or available_cores()
+            # members return a few numbers and write their sub-runs themselves: a small object
+            # store, not Ray's default of 30 % of the memory in shared memory
+            kw["object_store_memory"] = 128 * 2**20
             if executor.num_gpus is not None:
                 kw["num_gpus"] = executor.num_gpus
         try:
