@@ -258,6 +258,8 @@ class RunLock:
                 os.close(fd)
                 raise FwkError(f"{self.run_dir}: another fwk process is writing this run "
                                f"({who[0] if who else 'see RUNNING'}); wait for it to end") from None
+            except OSError:  # a file system without locks (some network mounts): RUNNING still tells
+                pass
             try:
                 same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
             except FileNotFoundError:
@@ -307,6 +309,8 @@ def run_state(run_dir) -> tuple[str, str]:
         except BlockingIOError:
             who = os.read(fd, 4096).decode(errors="replace").splitlines()[:1]
             return "running", who[0] if who else ""
+        except OSError:  # no locks on this file system: live or killed cannot be told apart
+            return "killed", "or still running: this file system has no locks to tell"
         finally:
             os.close(fd)
         return "killed", "the process that wrote it is gone"
