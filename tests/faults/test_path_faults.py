@@ -94,11 +94,13 @@ def test_full_destination_at_the_first_file(tmp_path, env, capsys):
 
 
 def test_full_destination_while_writing_a_model(tmp_path, env, capsys, baseline):
-    """Room for the small files, not for the model: one line, exit 2, no temporary file; the run
-    directory (nothing in it worth resuming) is removed; with room, the same recipe gives the
-    undisturbed numbers."""
+    """Room for the small files, not for the dataset's cache entry nor the model: the cache entry
+    is skipped (the computation goes on, nothing half-written is left to be read), the model's
+    write stops the run with one line, exit 2, no temporary file, and the run directory (nothing
+    in it worth resuming) is removed; with room, the same recipe gives the undisturbed numbers."""
+    import hashlib
+
     r = recipe(tmp_path)
-    fwk_run(r, tmp_path / "warm")  # the dataset's cache entry exists (the limit hits the run only)
     capsys.readouterr()
     with _limited(12_000):
         rc = main(["--quiet", "run", str(r), "--runs-dir", str(tmp_path / "runs")])
@@ -106,6 +108,11 @@ def test_full_destination_while_writing_a_model(tmp_path, env, capsys, baseline)
     assert rc == 2 and "models/pca.pt: cannot write (File too large)" in err and err.count("\n") == 1, err
     assert run_dirs(tmp_path / "runs") == []
     assert_no_temporary_files(tmp_path / "runs")
+    cache = tmp_path / "cache"
+    assert_no_temporary_files(cache)
+    assert not list(cache.rglob("*.npy"))  # the dataset's entry (> 12 kB) could not be written: none is there
+    for entry in cache.rglob("*.bin"):  # and the small entries that could be, verify
+        assert hashlib.sha256(entry.read_bytes()).hexdigest() == entry.with_suffix(".sha256").read_text()
     rc, d = fwk_run(r, tmp_path / "runs")
     assert rc == 0 and models(d) == baseline()
 
