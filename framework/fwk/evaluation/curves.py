@@ -106,7 +106,7 @@ def curves_figures(records: dict, path) -> list[Path]:
     """The validation (solid) and train (dashed) loss per epoch of every network, log scale,
     the best validation epoch ringed; ``NETWORKS_PER_FIGURE`` networks a figure (``path``,
     then ``<stem>-2.png``...)."""
-    from .plots import _plt  # deferred: pyplot costs ~0.5 s of import time
+    from .plots import _plt, save_figure  # deferred: pyplot costs ~0.5 s of import time
 
     plt = _plt()
     path = Path(path)
@@ -135,16 +135,13 @@ def curves_figures(records: dict, path) -> list[Path]:
         if positive:
             ax.set_yscale("log")
         ax.set_xlabel("epoch")
-        ax.set_ylabel("loss (as logged: train_loss, val_loss)")
+        ax.set_ylabel("loss (each network's objective as logged, unitless)")
         ax.set_title("Training curves: validation solid, train dashed, best validation epoch ringed", fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
         fig.tight_layout()
         p = path if k == 0 else path.with_name(f"{path.stem}-{k // NETWORKS_PER_FIGURE + 1}{path.suffix}")
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(p)
-        plt.close(fig)
-        out.append(p)
+        out.append(save_figure(fig, p))
     return out
 
 

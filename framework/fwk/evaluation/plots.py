@@ -37,6 +37,12 @@ def _finish(fig, ax, path, xlabel, ylabel, title):
         ax.set_title(title)
     ax.grid(alpha=0.3)
     fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def save_figure(fig, path) -> Path:
+    """Write ``fig`` to ``path`` (its format from the suffix) atomically, and close it."""
+    plt = _plt()
     path = Path(path)
     buf = io.BytesIO()
     fig.savefig(buf, format=path.suffix.lstrip(".") or "png")
