@@ -21,12 +21,14 @@ per mesh. Cells with scalars and the same ``bar`` title but no ``clim`` share co
 """
 from __future__ import annotations
 
+import io
 import os
 import warnings
 from pathlib import Path
 
 import numpy as np
 
+from ..cache import atomic_write_bytes
 from ..errors import FwkError
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
@@ -203,10 +205,20 @@ def _render_pyvista(cells, template, path, cell_size, cmap, titles, scale) -> Pa
                 pl.enable_parallel_projection()
                 pl.camera.parallel_scale = ps
                 pl.camera.clipping_range = (1e-3 * scale, 30 * scale)
-        pl.screenshot(str(path))
+        img = pl.screenshot(None, return_img=True)
     finally:
         pl.close()
-    return path
+    return _write_png(img, path)
+
+
+def _write_png(img, path) -> Path:
+    """An (h, w, 3 or 4) uint8 image written as PNG atomically (never half a file)."""
+    from matplotlib.image import imsave  # deferred: see _render_matplotlib
+
+    buf = io.BytesIO()
+    imsave(buf, np.ascontiguousarray(img), format="png")
+    atomic_write_bytes(Path(path), buf.getvalue())
+    return Path(path)
 
 
 def _render_matplotlib(cells, template, path, cell_size, cmap_name, titles, scale) -> Path:
@@ -260,9 +272,11 @@ def _render_matplotlib(cells, template, path, cell_size, cmap_name, titles, scal
             ax.set_aspect("equal")
             if titles and cell.get("label"):
                 ax.set_title(str(cell["label"]), fontsize=9)
-    fig.savefig(path, dpi=dpi, facecolor="white")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, facecolor="white")
     plt.close(fig)
-    return path
+    atomic_write_bytes(Path(path), buf.getvalue())
+    return Path(path)
 
 
 def render_mesh(V, template, path, view: str | float = "front", scalars=None, clim=None, cmap: str = "viridis",
