@@ -9,7 +9,8 @@ The members are configurations of ``recipes/smoke/grid.yaml`` (merged on its ``g
 with ``train.epochs`` set; each ``fwk run`` is a fresh process with ``FWK_THREADS`` and
 ``OMP_NUM_THREADS`` removed from its environment (so fwk's own rule sizes the threads: one
 process alone takes every core, a Ray member its allocation), its cache warmed by a first
-untimed run, and its runs folder a temporary one. Prints the load average before and after
+untimed run, its runs folder a temporary one, and its registry of live fwk processes its own
+(``FWK_RUNTIME_DIR``: other jobs' fwk processes do not change its thread counts). Prints the load average before and after
 (other work on the machine slows both and skews the comparison) and both members' metrics
 agree between the executors only up to the thread count's rounding (2 threads against 1).
 """
@@ -65,6 +66,9 @@ def main(argv=None) -> int:
         env = {k: v for k, v in os.environ.items() if k not in ("FWK_THREADS", "OMP_NUM_THREADS")}
         env["FWK_CACHE"] = args.cache or str(tmp / "cache")
         env["RAY_USAGE_STATS_ENABLED"] = "0"
+        # a registry of live fwk processes of its own: fwk processes of other jobs on a shared
+        # machine would otherwise take threads from the members in turn (fwk.engine.threads)
+        env["FWK_RUNTIME_DIR"] = str(tmp / "procs")
         recipe = write_grid(tmp, args.members, args.epochs)
         (tmp / "warm").mkdir()
         warm = write_grid(tmp / "warm", args.members, 1)
