@@ -15,7 +15,7 @@ import textwrap
 
 from .apply import add_apply_parser, run_apply
 from .engine.threads import ENV_THREADS, register
-from .errors import FwkError
+from .errors import FwkError, Terminated
 from .evaluation.cli_eval import add_eval_parser, run_eval
 from .evaluation.cli_report import add_report_parser, run_report
 from .generate import add_sample_parser, run_sample
@@ -202,6 +202,9 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("fwk: interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        print("fwk: terminated (SIGTERM)", file=sys.stderr)
+        return 143
 
 
 if __name__ == "__main__":  # pragma: no cover

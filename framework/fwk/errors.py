@@ -38,3 +38,9 @@ class WriteError(FwkError, OSError):
 
     def __str__(self):
         return str(self.strerror) if self.strerror else super().__str__()
+
+
+class Terminated(BaseException):
+    """The process received SIGTERM (``kill``, a job scheduler's time limit) while ``fwk run``
+    ran: raised where the process was, so that the run marks itself ``FAILED`` before it ends.
+    A BaseException, like KeyboardInterrupt, so that no ``except Exception`` swallows it."""

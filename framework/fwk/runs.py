@@ -10,8 +10,9 @@ A run directory is complete, or says why not:
 - while a process writes it, it holds ``RUNNING`` (its pid, host and start), locked with
   ``flock``: a second ``fwk run --resume`` of the same directory is refused while the first
   lives, and a reader tells a live run (locked) from a killed one (``RUNNING``, unlocked);
-- an exception of any kind (a bug, an interrupt, a full disk) replaces ``RUNNING`` by
-  ``FAILED``: the error's line, its traceback and the command that resumes;
+- an exception of any kind (a bug, Ctrl-C, SIGTERM, a full disk) replaces ``RUNNING`` by
+  ``FAILED``: the error's line, its traceback and the command that resumes (``kill -9``
+  cannot be caught: it leaves ``RUNNING``);
 - on success neither is left. ``run_state(run_dir)`` reads this; ``fwk report`` and
   ``fwk.lifecycle.open_run`` refuse a run that is not complete.
 
@@ -29,9 +30,11 @@ import json
 import os
 import platform
 import shutil
+import signal
 import socket
 import subprocess
 import sys
+import threading
 import traceback
 from pathlib import Path
 from typing import Iterable
@@ -44,7 +47,7 @@ from . import __version__
 from .cache import Cache, atomic_write_bytes, file_mode
 from .engine.config import TrainConfig
 from .engine.threads import register
-from .errors import FwkError, PathError
+from .errors import FwkError, PathError, Terminated
 from .paths import check_dir
 from .plugins import get_registry
 from .recipes import Spec, load_recipe, make_spec, resolve, to_plain
@@ -347,8 +350,11 @@ def _append(exc: FwkError, text: str) -> None:
 def _write_failed(run_dir: Path, exc: BaseException) -> None:
     """``FAILED``: the error in one line, the traceback, the command that resumes (best effort:
     on a full disk there may be no room even for this)."""
-    if isinstance(exc, KeyboardInterrupt):
-        line = "interrupted (Ctrl-C)"
+    if isinstance(exc, KeyboardInterrupt) or (isinstance(exc, SystemExit)
+                                              and isinstance(exc.__context__, KeyboardInterrupt)):
+        line = "interrupted (Ctrl-C)"  # Lightning turns a Ctrl-C while training into sys.exit(1)
+    elif isinstance(exc, Terminated):
+        line = "terminated (SIGTERM)"
     elif isinstance(exc, FwkError):
         line = str(exc)
     else:
@@ -393,6 +399,10 @@ def run_task(resolved, ctx: RunContext) -> None:
     task.run(ctx)
 
 
+def _terminated(signum, frame):
+    raise Terminated("terminated (SIGTERM)")
+
+
 def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str | None = None,
             resume: str | None = None, quiet: bool = False, registry: Registry | None = None,
             cache: Cache | None = None, device: str | None = None) -> Path:
@@ -433,6 +443,10 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
         if created:
             shutil.rmtree(run_dir, ignore_errors=True)
         raise
+    # SIGTERM (a scheduler's time limit, `kill`) becomes an exception here, so the run is marked
+    # FAILED like any other stop; Lightning's own handler calls this one too while it trains
+    previous = signal.signal(signal.SIGTERM, _terminated) \
+        if threading.current_thread() is threading.main_thread() else None
     try:
         ctx = RunContext(run_dir, registry, cache, resolved.seed, recipe=resolved.data, train=resolved.train,
                          device=device, quiet=quiet, resume=bool(resume))
@@ -469,5 +483,8 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             print(f"fwk: the run failed; {run_dir / FAILED} holds the error; "
                   f"continue with: fwk run --resume {run_dir}", file=sys.stderr)
         raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     lock.release()
     return run_dir

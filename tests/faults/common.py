@@ -54,12 +54,12 @@ def resume(run_dir: Path) -> int:
     return main(["--quiet", "run", "--resume", str(run_dir)])
 
 
-def killed_at(point: str, n: int, recipe_path: Path, runs: Path, env: dict) -> Path:
-    """Run the recipe in a subprocess that SIGKILLs itself at ``point`` (the n-th time); asserts
-    it died so, and returns its run directory."""
+def killed_at(point: str, n: int, recipe_path: Path, runs: Path, env: dict, status: int = -9) -> Path:
+    """Run the recipe in a subprocess that signals itself at ``point`` (the n-th time); asserts it
+    ended with ``status`` (-9: SIGKILL), and returns its run directory."""
     p = subprocess.run([sys.executable, str(HARNESS), point, str(n), "--quiet", "run", str(recipe_path),
                         "--runs-dir", str(runs)], env=env, capture_output=True, text=True, timeout=300)
-    assert p.returncode == -9, f"the run was not killed at {point} (exit {p.returncode}): {p.stderr[-2000:]}"
+    assert p.returncode == status, f"the run did not end at {point} (exit {p.returncode}): {p.stderr[-2000:]}"
     (d,) = run_dirs(runs)
     return d
 

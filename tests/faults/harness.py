@@ -8,6 +8,8 @@ this: the points are installed here by wrapping fwk's and Lightning's own functi
     cache-hash   a cache entry of the synthetic dataset written, its SHA-256 not yet (data loading)
     train        just after the N-th training checkpoint is saved (training)
     evaluate     at the N-th evaluation of a model on a split (evaluation)
+    term         like evaluate, but the signal is SIGTERM (a scheduler's time limit)
+    train-term   like train, but the signal is SIGTERM
     report       metrics.json written; report.md's temporary file written, not yet renamed
                  into place (report; a write cut in the middle)
     never        not at all (a plain run, for runs started side by side)
@@ -20,7 +22,7 @@ import sys
 from pathlib import Path
 
 
-def _die_on(n: int):
+def _die_on(n: int, sig=signal.SIGKILL):
     count = [0]
 
     def hit() -> None:
@@ -28,14 +30,14 @@ def _die_on(n: int):
         if count[0] >= n:
             sys.stdout.flush()
             sys.stderr.flush()
-            os.kill(os.getpid(), signal.SIGKILL)
+            os.kill(os.getpid(), sig)
 
     return hit
 
 
 def install(point: str, n: int) -> None:
     """Wrap the function at ``point`` so that the process dies there the ``n``-th time."""
-    hit = _die_on(n)
+    hit = _die_on(n, signal.SIGTERM if point.endswith("term") else signal.SIGKILL)
     if point == "cache-hash":
         import fwk.cache as cache
 
@@ -47,7 +49,7 @@ def install(point: str, n: int) -> None:
             return write(path, data)
 
         cache.atomic_write_bytes = atomic_write_bytes
-    elif point == "train":
+    elif point in ("train", "train-term"):
         from lightning.pytorch import Trainer
 
         save = Trainer.save_checkpoint
@@ -58,7 +60,7 @@ def install(point: str, n: int) -> None:
             return out
 
         Trainer.save_checkpoint = save_checkpoint
-    elif point == "evaluate":
+    elif point in ("evaluate", "term"):
         import fwk.evaluation as ev
 
         summary = ev.evaluate_summary

@@ -95,6 +95,18 @@ def test_killed_then_resumed(tmp_path, env, capsys, baseline, point, n, left):
     assert "resuming a run whose process was killed" in (d / "log.txt").read_text()
 
 
+def test_sigterm_marks_the_run_failed(tmp_path, env, capsys, baseline):
+    """SIGTERM (a scheduler's time limit) during evaluation: exit 143, FAILED says so (RUNNING is
+    gone), and --resume finishes the run to the undisturbed numbers."""
+    d = killed_at("term", 2, recipe(tmp_path), tmp_path / "runs", env, status=143)
+    assert (d / "FAILED").read_text().splitlines()[0] == "terminated (SIGTERM)"
+    assert not (d / "RUNNING").exists() and (d / "models" / "pca.pt").exists()
+    _refused_while_incomplete(d, capsys, "failed")
+    assert resume(d) == 0
+    assert_complete(d)
+    assert models(d) == baseline()
+
+
 @pytest.mark.slow
 def test_killed_during_training_then_resumed(tmp_path, env, capsys, baseline):
     """Killed after the first training checkpoint of the network: resume continues from it and
