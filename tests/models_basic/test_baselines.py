@@ -102,7 +102,7 @@ def test_pca_matches_numpy_svd():
     ref = mu + (Q - mu) @ Vt[:4].T @ Vt[:4]
     assert np.allclose(m.reconstruct(data.stack("val")).reshape(len(Q), -1), ref, atol=1e-6)
     # all components reproduce the training set exactly
-    full = REG.get("model", "pca")(n_components=100)
+    full = REG.get("model", "pca")()  # every component the training shapes carry: min(64, m - 1)
     full.fit(data)
     assert np.allclose(full.reconstruct(P), P, atol=1e-6)
 

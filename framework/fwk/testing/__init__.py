@@ -42,6 +42,6 @@ def ict_path() -> Path | None:
 
 
 ICT_SKIP_REASON = (
-    "ICT-FaceKit FaceXModel not found: run ../shared/data/ict-facekit/unpack or set FWK_ICT_PATH "
-    "to the FaceXModel folder"
+    "ICT-FaceKit's FaceXModel folder (https://github.com/ICT-VGL/ICT-FaceKit) not found: set "
+    "FWK_ICT_PATH to it (docs/quickstart.md, 'The ICT-FaceKit data')"
 )

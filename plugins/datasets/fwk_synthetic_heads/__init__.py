@@ -48,7 +48,7 @@ from __future__ import annotations
 import numpy as np
 
 from fwk.cache import memo
-from fwk.data import MeshCollection, Template
+from fwk.data import MeshCollection, Template, Units
 from fwk.errors import RecipeError
 from fwk.hookspecs import hookimpl
 from fwk.registry import did_you_mean
@@ -254,7 +254,7 @@ class SyntheticHeads:
     name = "synthetic-heads"
 
     def __init__(self, n_subjects: int = 200, n_vertices: int = 6000, shapes: list[str] | None = None,
-                 seed: int = 0, wrinkles: float = 1.0, units: str = "cm", gain_sd: float = 0.25):
+                 seed: int = 0, wrinkles: float = 1.0, units: Units = "cm", gain_sd: float = 0.25):
         if n_subjects < 1:
             raise RecipeError(f"dataset.n_subjects: at least 1, got {n_subjects}")
         if n_vertices < 200 or n_vertices > 200_000:

@@ -98,7 +98,8 @@ class Reconstruct:
         if self.save_predictions:
             for label, d in predictions.items():
                 ctx.save_npz(f"predictions/{label}.npz", **d)
-        figures = ev.reconstruction_figures(ctx, template, stacks, predictions, metrics, n_rows=self.renders)
+        figures = ev.reconstruction_figures(ctx, template, stacks, predictions, metrics, n_rows=self.renders,
+                                             scale=pre.scale)
         figures.update(standard_scatters(ctx, results, "test", registry=ctx.registry))
         if self.write_obj:
             self._write_objs(ctx, col.template, pre, transforms, predictions, stacks)
