@@ -1,0 +1,456 @@
+"""``fwk view DIR|FILE``: look at a rig in an open3d window, a slider per expression.
+
+What it opens: a ``.glb`` (the base mesh and its morph targets, read with pygltflib), a USD rig
+(``.usda``/``.usdc``/``.usd``: the mesh and its UsdSkel BlendShapes, read with pxr), a folder
+that holds one of those (what ``fwk apply --format gltf,usd`` wrote), or a folder of expression
+OBJs with ``--neutral NEUTRAL.obj`` (what ``fwk apply`` writes by default); a single ``.obj`` is
+shown alone. The mesh is the neutral plus sum_i w_i (expression_i - neutral) with one slider
+w_i in [0, 1] per expression, coloured by the displacement from the neutral (``viridis``, the
+colour scale fixed over all expressions at weight 1), or, with ``--truth DIR`` (OBJs named as the
+expressions: ground truth on the same topology), by the distance to the ground truth blended
+with the same weights (``inferno``).
+
+``--screenshot out.png`` renders without a window (open3d's offscreen renderer: EGL or a
+software Vulkan; CI runs it under Xvfb): with ``--expression NAME`` (repeatable) or
+``--weights name=w,...`` one picture of that blend, else a sheet of the neutral and up to
+``--max-tiles`` expressions, each titled, with the colour bar in the rig's units.
+
+open3d is in the optional extra ``rig`` (``pip install 'fwk[rig]'``); it is imported when a
+picture or a window is made (0.9 s of import time, and absent without the extra).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from .data.io import fan_triangulate, read_obj
+from .errors import DataError, FwkError
+from .rig import missing
+
+RIG_SUFFIXES = (".glb", ".usdc", ".usda", ".usd")
+
+
+@dataclasses.dataclass
+class Rig:
+    """A neutral and its expressions on one triangulated topology: ``neutral`` (n, 3),
+    ``triangles`` (m, 3), ``names`` (E,), ``deltas`` (E, n, 3) from the neutral, ``units``, and
+    ``truth`` (E, n, 3) ground-truth positions (NaN where none) or None; ``source`` the file."""
+
+    neutral: np.ndarray
+    triangles: np.ndarray
+    names: list[str]
+    deltas: np.ndarray
+    units: str = "unit"
+    truth: np.ndarray | None = None
+    source: str = ""
+    vertex_of: np.ndarray | None = None  # the OBJ vertex of each rig vertex (glTF splits UV seams)
+
+    def weights(self, spec: dict[str, float] | None = None) -> np.ndarray:
+        """(E,) weights from {name: weight} (unknown names: a one-line error)."""
+        w = np.zeros(len(self.names))
+        for k, v in (spec or {}).items():
+            if k not in self.names:
+                raise FwkError(f"--expression {k}: not in the rig (expressions: {', '.join(self.names)})")
+            w[self.names.index(k)] = float(v)
+        return w
+
+    def blend(self, w: np.ndarray) -> np.ndarray:
+        """(n, 3) the neutral plus the weighted deltas."""
+        return self.neutral + np.tensordot(np.asarray(w, dtype=np.float64), self.deltas, axes=1)
+
+    def scalars(self, w: np.ndarray) -> tuple[np.ndarray, str]:
+        """(n,) per-vertex colour values and their label: the distance to the blended ground
+        truth where every weighted expression has one, else the displacement from the neutral."""
+        V = self.blend(w)
+        on = np.flatnonzero(np.asarray(w) != 0)
+        if self.truth is not None and len(on) and not np.isnan(self.truth[on]).any():
+            G = self.neutral + np.tensordot(np.asarray(w)[on], self.truth[on] - self.neutral, axes=1)
+            return np.linalg.norm(V - G, axis=1), f"error ({self.units})"
+        return np.linalg.norm(V - self.neutral, axis=1), f"displacement ({self.units})"
+
+    def colour_limit(self) -> float:
+        """The top of the colour scale: the largest displacement (or error) of any expression at weight 1."""
+        top = 0.0
+        for i in range(len(self.names)):
+            w = np.zeros(len(self.names))
+            w[i] = 1.0
+            top = max(top, float(self.scalars(w)[0].max()))
+        return top or 1.0
+
+
+# --------------------------------------------------------------------------- reading
+def _glb(path: Path) -> Rig:
+    try:
+        import pygltflib  # deferred: optional extra `rig`, 70 ms of import time
+    except ImportError:
+        raise missing("pygltflib", "fwk view of a .glb") from None
+    g = pygltflib.GLTF2().load(str(path))
+    blob = g.binary_blob()
+
+    def acc(i):
+        a = g.accessors[i]
+        v = g.bufferViews[a.bufferView]
+        k = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[a.type]
+        dt = {5126: np.float32, 5125: np.uint32, 5123: np.uint16}[a.componentType]
+        arr = np.frombuffer(blob, dt, a.count * k, (v.byteOffset or 0) + (a.byteOffset or 0))
+        return arr.reshape(a.count, k) if k > 1 else arr
+
+    if not g.meshes or not g.meshes[0].primitives:
+        raise DataError(f"{path}: no mesh in this glTF file")
+    mesh = g.meshes[0]
+    prim = mesh.primitives[0]
+    base = acc(prim.attributes.POSITION).astype(np.float64)
+    tris = acc(prim.indices).astype(np.int64).reshape(-1, 3)
+    names = list((mesh.extras or {}).get("targetNames") or [f"target{i}" for i in range(len(prim.targets or []))])
+    deltas = np.stack([acc(t["POSITION"]).astype(np.float64) for t in (prim.targets or [])]) if prim.targets \
+        else np.zeros((0, len(base), 3))
+    node = next((n for n in g.nodes if n.mesh == 0), None)
+    if node is not None and node.translation:  # fwk's node: scaled to metres, translated to the centre
+        s = node.scale[0] if node.scale else 1.0
+        base = base + np.asarray(node.translation, dtype=np.float64) / s
+    vi = getattr(prim.attributes, "_VERTEX_INDEX", None)  # justified: an application attribute, absent in other files
+    units = str(((g.extras or {}).get("fwk") or {}).get("units", "unit"))
+    return Rig(base, tris, names, deltas, units, source=str(path),
+               vertex_of=acc(vi).astype(np.int64) if vi is not None else None)
+
+
+def _usd(path: Path) -> Rig:
+    try:
+        from pxr import Usd, UsdGeom, UsdSkel  # deferred: optional extra `rig`, 140 ms of import time
+    except ImportError:
+        raise missing("usd-core", "fwk view of a USD file") from None
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise DataError(f"{path}: not a USD file that usd-core can open")
+    mesh = next((UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
+    if mesh is None:
+        raise DataError(f"{path}: no mesh in this USD file")
+    X = mesh.ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    P = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64) @ np.asarray(X.ExtractRotationMatrix()) \
+        + np.asarray(X.ExtractTranslation())
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(), dtype=np.int64)
+    idx = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64)
+    tris = fan_triangulate(idx, np.concatenate([[0], np.cumsum(counts)]))
+    binding = UsdSkel.BindingAPI(mesh.GetPrim())
+    names = [str(n) for n in (binding.GetBlendShapesAttr().Get() or [])]
+    deltas = np.zeros((len(names), len(P), 3))
+    for i, target in enumerate(binding.GetBlendShapeTargetsRel().GetTargets()):
+        bs = UsdSkel.BlendShape(stage.GetPrimAtPath(target))
+        offsets = np.asarray(bs.GetOffsetsAttr().Get(), dtype=np.float64)
+        pi = bs.GetPointIndicesAttr().Get()
+        if pi is None:  # unauthored: every point
+            deltas[i] = offsets
+        else:
+            deltas[i][np.asarray(pi, dtype=np.int64)] = offsets
+    mpu = UsdGeom.GetStageMetersPerUnit(stage)
+    units = {1.0: "m", 0.01: "cm", 0.001: "mm"}.get(round(mpu, 6), "unit")
+    return Rig(P, tris, names, deltas, units, source=str(path))
+
+
+def _objs(folder: Path, neutral: Path | None) -> Rig:
+    if neutral is None:
+        raise FwkError(f"{folder}: holds no .glb or USD rig; give the neutral the OBJs were made from with "
+                       "--neutral NEUTRAL.obj")
+    N, tpl = read_obj(neutral)
+    names, D = [], []
+    for p in sorted(folder.glob("*.obj")):
+        if p.resolve() == Path(neutral).resolve():
+            continue
+        V, t = read_obj(p)
+        if t.n_vertices != tpl.n_vertices:
+            raise DataError(f"{p}: {t.n_vertices} vertices, the neutral {neutral} has {tpl.n_vertices}")
+        names.append(p.stem)
+        D.append(V - N)
+    if not names:
+        raise DataError(f"{folder}: no expression .obj files")
+    return Rig(N, tpl.triangles, names, np.stack(D), tpl.units, source=str(folder))
+
+
+def load_rig(path, neutral=None, truth=None) -> Rig:
+    """The rig at ``path`` (a .glb, a USD file, a folder holding one, a folder of OBJs with
+    ``neutral``, or a single OBJ), with the ground truth OBJs of folder ``truth`` if given."""
+    path = Path(path)
+    if not path.exists():
+        raise FwkError(f"{path}: no such file or folder")
+    if path.is_dir():
+        found = [p for s in RIG_SUFFIXES for p in sorted(path.glob(f"*{s}"))]
+        rig = load_rig(found[0]) if found else _objs(path, Path(neutral) if neutral else None)
+    elif path.suffix.lower() == ".glb":
+        rig = _glb(path)
+    elif path.suffix.lower() in RIG_SUFFIXES:
+        rig = _usd(path)
+    elif path.suffix.lower() == ".obj":
+        V, t = read_obj(path)
+        rig = Rig(V, t.triangles, [], np.zeros((0, len(V), 3)), t.units, source=str(path))
+    else:
+        raise FwkError(f"{path}: not a rig (.glb, .usda, .usdc), a folder of them or of OBJs, or an .obj")
+    if truth is not None:
+        rig.truth = _truth(rig, Path(truth))
+    return rig
+
+
+def _truth(rig: Rig, folder: Path) -> np.ndarray:
+    """(E, n, 3) ground truth per expression from ``folder/<expression>.obj`` (NaN where absent)."""
+    if not folder.is_dir():
+        raise FwkError(f"--truth {folder}: not a folder of ground-truth OBJs named by expression")
+    out = np.full(rig.deltas.shape, np.nan)
+    n_obj = int(rig.vertex_of.max()) + 1 if rig.vertex_of is not None else len(rig.neutral)
+    for i, name in enumerate(rig.names):
+        p = folder / f"{name}.obj"
+        if p.exists():
+            G, t = read_obj(p)
+            if t.n_vertices != n_obj:
+                raise DataError(f"{p}: {t.n_vertices} vertices, the rig has {n_obj}")
+            out[i] = G[rig.vertex_of] if rig.vertex_of is not None else G
+    if np.isnan(out).all():
+        raise FwkError(f"--truth {folder}: no OBJ named as an expression of the rig ({', '.join(rig.names[:5])}, ...)")
+    return out
+
+
+# --------------------------------------------------------------------------- drawing
+def _o3d():
+    try:
+        import open3d  # deferred: optional extra `rig`, 0.9 s of import time
+    except ImportError:
+        raise missing("open3d", "fwk view") from None
+    return open3d
+
+
+def _colours(values: np.ndarray, top: float, cmap: str) -> np.ndarray:
+    from matplotlib import colormaps  # deferred: matplotlib's import (0.3 s) only for colours
+
+    return colormaps[cmap](np.clip(values / top, 0.0, 1.0))[:, :3]
+
+
+def _mesh(o3d, rig: Rig, w: np.ndarray, top: float):
+    V = rig.blend(w)
+    values, label = rig.scalars(w)
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(rig.triangles))
+    m.vertex_colors = o3d.utility.Vector3dVector(_colours(values, top, "inferno" if label.startswith("error") else
+                                                          "viridis"))
+    m.compute_vertex_normals()
+    return m, label
+
+
+def _camera(rig: Rig):
+    lo, hi = rig.neutral.min(0), rig.neutral.max(0)
+    centre = (lo + hi) / 2
+    size = float(np.linalg.norm(hi - lo))
+    return centre, centre + np.array([0.0, 0.0, 1.9 * size]), np.array([0.0, 1.0, 0.0])
+
+
+def render_tiles(rig: Rig, weights: list[np.ndarray], size=(480, 540)) -> list[np.ndarray]:
+    """One offscreen picture (h, w, 3) uint8 per weight vector, front view, lit: open3d's OpenGL
+    visualiser in a hidden window (EGL without a display, or an X server such as Xvfb; a few
+    seconds on 2 cores, where its Filament renderer on a software Vulkan takes 30 s or more)."""
+    o3d = _o3d()
+    vis = o3d.visualization.Visualizer()
+    if not vis.create_window(window_name="fwk view", width=size[0], height=size[1], visible=False):
+        raise FwkError("fwk view --screenshot: open3d cannot open an OpenGL context here; install Mesa's EGL "
+                       "(Debian: libegl1 libgl1) or run under xvfb-run")
+    try:
+        opt = vis.get_render_option()
+        opt.background_color = np.array([1.0, 1.0, 1.0])
+        opt.mesh_show_back_face = True
+        opt.light_on = True
+        centre, eye, up = _camera(rig)
+        top = rig.colour_limit()
+        out = []
+        mesh = None
+        for w in weights:
+            m, _ = _mesh(o3d, rig, w, top)
+            if mesh is None:
+                mesh = m
+                vis.add_geometry(mesh)
+            else:
+                mesh.vertices, mesh.vertex_colors, mesh.vertex_normals = m.vertices, m.vertex_colors, m.vertex_normals
+                vis.update_geometry(mesh)
+            ctr = vis.get_view_control()
+            ctr.set_lookat(centre)
+            ctr.set_front((eye - centre) / np.linalg.norm(eye - centre))
+            ctr.set_up(up)
+            ctr.set_zoom(0.62)
+            vis.poll_events()
+            vis.update_renderer()
+            img = np.asarray(vis.capture_screen_float_buffer(do_render=True))
+            out.append((np.clip(img, 0, 1) * 255).astype(np.uint8))
+        return out
+    finally:
+        vis.destroy_window()
+
+
+def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tiles: int = 12) -> Path:
+    """Write ``path`` (PNG): the blend ``weights`` alone, or a sheet of the neutral and up to
+    ``max_tiles - 1`` expressions at weight 1, titled, with the colour bar."""
+    import matplotlib  # deferred: see _colours
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    if weights:
+        ws, titles = [rig.weights(weights)], [", ".join(f"{k} {v:g}" for k, v in weights.items())]
+    else:
+        shown = rig.names[:max(0, max_tiles - 1)]
+        ws = [np.zeros(len(rig.names))] + [rig.weights({e: 1.0}) for e in shown]
+        titles = ["neutral", *shown]
+    tiles = render_tiles(rig, ws)
+    top = rig.colour_limit()
+    label = rig.scalars(ws[-1])[1]
+    cols = min(len(tiles), 4)
+    rows = -(-len(tiles) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(2.4 * cols + 1.2, 2.9 * rows + 0.4), squeeze=False)
+    fig.subplots_adjust(left=0.01, right=0.86, bottom=0.02, top=0.88, wspace=0.02, hspace=0.12)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, img, title in zip(axes.ravel(), tiles, titles):
+        ax.imshow(img)
+        ax.set_title(title, fontsize=9)
+    cmap = "inferno" if label.startswith("error") else "viridis"
+    sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0, top), cmap=cmap)
+    fig.colorbar(sm, cax=fig.add_axes([0.89, 0.2, 0.02, 0.6]), label=label)
+    fig.suptitle(Path(rig.source).name, fontsize=10)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def open_window(rig: Rig, ticks: int | None = None, set_weights: dict[str, float] | None = None) -> dict:
+    """The interactive viewer: the mesh in a SceneWidget and a scrollable panel with a slider
+    per expression (0 to 1), the colour updated with the blend. ``ticks`` (tests): run that many
+    event-loop ticks, apply ``set_weights`` through the sliders' own callbacks, tick again and
+    close; returns {"weights": ..., "max_displacement": ...} of the last blend drawn."""
+    o3d = _o3d()
+    from open3d.visualization import gui, rendering
+
+    app = gui.Application.instance
+    app.initialize()
+    window = app.create_window(f"fwk view: {Path(rig.source).name}", 1280, 800)
+    em = window.theme.font_size
+    scene = gui.SceneWidget()
+    scene.scene = rendering.Open3DScene(window.renderer)
+    scene.scene.set_background([1.0, 1.0, 1.0, 1.0])
+    mat = rendering.MaterialRecord()
+    mat.shader = "defaultLit"
+    top = rig.colour_limit()
+    w = np.zeros(len(rig.names))
+    state = {}
+
+    def draw():
+        m, label = _mesh(o3d, rig, w, top)
+        scene.scene.clear_geometry()
+        scene.scene.add_geometry("rig", m, mat)
+        status.text = f"{label}: 0 (dark) to {top:.3g} (yellow)"
+        state.update(weights=w.copy(), max_displacement=float(np.linalg.norm(rig.blend(w) - rig.neutral, axis=1).max()))
+
+    panel = gui.ScrollableVert(0.25 * em, gui.Margins(em, em, em, em))
+    status = gui.Label("")
+    panel.add_child(status)
+    sliders = {}
+    for i, name in enumerate(rig.names):
+        panel.add_child(gui.Label(name))
+        s = gui.Slider(gui.Slider.DOUBLE)
+        s.set_limits(0.0, 1.0)
+
+        def changed(value, i=i):
+            w[i] = value
+            draw()
+
+        s.set_on_value_changed(changed)
+        sliders[name] = (s, changed)
+        panel.add_child(s)
+    window.add_child(scene)
+    window.add_child(panel)
+
+    def layout(ctx):
+        r = window.content_rect
+        width = 18 * em
+        scene.frame = gui.Rect(r.x, r.y, r.width - width, r.height)
+        panel.frame = gui.Rect(r.get_right() - width, r.y, width, r.height)
+
+    window.set_on_layout(layout)
+    draw()
+    centre, eye, up = _camera(rig)
+    bounds = scene.scene.bounding_box
+    scene.setup_camera(30.0, bounds, centre)
+    scene.scene.camera.look_at(centre, eye, up)
+    if ticks is None:
+        app.run()
+        return state
+    for _ in range(ticks):
+        app.run_one_tick()
+    for name, value in (set_weights or {}).items():
+        if name not in sliders:
+            raise FwkError(f"--expression {name}: not in the rig (expressions: {', '.join(rig.names)})")
+        s, changed = sliders[name]
+        s.double_value = float(value)
+        changed(float(value))
+    for _ in range(ticks):
+        app.run_one_tick()
+    window.close()
+    app.run_one_tick()
+    return state
+
+
+# --------------------------------------------------------------------------- command
+def _weights(args) -> dict[str, float]:
+    out = {e: 1.0 for e in (args.expression or [])}
+    for item in (args.weights.split(",") if args.weights else []):
+        name, _, value = item.partition("=")
+        try:
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise FwkError(f"--weights {item}: expected name=weight, e.g. jawOpen=0.5") from None
+    return out
+
+
+def add_view_parser(subparsers):
+    """``fwk view``'s arguments (cli.EXTRA_COMMANDS)."""
+    p = subparsers.add_parser(
+        "view", help="look at a rig (.glb, USD, a folder from fwk apply) with a slider per expression",
+        description="Open a rig in an open3d window with a slider per expression, coloured by displacement (or by "
+                    "error against --truth); --screenshot renders a picture without a window.")
+    p.add_argument("path", help="a .glb, .usda/.usdc, a folder holding one (fwk apply --out), a folder of OBJs "
+                   "(with --neutral), or an .obj")
+    p.add_argument("--neutral", help="the neutral OBJ, for a folder of expression OBJs")
+    p.add_argument("--truth", help="a folder of ground-truth OBJs named by expression: colour by error")
+    p.add_argument("--screenshot", metavar="PNG", help="write a picture instead of opening a window")
+    p.add_argument("--expression", action="append", help="with --screenshot: this expression at weight 1 (repeatable)")
+    p.add_argument("--weights", help="with --screenshot: a blend, name=weight,... (e.g. jawOpen=0.6,eyeBlinkLeft=1)")
+    p.add_argument("--max-tiles", type=int, default=12, help="with --screenshot: tiles of the sheet (default 12)")
+    return p
+
+
+def run_view(args) -> int:
+    """``fwk view``'s entry (cli.EXTRA_COMMANDS)."""
+    rig = load_rig(args.path, args.neutral, args.truth)
+    if args.screenshot:
+        out = screenshot(rig, args.screenshot, _weights(args), args.max_tiles)
+        print(out)
+        return 0
+    open_window(rig)
+    return 0
+
+
+def main(argv=None) -> int:
+    """``python -m fwk.view PATH [...]``: the same as ``fwk view`` (one-line errors, exit 2)."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(prog="fwk")
+    add_view_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["view", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        return run_view(args)
+    except FwkError as exc:
+        print(f"fwk: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover - run as a module by the tests until cli.py lists it
+    raise SystemExit(main())
