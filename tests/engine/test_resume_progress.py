@@ -51,8 +51,14 @@ def test_resume_of_a_finished_or_absent_training_says_so(tmp_path):
     assert _ckpts(ctx) == ["epoch001.ckpt", "last.ckpt"]
     fresh = _ctx(tmp_path / "fresh", 1)
     fresh.resume = True
-    fit(_module(), train, val, fresh, "reg")
-    assert "reg: no checkpoint to resume from; training from epoch 1" in fresh.log_file.read_text()
+    fit(_module(), train, val, fresh, "reg")  # nothing to resume: a fresh start, without a word
+    assert "resum" not in (fresh.log_file.read_text() if fresh.log_file.exists() else "")
+    broken = _ctx(tmp_path / "broken", 1)
+    (broken.run_dir / "checkpoints" / "reg").mkdir(parents=True)
+    (broken.run_dir / "checkpoints" / "reg" / "last.ckpt").write_bytes(b"cut")
+    broken.resume = True
+    fit(_module(), train, val, broken, "reg")
+    assert "reg: no readable checkpoint to resume from; training from epoch 1" in broken.log_file.read_text()
 
 
 def test_prune_keeps_the_newest_epoch_files(tmp_path):

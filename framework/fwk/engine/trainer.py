@@ -176,8 +176,8 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
         if ck is not None:
             ctx.log(f"{network}: resuming from {ckpt_path.name}: {done} of {config.epochs} epochs done, "
                     f"continuing with epoch {done + 1}")
-        else:
-            ctx.log(f"{network}: no checkpoint to resume from; training from epoch 1")
+        elif any(ckdir.glob("*.ckpt")):  # (none at all: a fresh start, e.g. a new grid member; no word)
+            ctx.log(f"{network}: no readable checkpoint to resume from; training from epoch 1")
     else:
         for p in list(ckdir.glob("*.ckpt")):
             p.unlink()

@@ -101,13 +101,13 @@ class Executor:
 
 # ------------------------------------------------------------------------- one member
 
-def member_job(name: str, sub: Path, resolved, ctx, threads: int | None = None) -> dict:
+def member_job(name: str, sub: Path, resolved, ctx) -> dict:
     """What ``run_member`` needs, as plain data (it crosses to Ray workers)."""
     recipe = {k: v for k, v in resolved.data.items() if k != "_source"}
     return {"name": name, "run_dir": str(Path(sub).resolve()), "recipe": recipe, "source": resolved.source,
             "cache": str(Path(ctx.cache.root).resolve()), "cache_enabled": bool(ctx.cache.enabled),
             "device": ctx.device, "quiet": ctx.quiet, "log_file": str(Path(ctx.log_file).resolve()),
-            "threads": threads}
+            "threads": None}  # an executor's allocation, set by run_ray
 
 
 def run_member(job: dict, registry=None) -> dict:
