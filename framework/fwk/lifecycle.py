@@ -27,7 +27,7 @@ import yaml
 
 from .data.preprocess import Preprocessor
 from .errors import FwkError, RecipeError
-from .protocols import FAMILIES, Model
+from .protocols import FAMILIES, ChecksData, Model
 from .recipes import Spec, resolve
 from .registry import Registry
 from .runs import RunContext, require_complete
@@ -50,6 +50,21 @@ def build_model(spec: Spec, label: str, family: str, ctx: RunContext):
     if model.task_family != family:
         raise RecipeError(f"models.{label}: {model.name} is a {model.task_family} model, not a {family} model")
     return model
+
+
+def build_models(specs: dict, family: str, ctx: RunContext, data) -> dict:
+    """Every model of ``models:`` built and checked against ``data`` (``ChecksData``) before
+    any of them trains, so that an impossible recipe value fails in one line without minutes
+    of training lost first. Errors name the recipe key (``models.<label>.``)."""
+    models = {label: build_model(spec, label, family, ctx) for label, spec in specs.items()}
+    for label, model in models.items():
+        if isinstance(model, ChecksData):
+            try:
+                model.check_data(data)
+            except RecipeError as exc:
+                msg = str(exc)
+                raise RecipeError(msg if msg.startswith("models.") else f"models.{label}.{msg}") from None
+    return models
 
 
 def load_model_state(model, path: Path, ctx: RunContext | None) -> None:

@@ -199,6 +199,15 @@ class FusedPoolingConv(Protocol):
     def forward_up(self, x: "torch.Tensor", up: "torch.Tensor") -> "torch.Tensor": ...
 
 
+@runtime_checkable
+class ChecksData(Protocol):
+    """Optional model role: ``check_data(data)`` raises a ``RecipeError`` when a recipe value
+    is impossible for this data (e.g. pca's ``n_components`` above what the training set
+    carries), before any model of the run trains (``fwk.lifecycle.build_models``)."""
+
+    def check_data(self, data: "FitData") -> None: ...
+
+
 CONV_BUILD_ARGS = ("in_channels", "out_channels", "hierarchy", "level")
 #: what a model supplies besides to a conv playing the strided role; with CONV_BUILD_ARGS its
 #: ``build_args``, so that a recipe cannot set them (recipe validation refuses them)

@@ -92,6 +92,19 @@ def test_too_many_components_refused_before_training(tmp_path, env, capsys):
            "n_components <= 6")
 
 
+def test_too_many_components_refused_before_any_model_trains(tmp_path, env, capsys, monkeypatch):
+    """The check runs before the first model of the recipe trains, not when pca's turn comes: a
+    network listed first is never fitted (fwk.lifecycle.build_models, the ChecksData role)."""
+    import fwk_reconstruct
+
+    fitted = []
+    monkeypatch.setattr(fwk_reconstruct, "fit_or_resume", lambda model, label, *a, **k: fitted.append(label) or 0.0)
+    root = _folder(tmp_path)
+    r = _recipe(tmp_path, root, "{mlp: {name: mlp-vae, latent: 4, hidden: [16]}, pca: {name: pca, n_components: 500}}")
+    _fails(tmp_path, capsys, r, "models.pca.n_components: 500 components")
+    assert fitted == [], "no model trains before the recipe's values are checked"
+
+
 def test_unknown_units_refused_when_validating(tmp_path, env, capsys):
     """Reproduction 6b: dataset.units=furlongs, for a dataset that declares its units' type and for
     one that does not (the check is the recipe's)."""

@@ -4,7 +4,7 @@ The data flow of DESIGN.md: dataset -> split by subject (saved as ``split.json``
 preprocessing fitted on the training neutrals (centring, rigid registration to the mean
 neutral, one uniform scale into [-1, 1]; thesis 3.3.8; saved under ``stats/``) -> each model
 (a ``fwk.protocols.ReconstructionModel``) learns from the training shapes, or with ``--resume``
-is reloaded (``fwk.lifecycle.build_model``, ``fit_or_resume``: ``models/<label>.pt``) ->
+is reloaded (``fwk.lifecycle.build_models``, ``fit_or_resume``: ``models/<label>.pt``) ->
 ``model.reconstruct`` on every split -> metrics (default ``fwk.evaluation.default_metrics``)
 against the ground truth in the evaluation space (the thesis's space) and in the dataset's own
 units -> ``metrics.json``, ``report.md`` with tables, renders with error maps and the standard
@@ -25,7 +25,7 @@ from fwk.errors import RecipeError
 from fwk.evaluation import default_metrics
 from fwk.evaluation.report import standard_scatters
 from fwk.hookspecs import hookimpl
-from fwk.lifecycle import build_model, fit_or_resume
+from fwk.lifecycle import build_models, fit_or_resume
 from fwk.protocols import RECONSTRUCT, FitData
 from fwk.recipes import Kind, Spec
 
@@ -77,8 +77,7 @@ class Reconstruct:
         results: dict = {"models": {}, "timing": {}, "dataset": {"name": getattr(self.dataset, "name", self.dataset), "n_vertices": template.n_vertices,
                          "units": col.units, "scale": float(pre.scale), "subjects": {k: len(v) for k, v in split.items()}}}
         predictions = {}
-        for label, spec in self.models.items():
-            model = build_model(spec, label, RECONSTRUCT, ctx)
+        for label, model in build_models(self.models, RECONSTRUCT, ctx, data).items():  # all checked first
             fit_s = fit_or_resume(model, label, data, ctx)
             results["models"][label] = {}
             predictions[label] = {}
