@@ -2,7 +2,7 @@
 before issue 17's kernel work (``benchmarks/_before.py``, a frozen copy of commit 5b25de3's
 convs and networks), side by side in one process.
 
-    OMP_NUM_THREADS=2 python benchmarks/training.py [--steps 7] [--bf16] [--all]
+    OMP_NUM_THREADS=2 python benchmarks/training.py [--steps 7] [--bf16] [--feast] [--all]
 
 Networks (thesis 3.4 / appendix A), batch 16, on the ICT-FaceKit face-head region (11,248
 vertices) when ICT-FaceKit is present, else a synthetic head of the same size (printed):
@@ -21,7 +21,11 @@ measured in the same process with the same threads.
 
 ``--bf16`` also times today's code under CPU autocast (bfloat16, what ``train.precision:
 bf16-mixed`` gives Lightning) and trains both precisions for a few steps from the same
-initialisation to report the per-step loss deviation. ``--all`` adds the step time of the spiral, feast and lsa AEs (today's code). Threads: torch's
+initialisation to report the per-step loss deviation. ``--feast`` adds the FeaStNet AE (the
+spiral++ AE's layout with conv ``feast``, 8 heads: the thesis's FeaStNet), torch_geometric's
+``FeaStConv.forward`` (per-edge messages; ``order: edges``, the model pooling after each conv) as
+"before" against today's reordered sums (``order: auto``, pooling fused), from the same seeded
+initialisation (their first losses printed). ``--all`` adds the step time of the spiral, feast and lsa AEs (today's code). Threads: torch's
 default (``OMP_NUM_THREADS``); the machine's load average is printed with the figures.
 
 The last line is one JSON object with every figure.
@@ -52,6 +56,7 @@ VCCONV_VAE = {"name": "vae", "conv": {"name": "vcconv", "weight_num": 35}, "chan
               "latent_vertices": 8, "sampler": {"name": "simple", "levels": 4}, "residual_rate": 0.5}
 SPIRALPP_AE = {"name": "ae", "conv": {"name": "spiral++", "length": 9}, "channels": [16, 32, 64, 128],
                "latent": 64, "sampler": {"name": "quadric", "factors": [4, 4, 4, 4]}}
+FEAST_AE = {**SPIRALPP_AE, "conv": {"name": "feast", "heads": 8}}
 OTHER_CONVS = {"spiral": {"name": "spiral"}, "feast": {"name": "feast", "heads": 8}, "lsa": {"name": "lsa"}}
 
 
@@ -135,11 +140,34 @@ def load_average() -> float:
     return os.getloadavg()[0]
 
 
+def feast_row(t, x, n, rate) -> dict:
+    """The FeaStNet AE, FeaStConv's per-edge forward (``order: edges``) against today's reordered
+    sums, from the same seeded initialisation, alternating; prints its table row and returns it."""
+    torch.manual_seed(0)
+    enc, dec, _ = networks(FEAST_AE, t)
+    torch.manual_seed(0)
+    oenc, odec, _ = networks({**FEAST_AE, "conv": {**FEAST_AE["conv"], "order": "edges"}}, t)
+    with torch.no_grad():
+        l_new, l_old = ((d(e(x)[0]) - x).abs().mean().item() for e, d in ((enc, dec), (oenc, odec)))
+    g_new, g_old = gflop(enc, dec, x), gflop(oenc, odec, x)
+    ts = alternate({"before": stepper(oenc, odec, x), "after": stepper(enc, dec, x)}, n)
+    r = {"before_ms": 1e3 * ts["before"], "after_ms": 1e3 * ts["after"], "ratio": ts["before"] / ts["after"],
+         "gflop_before": g_old, "gflop_after": g_new, "gflops_before": g_old / ts["before"],
+         "gflops_after": g_new / ts["after"], "of_matmul": g_new / ts["after"] / rate,
+         "first_loss_before": l_old, "first_loss_after": l_new}
+    print(f"{'feast AE':<13} {r['before_ms']:>10.0f} {r['after_ms']:>9.0f} {r['ratio']:>6.2f} {g_old:>13.1f} "
+          f"{g_new:>12.1f} {r['gflops_after']:>14.1f} {100 * r['of_matmul']:>9.0f}%")
+    print(f"{'':<13} before = torch_geometric FeaStConv.forward; first loss before / after: {l_old:.6f} / {l_new:.6f}")
+    return r
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=7, help="timed steps per version (after one warm-up)")
     ap.add_argument("--bf16", action="store_true", help="also time bf16 autocast and its loss deviation")
     ap.add_argument("--all", action="store_true", help="also time every other conv's AE (today's code)")
+    ap.add_argument("--feast", action="store_true",
+                    help="also time the FeaStNet AE: torch_geometric's FeaStConv forward against today's")
     a = ap.parse_args()
     torch.manual_seed(0)
     col, src = face_head(1)
@@ -180,6 +208,8 @@ def main():
                   f"per-step loss deviation (relative) max {max(dev):.2e}, "
                   f"steps {', '.join(f'{d:.1e}' for d in dev)}")
         result[key] = r
+    if a.feast:
+        result["feast_ae"] = feast_row(t, x, a.steps, rate)
     if a.all:
         result["others"] = {}
         for name, conv in OTHER_CONVS.items():

@@ -233,9 +233,10 @@ class AggregateFirst(torch.autograd.Function):
     ``forward(x, s, c, Wt, bias, plan)``: x (n_in b, c_in) and s (n_in b, H) vertex-major,
     c (H,), Wt (H c_in, c_out), bias (c_out,) or None; returns (n_out b, c_out). A chunk gathers
     [x_j | A_j] in one ``index_select``. Kept for the backward: the steering weights p (E b H
-    floats) and T (n_out b, H c_in) (together at most about 1/4 of FeaStConv's (E b, H c_out)
-    messages when c_in <= c_out); the backward gathers x again and scatters [dx | ds] in one
-    ``index_add_``; it returns dx, ds, dc, dWt, db."""
+    floats, 1/c_out of FeaStConv's (E b, H c_out) messages); the backward gathers x again,
+    recomputes T chunk by chunk (cheaper than keeping it: a fresh (n b, H c_in) buffer costs
+    its page faults, 184 MB in the thesis's largest layer), accumulates dWt^T as dy^T T and
+    scatters [dx | ds] in one ``index_add_``; it returns dx, ds, dc, dWt, db."""
 
     @staticmethod
     def forward(ctx, x, s, c, Wt, bias, plan):
