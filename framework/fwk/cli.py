@@ -77,8 +77,9 @@ def describe(kind: str, name: str) -> str:
     sig = inspect.signature(cls.__init__)  # justified: the constructor is the recipe schema (fwk.hookspecs)
     lines.append("parameters:")
     any_p = False
+    supplied = tuple(getattr(cls, "build_args", ()))  # given by the model that builds it, not a recipe key
     for pname, p in sig.parameters.items():
-        if pname == "self" or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
+        if pname == "self" or pname in supplied or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
             continue
         any_p = True
         ann = "" if p.annotation is p.empty else (p.annotation if isinstance(p.annotation, str) else inspect.formatannotation(p.annotation))
@@ -86,6 +87,8 @@ def describe(kind: str, name: str) -> str:
         lines.append(f"  {pname}: {ann} {default}".replace(":  ", ": "))
     if not any_p:
         lines.append("  (none)")
+    if supplied:
+        lines.append(f"supplied by the model that builds it (not recipe keys): {', '.join(supplied)}")
     module = sys.modules.get(cls.__module__)
     mdoc = inspect.getdoc(module) if module else None
     if mdoc:

@@ -89,3 +89,16 @@ def test_a_reader_that_goes_away_is_not_an_error():
     err = p.stderr.read().decode()
     assert p.wait() == 1
     assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def test_show_conv_lists_only_recipe_keys(capsys):
+    """A conv's build_args (in_channels ... and a strided conv's mode, residual_rate, activation)
+    are supplied by the model: `fwk show` names them apart, not as parameters."""
+    assert main(["show", "conv", "vcconv"]) == 0
+    out = capsys.readouterr().out
+    params = out.split("parameters:")[1].split("supplied by the model")[0]
+    assert "weight_num" in params and "radius" in params
+    for supplied in ("in_channels", "hierarchy", "mode", "residual_rate", "activation"):
+        assert supplied not in params, supplied
+    assert "supplied by the model that builds it (not recipe keys): in_channels, out_channels, hierarchy, level, " \
+           "mode, residual_rate, activation" in out
