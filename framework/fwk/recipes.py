@@ -208,6 +208,8 @@ def validate_params(cls: type, params: dict, path: str, registry: Registry, labe
     out = {}
     for key, value in params.items():
         kp = f"{path}.{key}" if path else str(key)
+        if key in supplied:
+            raise RecipeError(f"{kp}: supplied by the model that builds {label}, not a recipe parameter")
         if key not in ps:
             if var_kw:
                 out[key] = value

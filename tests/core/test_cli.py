@@ -102,3 +102,12 @@ def test_show_conv_lists_only_recipe_keys(capsys):
         assert supplied not in params, supplied
     assert "supplied by the model that builds it (not recipe keys): in_channels, out_channels, hierarchy, level, " \
            "mode, residual_rate, activation" in out
+
+
+def test_a_model_supplied_conv_argument_is_refused_in_a_recipe(tmp_path, capsys):
+    r = tmp_path / "r.yaml"
+    r.write_text("task: reconstruct\ndataset: {name: synthetic-heads, n_subjects: 6, n_vertices: 600}\n"
+                 "models: {ae: {name: vae, conv: {name: vcconv, activation: relu}, fully_convolutional: true}}\n")
+    assert main(["--quiet", "run", str(r), "--runs-dir", str(tmp_path / "runs")]) == 2
+    assert "models.ae.conv.activation: supplied by the model that builds vcconv, not a recipe parameter" \
+        in capsys.readouterr().err
