@@ -188,22 +188,25 @@ def parse_formats(text) -> list[str]:
 
 
 def check_out(out: Path) -> None:
-    """Refuse an ``--out`` that cannot be written before any work: a file in the way, a parent
-    that is a file, a folder that cannot be created or written (a probe is created and removed)."""
-    if out.exists() and not out.is_dir():
-        raise FwkError(f"--out {out}: a file is in the way (give a folder)")
-    base = out
-    while not base.exists():
-        if base.parent == base:
-            break
-        base = base.parent
-    if not base.is_dir():
-        raise FwkError(f"--out {out}: {base} is a file, not a folder")
+    """Refuse an ``--out`` that cannot be written before any work: a NUL in the path, a name too
+    long, a file in the way, a parent that is a file, a folder that cannot be created or written
+    (a probe folder is created and removed)."""
+    if "\x00" in str(out):
+        raise FwkError(f"--out {str(out)!r}: a path cannot contain a NUL character")
     try:
+        if out.exists() and not out.is_dir():
+            raise FwkError(f"--out {out}: a file is in the way (give a folder)")
+        base = out
+        while not base.exists():
+            if base.parent == base:
+                break
+            base = base.parent
+        if not base.is_dir():
+            raise FwkError(f"--out {out}: {base} is a file, not a folder")
         probe = Path(tempfile.mkdtemp(prefix=".fwk-apply-probe.", dir=base))
         probe.rmdir()
-    except OSError as exc:
-        raise FwkError(f"--out {out}: cannot write in {base} ({exc.strerror or exc})") from None
+    except OSError as exc:  # a name too long shows here too (exists() raises ENAMETOOLONG)
+        raise FwkError(f"--out {out}: cannot write there ({exc.strerror or exc})") from None
 
 
 def _file_mode() -> int:

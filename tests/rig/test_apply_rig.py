@@ -184,14 +184,15 @@ def test_a_wrong_topology_names_both_counts_and_template_obj(grid_run, tmp_path)
     assert tpl.uvs is not None and tpl.n_polygons == W * W
 
 
-@pytest.mark.parametrize("where", ["proc", "file", "under-file"])
+@pytest.mark.parametrize("where", ["proc", "file", "under-file", "nul", "long"])
 def test_unwritable_out_is_one_line_exit_2(grid_run, tmp_path, where, capsys):
     from fwk.cli import main
 
     src = tmp_path / "me.obj"
     src.write_text(grid_obj(neutral(np.random.default_rng(1))))
     (tmp_path / "afile").write_text("x")
-    out = {"proc": "/proc/fwk-x/out", "file": str(tmp_path / "afile"), "under-file": str(tmp_path / "afile" / "o")}[where]
+    out = {"proc": "/proc/fwk-x/out", "file": str(tmp_path / "afile"), "under-file": str(tmp_path / "afile" / "o"),
+           "nul": str(tmp_path / "a\x00b"), "long": str(tmp_path / ("x" * 300))}[where]
     assert main(["apply", str(grid_run), str(src), "--out", out, "--format", "obj,gltf"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("fwk: error: --out") and "\n" not in err and "Traceback" not in err
