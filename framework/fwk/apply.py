@@ -132,6 +132,14 @@ class Applier:
 
 
 def _inputs(path: Path) -> list[Path]:
+    """The neutral OBJs to read: ``path`` itself or the .obj files of folder ``path``."""
+    try:
+        return _list_inputs(path)
+    except OSError as exc:
+        raise DataError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+
+
+def _list_inputs(path: Path) -> list[Path]:
     if path.is_dir():
         files = sorted(p for p in path.iterdir() if p.suffix.lower() in MESH_SUFFIXES and p.is_file())
         if not files:
