@@ -303,8 +303,8 @@ def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tile
     label = rig.scalars(ws[-1])[1]
     cols = min(len(tiles), 4)
     rows = -(-len(tiles) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.4 * cols + 1.2, 2.9 * rows + 0.4), squeeze=False)
-    fig.subplots_adjust(left=0.01, right=0.86, bottom=0.02, top=0.88, wspace=0.02, hspace=0.12)
+    fig, axes = plt.subplots(rows, cols, figsize=(max(4.8, 2.4 * cols + 1.2), 2.9 * rows + 0.4), squeeze=False)
+    fig.subplots_adjust(left=0.01, right=0.80, bottom=0.02, top=0.88, wspace=0.02, hspace=0.12)
     for ax in axes.ravel():
         ax.axis("off")
     for ax, img, title in zip(axes.ravel(), tiles, titles):
@@ -312,7 +312,7 @@ def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tile
         ax.set_title(title, fontsize=9)
     cmap = "inferno" if label.startswith("error") else "viridis"
     sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0, top), cmap=cmap)
-    fig.colorbar(sm, cax=fig.add_axes([0.89, 0.2, 0.02, 0.6]), label=label)
+    fig.colorbar(sm, cax=fig.add_axes([0.83, 0.2, 0.02, 0.6]), label=label)
     fig.suptitle(Path(rig.source).name, fontsize=10)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)

@@ -84,7 +84,7 @@ def _view(args, tmp_path):
 
 def _yellow(img) -> int:
     """Pixels near the top of viridis (yellow) left of the colour bar: where the displacement is largest."""
-    img = img[:, :int(0.85 * img.shape[1])]
+    img = img[:, :int(0.80 * img.shape[1])]
     return int(((img[..., 0] > 0.8) & (img[..., 1] > 0.75) & (img[..., 2] < 0.35)).sum())
 
 
