@@ -10,19 +10,24 @@ so seeded runs start from the weights torch_geometric gives, and its checkpoints
 sums are evaluated in another order (``FeaStConv`` computes W x_j per *edge*, E H c_out floats
 with E about 7 n b):
 
-* ``aggregate`` (c_in <= c_out): T_ih = sum_j q_h(i, j) x_j / |N(i)| per edge (H c_in
-  multiply-adds an edge), then one product x'_i = b + [T_i1 .. T_iH] [W_1 .. W_H]^T per vertex;
-* ``transform`` (c_in > c_out): Z_jh = W_h x_j once per vertex, then
-  x'_i = b + sum_j sum_h q_h(i, j) Z_jh / |N(i)| per edge (H c_out an edge);
+* ``aggregate``: T_ih = sum_j q_h(i, j) x_j / |N(i)| per edge (H c_in multiply-adds an edge),
+  then one product x'_i = b + [T_i1 .. T_iH] [W_1 .. W_H]^T per vertex;
+* ``transform``: Z_jh = W_h x_j once per vertex, then x'_i = b + sum_j sum_h q_h(i, j) Z_jh /
+  |N(i)| per edge (H c_out an edge);
 
-the steering logits u_h^T (x_j - x_i) + c_h = (U x)_j - (U x)_i + c_h come from one product
-U x per vertex. Vertices are grouped by |N(i) u {i}| (no padding), activations are vertex-major
+``auto`` takes ``transform`` where H c_out < c_in, else ``aggregate``: the per-edge width (the
+floats gathered, c_in + H against H (c_out + 1), and the per-row products) sets the time more
+than the multiply-adds (measured at 32 -> 16 channels, 8 heads: ``transform`` has half the
+per-edge multiply-adds and was no faster). The steering logits u_h^T (x_j - x_i) + c_h =
+(U x)_j - (U x)_i + c_h come from one product U x per vertex, their softmax from per-vertex
+factors (``factors``: no exp per edge). Vertices are grouped by |N(i) u {i}| (no padding), activations are vertex-major
 ((n, b, c) in memory), and each group is evaluated a chunk of about ``CHUNK_BYTES`` of gathered
 rows at a time by a custom autograd Function whose backward gathers and recomputes the chunk
 instead of keeping the (E b, H c) intermediates; with T torch threads the chunks go to T
 workers. Pooling is fused (``fuses_pooling``): ``forward(x, rows=kept)`` computes only the kept
 vertices, ``forward_up(x, U)`` = forward(U x) with the per-vertex products taken on the coarse
-vertices (``transform``: U (x W^T) and U (x U_s^T), both linear in x).
+vertices (``transform``: U (x W^T) and U (x U_s^T), both linear in x). Under autocast the conv
+computes in float32 (the steering softmax is not left to bfloat16).
 """
 from __future__ import annotations
 
@@ -377,9 +382,10 @@ class FeaSt(nn.Module):
             level's ``edges`` are read).
         level (int): the level the convolution works on (stride 1).
         heads (int): H, the number of weight matrices (default 8).
-        order (str): ``auto`` (default: the order with fewer multiply-adds, ``aggregate`` when
-            c_in <= c_out, else ``transform``), ``aggregate``, ``transform``, or ``edges``
-            (torch_geometric's ``FeaStConv.forward`` itself: W x_j per edge; slow, a reference).
+        order (str): ``auto`` (default: ``transform`` where H c_out < c_in, else
+            ``aggregate``; see the module docstring), ``aggregate``, ``transform``, or ``edges``
+            (torch_geometric's ``FeaStConv.forward`` itself: W x_j per edge, the model pooling
+            after the conv; slow, the reference).
 
     Shapes:
         - **input:** (b, n, c_in), n = ``hierarchy.levels[level].n_vertices``
