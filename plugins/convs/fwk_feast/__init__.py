@@ -198,16 +198,6 @@ def _steer_grad(p, dP, K):
     return (p * (dP - (p * dP).sum(-1, keepdim=True))).div_(K)
 
 
-def _steer_backward(p, dP, K, flat, ctr, gs, gc, H):
-    """Accumulate the chunk's ds (rows j and i of the logits s_j - s_i + c) and dc, from the
-    softmax p (kb, K, H) and dP = K dL/dp (the 1/K of the mean is applied here)."""
-    dl = p * (dP - (p * dP).sum(-1, keepdim=True))
-    dl.div_(K)
-    gs.index_add_(0, flat, dl.view(-1, H))
-    gs.index_add_(0, ctr, dl.sum(1), alpha=-1)
-    gc += dl.sum((0, 1))
-
-
 def _aggregate(p, GA, ci, Ts, w):
     """T (kb, H ci) = [sum_k p_kh x_k]_h / K of a chunk from p (kb, K, H) and the gathered GA
     (kb, K, >= ci), x in its first ci columns; written into worker w's buffer ``Ts[w]``. Where
@@ -346,8 +336,8 @@ class TransformFirst(torch.autograd.Function):
         co = Z.shape[1] // H
         gy = plan.to_plan_order(gy)
         W = plan.workers
-        gZs = [torch.zeros_like(Z) for _ in range(W)]
-        gss = [Z.new_zeros(Z.shape[0], H) for _ in range(W)]
+        wz = H * co
+        gzss = [Z.new_zeros(Z.shape[0], wz + H) for _ in range(W)]  # [dZ | ds]
         gcs = [Z.new_zeros(H) for _ in range(W)]
 
         def work(w):
@@ -355,16 +345,19 @@ class TransformFirst(torch.autograd.Function):
                 K, kb, flat, ctr, (a, z) = plan.rows(g, s0, s1)
                 p = plan.p_slice(P, g, s0, s1, H)
                 dY = gy[a:z]  # (kb, co)
-                # dZ_jh += p_ijh dY_i / K: an outer product per row, scattered as H c_out-float rows
-                dG = (p.reshape(kb, K * H, 1) * dY.view(kb, 1, co)).view(kb * K, H * co)
-                gZs[w].index_add_(0, flat, dG, alpha=1.0 / K)
                 G = Z.index_select(0, flat).view(kb, K * H, co)
                 dP = torch.bmm(G, dY.view(kb, co, 1)).view(kb, K, H)
-                _steer_backward(p, dP, K, flat, ctr, gss[w], gcs[w], H)
+                # [dZ_j | ds_j] in one index_add_: dZ_jh = p_ijh dY_i / K, an outer product per row
+                dG = (p.reshape(kb, K * H, 1) * dY.view(kb, 1, co)).view(kb, K, wz).div_(K)
+                d = torch.cat([dG, _steer_grad(p, dP, K)], 2)
+                gzss[w].index_add_(0, flat, d.view(kb * K, wz + H))
+                gzss[w][:, wz:].index_add_(0, ctr, d[..., wz:].sum(1), alpha=-1)
+                gcs[w] += d[..., wz:].sum((0, 1))
 
         _in_workers(work, W)
         gb = gy.sum(0) if ctx.has_bias and ctx.needs_input_grad[3] else None
-        return _sum(gZs), _sum(gss), _sum(gcs), gb, None
+        gzs = _sum(gzss)
+        return gzs[:, :wz], gzs[:, wz:], _sum(gcs), gb, None
 
 
 class FeaSt(nn.Module):
