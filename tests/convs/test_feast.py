@@ -196,3 +196,32 @@ def test_elu_network_step_is_finite(hierarchy):
     loss = b(F.elu(a(x))).abs().mean()
     loss.backward()
     assert all(torch.isfinite(p.grad).all() for p in [*a.parameters(), *b.parameters()])
+
+
+def test_autoencoder_trains_as_with_feastconv():
+    """The thesis's FeaStNet AE layout (pooling fused into the convs) against the same AE on
+    FeaStConv's own forward (order "edges", pooling after each conv), from the same seed: the
+    same losses over a few Adam steps."""
+    from fwk.recipes import make_spec
+
+    template = two_components()
+    x = torch.randn(4, template.n_vertices, 3, generator=torch.Generator().manual_seed(0))
+    losses = {}
+    for order in ("edges", "auto"):
+        spec = {"name": "ae", "conv": {"name": "feast", "heads": 8, "order": order}, "channels": [8, 16],
+                "latent": 8, "sampler": {"name": "quadric", "factors": [4, 4]}}
+        torch.manual_seed(0)
+        m = make_spec("model", spec, "model", REG).build()
+        enc, dec = m.build_encoder(template, 3), m.build_decoder(template, 3)
+        assert all(c.fuses_pooling == (order == "auto") for c in [*enc.convs, *dec.convs])
+        opt = torch.optim.Adam([*enc.parameters(), *dec.parameters()], 1e-3)
+        losses[order] = []
+        for _ in range(4):
+            opt.zero_grad()
+            loss = (dec(enc(x)[0]) - x).abs().mean()
+            loss.backward()
+            opt.step()
+            losses[order].append(loss.item())
+    assert losses["auto"][0] == pytest.approx(losses["edges"][0], rel=1e-6)
+    assert losses["auto"] == pytest.approx(losses["edges"], rel=1e-4)
+    assert losses["auto"][-1] < losses["auto"][0]
