@@ -1,4 +1,4 @@
-"""The ``fwk`` command: list | show | run | eval | report | sample | apply.
+"""The ``fwk`` command: list | show | run | eval | report | sample | apply | view.
 
 A user's mistake (an FwkError) prints one line and exits 2; ``--debug`` shows the traceback.
 The folders a command writes into (``--runs-dir``, ``$FWK_RUNS_DIR``, ``$FWK_CACHE``) are
@@ -23,6 +23,7 @@ from .hookspecs import KINDS
 from .plugins import get_registry
 from .registry import did_you_mean
 from .runs import check_cache_dir, execute
+from .view import add_view_parser, run_view
 
 #: Subcommands whose logic lives in their own modules: name -> (add its parser, run it).
 EXTRA_COMMANDS = {
@@ -30,6 +31,7 @@ EXTRA_COMMANDS = {
     "report": (add_report_parser, run_report),
     "sample": (add_sample_parser, run_sample),
     "apply": (add_apply_parser, run_apply),
+    "view": (add_view_parser, run_view),
 }
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from .data.io import write_obj
 from .errors import FwkError
 from .lifecycle import choose_model, open_run
+from .paths import check_dir
 from .protocols import RECONSTRUCT, BandModel, GenerativeModel
 
 
@@ -71,6 +72,7 @@ def sample_meshes(run_dir, n: int, seed: int = 0, model: str | None = None, regi
 
 def run_sample(args) -> int:
     """``fwk sample``: write the sampled meshes as OBJ files into ``--out`` (replaced atomically per file)."""
+    check_dir(args.out, "--out")  # before the run is loaded: a bad destination fails in one line, at once
     label, P, template = sample_meshes(args.run_dir, args.n, args.seed, args.model)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -160,3 +160,12 @@ def test_files_get_the_umask_mode(tmp_path, env, mask, mode):
             "pca.pt", "log.txt"} <= {p.name for p in files}
     for p in files:
         assert stat.S_IMODE(p.stat().st_mode) == mode, (p, oct(p.stat().st_mode))
+
+
+def test_sample_out_is_checked_before_the_run_is_read(tmp_path, capsys):
+    """fwk sample --out /proc/x: one line, exit 2, before the run directory is even opened."""
+    from fwk.cli import main
+
+    assert main(["sample", str(tmp_path / "no-such-run"), "--out", "/proc/x/samples"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--out /proc/x/samples" in err, err
