@@ -49,7 +49,7 @@ from fwk.evaluation import (default_metrics, display, evaluate, evaluate_summary
 from fwk.evaluation.plots import scatter_pareto
 from fwk.evaluation.render import colour_limits, render_grid
 from fwk.hookspecs import hookimpl
-from fwk.lifecycle import build_model, fit_or_resume
+from fwk.lifecycle import build_models, fit_or_resume
 from fwk.protocols import BLENDSHAPES, BlendshapeModel, CompositeModel, CutSelectingModel, FitData, TrainingModes
 from fwk.recipes import Kind, Spec
 
@@ -136,8 +136,7 @@ class Blendshapes:
                    "timing": {}, CUTS: {}}
         preds = {e: {} for e in expressions}
         fitted = {}
-        for label, spec in self.models.items():
-            model = build_model(spec, label, BLENDSHAPES, ctx)
+        for label, model in build_models(self.models, BLENDSHAPES, ctx, data).items():  # all checked first
             if not isinstance(model, BlendshapeModel):
                 raise RecipeError(f"models.{label}: {model.name} does not play the blendshape model role "
                                   "(expressions, predict, predict_all; see fwk.protocols.BlendshapeModel)")
