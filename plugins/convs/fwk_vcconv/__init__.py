@@ -206,8 +206,10 @@ class VCConv(nn.Module):
         j_all = idx[i_all, k_all]
         srt = np.argsort(j_all, kind="stable")
         splits = np.searchsorted(j_all[srt], np.arange(self.n_in + 1))
-        i_rows = [i_all[srt[splits[j]:splits[j + 1]]] for j in range(self.n_in)]
-        i_cols = [flat[i_all, k_all][srt[splits[j]:splits[j + 1]]] for j in range(self.n_in)]
+        # one gather and one split for all input vertices (an index per vertex was quadratic: 3.5 s
+        # of building the thesis's VAE at 11,248 vertices)
+        i_rows = np.split(i_all[srt], splits[1:-1])
+        i_cols = np.split(flat[i_all, k_all][srt], splits[1:-1])
         order, self._in_spans, other, pos, valid = _bucketed(i_rows, i_cols, self.n_in)
         self.register_buffer("_in_order", torch.as_tensor(order), persistent=False)
         self.register_buffer("_in_dst", torch.as_tensor(other), persistent=False)
