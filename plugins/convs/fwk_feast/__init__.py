@@ -263,7 +263,7 @@ class AggregateFirst(torch.autograd.Function):
     def backward(ctx, gy):
         x, P, Wt = ctx.saved_tensors
         plan, H = ctx.plan, ctx.H
-        ci, b = x.shape[1], plan.b
+        ci = x.shape[1]
         gy = plan.to_plan_order(gy)
         gb = gy.sum(0) if ctx.has_bias and ctx.needs_input_grad[4] else None
         W = plan.workers
@@ -332,7 +332,6 @@ class TransformFirst(torch.autograd.Function):
     def backward(ctx, gy):
         Z, P = ctx.saved_tensors
         plan, H = ctx.plan, ctx.H
-        b = plan.b
         co = Z.shape[1] // H
         gy = plan.to_plan_order(gy)
         W = plan.workers
