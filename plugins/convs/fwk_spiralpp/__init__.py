@@ -22,7 +22,8 @@ scatters dx; with T torch threads the chunks go to T workers. Activations are ve
 (``fuses_pooling``): ``forward(x, rows=kept)`` computes only the vertices a selecting pooling
 keeps, ``forward_up(x, U)`` = forward(U x) with the product on the coarse vertices. Both are the
 same sums in another order; together they cut the thesis AE's multiply-adds from 22 to 6 GFLOP
-per step (``benchmarks/training.py --fused``).
+per step (``fwk.protocols.FusedPoolingConv``; ``fwk_autoencoder`` uses them where the pooling
+selects, ``benchmarks/training.py``).
 """
 from __future__ import annotations
 
