@@ -30,10 +30,10 @@ def _env(tmp_path) -> dict:
             "RAY_USAGE_STATS_ENABLED": "0"}
 
 
-def _fwk(tmp_path, *args, timeout=300) -> subprocess.CompletedProcess:
+def _fwk(tmp_path, *args, timeout=300, code=0) -> subprocess.CompletedProcess:
     p = subprocess.run([sys.executable, "-m", "fwk", *args], env=_env(tmp_path), capture_output=True, text=True,
                        timeout=timeout, cwd=tmp_path)
-    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    assert p.returncode == code, p.stdout[-3000:] + p.stderr[-3000:]
     return p
 
 
@@ -102,14 +102,16 @@ def test_the_recipe_key_and_its_override_form(tmp_path):
 
 def test_a_failing_member_is_reported_and_the_rest_go_on(tmp_path, monkeypatch):
     """Local executor, in this process: a member failing at run time (pca with more components
-    than training meshes) leaves a FAILED file and a report row; the others finish."""
+    than training meshes) leaves a FAILED file and a report row; the others finish; the grid
+    ends with one line (exit 2), its run kept and marked FAILED."""
     from fwk.cli import main
 
     monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
     g = _grid(tmp_path, {"bad": "{models: {ae: {name: pca, n_components: 500}}, dataset: {n_vertices: 200, "
                                 "n_subjects: 12}}", "a": TINY % 1})
-    assert main(["--quiet", "run", str(g), "--runs-dir", str(tmp_path / "runs")]) == 0
+    assert main(["--quiet", "run", str(g), "--runs-dir", str(tmp_path / "runs")]) == 2
     d = _only_run(tmp_path / "runs")
+    assert "grid: 1 of 2 members failed (bad: " in (d / "FAILED").read_text()
     m = json.loads((d / "metrics.json").read_text())
     assert set(m["models"]) == {"a"} and set(m["failed"]) == {"bad"}
     assert "n_components" in m["failed"]["bad"]
@@ -137,8 +139,8 @@ def test_ray_grid_writes_the_metrics_of_the_local_executor(tmp_path):
                "b": "{dataset: {n_vertices: 200, n_subjects: 12}, train: {epochs: 2}, models: {ae: {latent: 8}}}",
                "bad": "{models: {ae: {name: pca, n_components: 500}}, dataset: {n_vertices: 200, n_subjects: 12}}"}
     g = _grid(tmp_path, configs)
-    _fwk(tmp_path, "run", str(g), "--runs-dir", str(tmp_path / "local"))
-    out = _fwk(tmp_path, "run", str(g), "executor=ray", "--runs-dir", str(tmp_path / "ray")).stdout
+    _fwk(tmp_path, "run", str(g), "--runs-dir", str(tmp_path / "local"), code=2)
+    out = _fwk(tmp_path, "run", str(g), "executor=ray", "--runs-dir", str(tmp_path / "ray"), code=2).stdout
     assert "ray: 3 members on" in out
     local, onray = _only_run(tmp_path / "local"), _only_run(tmp_path / "ray")
     for name in ("a", "b"):

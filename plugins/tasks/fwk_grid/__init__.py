@@ -16,7 +16,8 @@ Ray instance or the cluster at ``address``: ``fwk run grid.yaml executor=ray
 executor.address=ray://head:10001``). Either way each member writes its own sub-run, so a grid
 is resumable whichever executor ran it, and its report is the same. A member that fails is
 logged with its error, gets a ``FAILED`` file in its sub-run, and is listed in the report; the
-others go on, and ``fwk run --resume`` reruns only the members without ``metrics.json``.
+others go on; the grid then ends with an error (exit 2, the run marked ``FAILED``), and
+``fwk run --resume`` reruns only the members without ``metrics.json``.
 
 ``sweep: models.dsm.k`` (a dotted key of the members' recipes, numeric in each) names the value a
 study varies: the report then also plots every metric against it, one line per split (the k
@@ -31,7 +32,7 @@ from typing import Annotated
 import yaml
 
 from fwk.cache import atomic_write_bytes
-from fwk.errors import RecipeError
+from fwk.errors import FwkError, RecipeError
 from fwk.evaluation import display, markdown_table, standard_scatters, write_report
 from fwk.evaluation.plots import line_plot
 from fwk.hookspecs import hookimpl
@@ -153,9 +154,11 @@ class Grid:
                   "`fwk run --resume` reruns only the members without `metrics.json`."))
         write_report(ctx, f"Grid: {ctx.recipe.get('name', self.name)} ({len(rows)} configurations)", results, figures,
                      sections=sections, registry=ctx.registry)
-        if failed:
-            ctx.log(f"grid: {len(failed)} of {len(resolved)} members failed ({', '.join(failed)}); "
-                    f"fwk run --resume {ctx.run_dir} reruns them")
+        if failed:  # after the report: the run is marked FAILED (kept where a member trained) and exits 2
+            first = next(iter(failed))
+            raise FwkError(f"grid: {len(failed)} of {len(resolved)} members failed ({first}: {failed[first]}"
+                           f"{'; see the report' if len(failed) > 1 else ''}); the others finished; "
+                           f"fwk run --resume reruns only the failed ones")
 
     def _sweep_figures(self, ctx, results: dict, xs: dict[str, float]) -> dict:
         """Each metric against the swept value, one line per split and model (figure 4.11)."""
