@@ -31,8 +31,6 @@ computes in float32 (the steering softmax is not left to bfloat16).
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 import torch
 from torch import nn
@@ -41,36 +39,10 @@ from torch.autograd.function import once_differentiable
 from fwk.errors import RecipeError
 from fwk.graph import edge_index, sparse_apply
 from fwk.hookspecs import hookimpl
+from fwk.parallel import in_workers
 from fwk.protocols import CONV_BUILD_ARGS
 
 CHUNK_BYTES = 2 << 20  # gathered floats per chunk: about 2 MB (L2 is 1 MB a core, L3 32 MB)
-_POOL: list = []  # one ThreadPoolExecutor, made on first use by _in_workers
-
-
-def _in_workers(work, workers: int) -> None:
-    """Run ``work(w)`` for w in 0..workers-1: w = 0 on this thread, the others on a thread pool,
-    every torch op inside single-threaded (no OpenMP barrier per small op, one join per call;
-    the same scheme as spiral++'s ``GatherLinear``). torch's thread count is restored after."""
-    if workers <= 1:
-        work(0)
-        return
-    if not _POOL or _POOL[0]._max_workers < workers - 1:
-        _POOL[:] = [ThreadPoolExecutor(max_workers=workers - 1, thread_name_prefix="fwk-feast")]
-
-    def run(w):
-        torch.set_num_threads(1)
-        with torch.no_grad():  # grad mode is per thread; the work is a Function's forward or backward
-            work(w)
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        futures = [_POOL[0].submit(run, w) for w in range(1, workers)]
-        work(0)
-        for f in futures:
-            f.result()
-    finally:
-        torch.set_num_threads(threads)
 
 
 class Plan:
@@ -253,7 +225,7 @@ class AggregateFirst(torch.autograd.Function):
                 else:
                     torch.addmm(bias, Tk, Wt, out=y[a:z])
 
-        _in_workers(work, plan.workers)
+        in_workers(work, plan.workers)
         ctx.save_for_backward(x, P, Wt)
         ctx.plan, ctx.has_bias, ctx.H = plan, bias is not None, H
         return plan.to_vertex_order(y).view(-1, co)
@@ -288,7 +260,7 @@ class AggregateFirst(torch.autograd.Function):
                 gxss[w][:, ci:].index_add_(0, ctr, dl.sum(1), alpha=-1)
                 gcs[w] += dl.sum((0, 1))
 
-        _in_workers(work, W)
+        in_workers(work, W)
         gxs = _sum(gxss)
         return gxs[:, :ci], gxs[:, ci:], _sum(gcs), _sum(gWs).t(), gb, None
 
@@ -322,7 +294,7 @@ class TransformFirst(torch.autograd.Function):
                     Yk += bias
                 y[a:z] = Yk
 
-        _in_workers(work, plan.workers)
+        in_workers(work, plan.workers)
         ctx.save_for_backward(Z, P)
         ctx.plan, ctx.has_bias, ctx.H = plan, bias is not None, H
         return plan.to_vertex_order(y).view(-1, co)
@@ -353,7 +325,7 @@ class TransformFirst(torch.autograd.Function):
                 gzss[w][:, wz:].index_add_(0, ctr, d[..., wz:].sum(1), alpha=-1)
                 gcs[w] += d[..., wz:].sum((0, 1))
 
-        _in_workers(work, W)
+        in_workers(work, W)
         gb = gy.sum(0) if ctx.has_bias and ctx.needs_input_grad[3] else None
         gzs = _sum(gzss)
         return gzs[:, :wz], gzs[:, wz:], _sum(gcs), gb, None

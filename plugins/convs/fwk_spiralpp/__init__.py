@@ -27,8 +27,6 @@ selects, ``benchmarks/training.py``).
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 import torch
 from torch import nn
@@ -39,37 +37,10 @@ from fwk.errors import RecipeError
 from fwk.cache import content_key, memo
 from fwk.graph import spirals
 from fwk.hookspecs import hookimpl
+from fwk.parallel import in_workers
 from fwk.protocols import CONV_BUILD_ARGS
 
 CHUNK_BYTES = 2 << 20  # gathered rows per chunk: about 2 MB (the chip's L2 is 1 MB a core, its L3 32 MB)
-_POOL: list = []  # one ThreadPoolExecutor, made on first use by _in_workers
-
-
-def _in_workers(work, workers: int) -> None:
-    """Run ``work(w)`` for w in 0..workers-1: w = 0 on this thread, the others on a thread pool,
-    every torch op inside single-threaded. The chunks of a layer are spread over torch's threads
-    this way rather than each small op over OpenMP's: no barrier per op (which stalls whenever
-    another process holds a core), one join per call. torch's thread count is restored after."""
-    if workers <= 1:
-        work(0)
-        return
-    if not _POOL or _POOL[0]._max_workers < workers - 1:
-        _POOL[:] = [ThreadPoolExecutor(max_workers=workers - 1, thread_name_prefix="fwk-spiralpp")]
-
-    def run(w):
-        torch.set_num_threads(1)  # this pool thread's ops (and MKL's, process-wide until restored)
-        with torch.no_grad():  # grad mode is per thread; the work is a Function's forward or backward
-            work(w)
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        futures = [_POOL[0].submit(run, w) for w in range(1, workers)]
-        work(0)
-        for f in futures:
-            f.result()
-    finally:
-        torch.set_num_threads(threads)
 
 
 class GatherLinear(torch.autograd.Function):
@@ -84,7 +55,7 @@ class GatherLinear(torch.autograd.Function):
     ``index_select`` of c-float rows of x viewed as (n_in b, c)) and multiplies; the backward
     gathers again for dW (as fast as reading back a kept copy, without keeping 200 MB for the
     thesis's largest layer) and scatters dx with ``index_add_``. With T torch threads the chunks
-    are dealt round-robin to T workers (``_in_workers``), each with its own buffers and, in the
+    are dealt round-robin to T workers (``fwk.parallel.in_workers``), each with its own buffers and, in the
     backward, its own dW and dx accumulators, summed in worker order at the end (deterministic
     for a given T). Buffers are allocated once per call, not per chunk.
     """
@@ -126,7 +97,7 @@ class GatherLinear(torch.autograd.Function):
                 else:
                     torch.addmm(bias, gk.view(k * b, L * c), Wt, out=yk)
 
-        _in_workers(work, workers)
+        in_workers(work, workers)
         ctx.save_for_backward(x, weight, index, flat)
         ctx.rows, ctx.workers, ctx.plan, ctx.has_bias = rows, workers, plan, bias is not None
         return y
@@ -172,7 +143,7 @@ class GatherLinear(torch.autograd.Function):
                     hk.copy_(qk.view(L, c, k, b).permute(2, 0, 1, 3))
                     gxs[w].index_add_(0, index[s:s + k].reshape(-1), hk.view(k * L, c * b))
 
-        _in_workers(work, workers)
+        in_workers(work, workers)
         gb = gy.sum((0, 1)) if ctx.has_bias and ctx.needs_input_grad[2] else None
         gW = gx = None
         if need_w:
