@@ -38,10 +38,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .cache import file_mode
 from .data import Template
 from .data.io import check_topology, obj_text, read_obj
 from .errors import DataError, FwkError, TopologyError
 from .lifecycle import choose_model, open_run
+from .paths import check_dir
 from .protocols import BlendshapeModel, CutSelectingModel
 from .rig.arkit import NAMINGS, rename
 from .rig.gltf import write_glb
@@ -195,35 +197,6 @@ def parse_formats(text) -> list[str]:
     return out
 
 
-def check_out(out: Path) -> None:
-    """Refuse an ``--out`` that cannot be written before any work: a NUL in the path, a name too
-    long, a file in the way, a parent that is a file, a folder that cannot be created or written
-    (a probe folder is created and removed)."""
-    if "\x00" in str(out):
-        raise FwkError(f"--out {str(out)!r}: a path cannot contain a NUL character")
-    try:
-        if out.exists() and not out.is_dir():
-            raise FwkError(f"--out {out}: a file is in the way (give a folder)")
-        base = out
-        while not base.exists():
-            if base.parent == base:
-                break
-            base = base.parent
-        if not base.is_dir():
-            raise FwkError(f"--out {out}: {base} is a file, not a folder")
-        probe = Path(tempfile.mkdtemp(prefix=".fwk-apply-probe.", dir=base))
-        probe.rmdir()
-    except OSError as exc:  # a name too long shows here too (exists() raises ENAMETOOLONG)
-        raise FwkError(f"--out {out}: cannot write there ({exc.strerror or exc})") from None
-
-
-def _file_mode() -> int:
-    """The mode a new file gets under the process umask (0644 under the usual 022)."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask
-
-
 def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str] | None = None,
           log=print, registry=None, formats="obj", naming: str = "source") -> list[Path]:
     """Write the blendshapes of one neutral (``out/<expression>.obj``, ``out/<neutral>.glb``,
@@ -234,7 +207,7 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     if naming not in NAMINGS:
         raise FwkError(f"--naming {naming}: unknown naming (namings: {', '.join(NAMINGS)})")
     neutral, out = Path(neutral), Path(out)
-    check_out(out)
+    check_dir(out, "--out", min_free_mb=0)  # before any work (fwk.paths)
     app = Applier(run_dir, model, registry)
     t_load = time.perf_counter() - t0
     files = _inputs(neutral)
@@ -261,7 +234,7 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     except OSError as exc:
         raise FwkError(f"--out {out}: cannot write there ({exc.strerror or exc})") from None
-    written, mode = [], _file_mode()
+    written, mode = [], file_mode()
     try:
         for (f, V, tpl, region), P in zip(meshes, preds):
             sub = tmp if not neutral.is_dir() else tmp / f.stem

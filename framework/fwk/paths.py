@@ -1,7 +1,8 @@
 """Checks of the folders a user gives, before any work starts.
 
 ``check_dir(path, what)`` is called up front for every output folder a command takes
-(``--runs-dir``, ``$FWK_RUNS_DIR``, ``$FWK_CACHE``, ``--out``): a file where a folder should be,
+(``--runs-dir``, ``$FWK_RUNS_DIR``, ``$FWK_CACHE``, ``--out``): a NUL in the path, a name too
+long, a file where a folder should be,
 a folder that cannot be created or written (permissions, a read-only or pseudo file system such
 as ``/proc``), or a file system with too little space left each raise a one-line ``PathError``
 (exit 2) naming the path and the option or variable it came from. Nothing is created: the
@@ -29,12 +30,20 @@ def _existing_ancestor(p: Path) -> Path:
 
 def check_dir(path, what: str, min_free_mb: float | None = None) -> Path:
     """``path`` (``~`` expanded) checked to be, or to be creatable as, a writable folder with at
-    least ``min_free_mb`` MB free (default ``MIN_FREE_MB``); ``what`` names where it came from (``--runs-dir``). Raises
+    least ``min_free_mb`` MB free (default ``MIN_FREE_MB``; 0: no floor); ``what`` names where it came from (``--runs-dir``). Raises
     ``PathError`` with one line, else returns the path (not created)."""
-    p = Path(path).expanduser()
-    where = f"{what} {p}"
     if not str(path).strip():
         raise PathError(f"{what}: empty path")
+    if "\x00" in str(path):
+        raise PathError(f"{what} {str(path)!r}: a path cannot contain a NUL character")
+    p = Path(path).expanduser()
+    where = f"{what} {p}"
+    try:
+        os.lstat(p)
+    except (FileNotFoundError, NotADirectoryError):  # to be created; a file in the way is named below
+        pass
+    except OSError as exc:  # a name too long, a symlink loop: the ancestor walk would not see them
+        raise PathError(f"{where}: {exc.strerror}") from None
     a = _existing_ancestor(p)
     if not a.is_dir():
         if a == p:
