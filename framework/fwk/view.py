@@ -21,14 +21,13 @@ picture or a window is made (0.9 s of import time, and absent without the extra)
 from __future__ import annotations
 
 import dataclasses
-import json
-import struct
 from pathlib import Path
 
 import numpy as np
 
 from .data.io import fan_triangulate, read_obj
 from .errors import DataError, FwkError
+from .evaluation.plots import save_figure
 from .rig import missing
 
 RIG_SUFFIXES = (".glb", ".usdc", ".usda", ".usd")
@@ -314,10 +313,7 @@ def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tile
     sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0, top), cmap=cmap)
     fig.colorbar(sm, cax=fig.add_axes([0.83, 0.2, 0.02, 0.6]), label=label)
     fig.suptitle(Path(rig.source).name, fontsize=10)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100)
 
 
 def open_window(rig: Rig, ticks: int | None = None, set_weights: dict[str, float] | None = None) -> dict:

@@ -30,7 +30,6 @@ def _plt():
 
 
 def _finish(fig, ax, path, xlabel, ylabel, title):
-    plt = _plt()
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     if title:
@@ -40,12 +39,13 @@ def _finish(fig, ax, path, xlabel, ylabel, title):
     return save_figure(fig, path)
 
 
-def save_figure(fig, path) -> Path:
-    """Write ``fig`` to ``path`` (its format from the suffix) atomically, and close it."""
+def save_figure(fig, path, **savefig) -> Path:
+    """Write ``fig`` to ``path`` (its format from the suffix) atomically, with the umask's mode,
+    and close it; ``savefig``: matplotlib's options (dpi, facecolor, ...)."""
     plt = _plt()
     path = Path(path)
     buf = io.BytesIO()
-    fig.savefig(buf, format=path.suffix.lstrip(".") or "png")
+    fig.savefig(buf, format=path.suffix.lstrip(".") or "png", **savefig)
     plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())
     return path
@@ -59,7 +59,9 @@ def place_labels(ax, points, labels, first=(), fontsize: float = 7) -> list:
     fig = ax.figure
     fig.canvas.draw()  # the limits and layout the labels are placed in
     renderer = fig.canvas.get_renderer()
-    order = [int(i) for i in first] + [i for i in range(len(labels)) if i not in set(int(j) for j in first)]
+    first = [int(i) for i in first]
+    done = set(first)
+    order = first + [i for i in range(len(labels)) if i not in done]
     placed, boxes = [], []
     for i in order:
         for dx, dy, ha, va in _PLACES:

@@ -229,6 +229,8 @@ def _render_matplotlib(cells, template, path, cell_size, cmap_name, titles, scal
     import matplotlib.pyplot as plt
     from matplotlib.collections import PolyCollection
 
+    from .plots import save_figure
+
     rows, cols = len(cells), max(len(r) for r in cells)
     dpi = 100
     fig = plt.figure(figsize=(cell_size[0] * cols / dpi, cell_size[1] * rows / dpi), dpi=dpi)
@@ -272,11 +274,7 @@ def _render_matplotlib(cells, template, path, cell_size, cmap_name, titles, scal
             ax.set_aspect("equal")
             if titles and cell.get("label"):
                 ax.set_title(str(cell["label"]), fontsize=9)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi, facecolor="white")
-    plt.close(fig)
-    atomic_write_bytes(Path(path), buf.getvalue())
-    return Path(path)
+    return save_figure(fig, path, dpi=dpi, facecolor="white")
 
 
 def render_mesh(V, template, path, view: str | float = "front", scalars=None, clim=None, cmap: str = "viridis",
