@@ -29,10 +29,9 @@ from fwk.errors import FwkError, RecipeError
 from fwk.plugins import get_registry
 from fwk.recipes import resolve
 from fwk.registry import did_you_mean
-from fwk.runs import RunContext, run_task
+from fwk.runs import FAILED, RunContext, run_task  # FAILED: the run-state file fwk.runs.run_state reads
 
 EXECUTORS = ("local", "ray")
-FAILED = "FAILED"
 
 
 @dataclass
