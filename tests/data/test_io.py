@@ -102,3 +102,20 @@ def test_obj_errors_name_file_and_line(tmp_path, edit, expect):
     with pytest.raises(DataError) as e:
         read_obj(p)
     assert expect.format(n=len(lines)) in str(e.value) and str(e.value).startswith(f"{p}, line ")
+
+
+def test_obj_v_lines_equal_formatting_value_by_value():
+    """obj_text's v block (one C-level format call) against the naive per-value f"{x:.9g}", on
+    values across magnitudes, signs, -0.0, integers and 9-digit ties."""
+    from fwk.data import Template
+    from fwk.data.io import obj_text
+
+    rng = np.random.default_rng(3)
+    V = rng.normal(size=(40, 3)) * 10.0 ** rng.integers(-12, 12, size=(40, 3))
+    V[0] = [-0.0, 0.0, 1.0]
+    V[1] = [123456789.5, 1e-300, 2.0 ** 60]
+    V[2] = [0.1, 1 / 3, 12345.6789012345]
+    F = np.array([[i, i + 1, i + 2] for i in range(len(V) - 2)])
+    text = obj_text(V, Template(V, F))
+    v_lines = [ln for ln in text.splitlines() if ln.startswith("v ")]
+    assert v_lines == ["v " + " ".join(f"{x:.9g}" for x in row) for row in V]

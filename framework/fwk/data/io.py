@@ -253,17 +253,22 @@ def read_positions(path, template: Template) -> np.ndarray:
 
 
 def _fmt(a: np.ndarray) -> list[str]:
-    return [" ".join(repr(float(x)) if False else f"{x:.9g}" for x in row) for row in a]
+    return [" ".join(f"{x:.9g}" for x in row) for row in a]
 
 
-def obj_text(V: np.ndarray, template: Template) -> str:
-    """OBJ text of positions V on ``template``: its polygons, ``vt`` and material lines."""
+def _v_block(V: np.ndarray) -> str:
+    """The ``v`` lines of positions V (n, 3), ``%.9g`` each, in one C-level format call (the
+    same text as formatting value by value, 20-50x faster)."""
     V = np.asarray(V, dtype=np.float64)
-    out = []
+    return ("v %.9g %.9g %.9g\n" * len(V)) % tuple(V.ravel().tolist())
+
+
+def _around_v(template: Template) -> tuple[str, str]:
+    """The OBJ text of ``template`` before and after its ``v`` block: the header (``mtllib``,
+    ``o``), then ``vt``, polygons and material lines where they stood."""
     extra = sorted(template.obj_extra, key=lambda e: e[0]) if template.obj_extra else []
     head = [line for pos, line in extra if pos == 0 and line.split(" ")[0] in ("mtllib", "o")]
-    out += head
-    out += ["v " + s for s in _fmt(V)]
+    out = []
     if template.uv_lines is not None and len(template.uv_lines) == len(template.uvs):
         out += list(template.uv_lines)
     elif template.uvs is not None:
@@ -282,7 +287,36 @@ def obj_text(V: np.ndarray, template: Template) -> str:
         else:
             out.append("f " + " ".join(str(v) for v in pv[a:b]))
     out += [line for _, line in extra_rest[ei:]]
-    return "\n".join(out) + "\n"
+    return "".join(line + "\n" for line in head), "".join(line + "\n" for line in out)
+
+
+def obj_text(V: np.ndarray, template: Template) -> str:
+    """OBJ text of positions V on ``template``: its polygons, ``vt`` and material lines."""
+    head, tail = _around_v(template)
+    return head + _v_block(V) + tail
+
+
+class ObjWriter:
+    """OBJ text of many shapes on one topology (a rig): ``obj_text`` with the lines around the
+    ``v`` block formatted once, so each shape costs only its ``v`` lines."""
+
+    def __init__(self, template: Template):
+        self.template = template
+        self.head, self.tail = _around_v(template)
+
+    def text(self, V: np.ndarray) -> str:
+        """The OBJ text of positions V (n, 3)."""
+        V = np.asarray(V, dtype=np.float64)
+        if V.shape != (self.template.n_vertices, 3):
+            raise ValueError(f"ObjWriter: positions of shape {V.shape}, template has {self.template.n_vertices} vertices")
+        return self.head + _v_block(V) + self.tail
+
+    def write(self, path: Path, V: np.ndarray) -> Path:
+        """Write the OBJ of V to ``path`` (not atomic: for a temporary folder moved into place
+        afterwards, as ``fwk apply`` does)."""
+        with open(path, "w") as f:
+            f.write(self.text(V))
+        return path
 
 
 def write_obj(path, V: np.ndarray, template: Template) -> Path:
