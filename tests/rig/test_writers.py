@@ -34,7 +34,7 @@ def test_vertex_normals_against_a_per_triangle_loop(tmp_path):
 
 
 def test_obj_writer_is_byte_identical_to_obj_text(tmp_path):
-    from fwk.apply import ObjWriter
+    from fwk.data.io import ObjWriter
     from fwk.data import Template
     from fwk.data.io import obj_text
 
