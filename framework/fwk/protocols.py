@@ -379,9 +379,12 @@ class TrainingModes(Protocol):
 class CompositeModel(Protocol):
     """A model made of parts that are models of their own (pbs: two PB networks): ``parts(
     neutrals, expression, target=None)`` returns {part label: prediction}; tasks report each
-    part as its own row."""
+    part as its own row. ``part_models()`` returns {part label: the part as a model} (same labels),
+    so a task can read the roles a part plays (pbs's parts are end-to-end PBs: ``TrainingModes``,
+    paired with two-step PBs in thesis table 5.1)."""
 
     def parts(self, neutrals: np.ndarray, expression: str, target: np.ndarray | None = None) -> dict[str, np.ndarray]: ...
+    def part_models(self) -> dict[str, Any]: ...
 
 
 @runtime_checkable

@@ -100,3 +100,26 @@ def test_resume_loads_every_model_and_gives_the_same_numbers(run):
     for d in (before, after):
         d.pop("timing")
     assert after == before
+
+
+def test_pbs_parts_pair_with_two_step_pbs_in_table_5_1(tmp_path):
+    """PBS's parts are end-to-end PBs (``CompositeModel.part_models`` play ``TrainingModes``): the
+    end-to-end against two-step table pairs them with two-step PBs of the same kind of output
+    (spatial with spatial, dr with dr), so a study need not train the end-to-end PBs twice."""
+    from fwk.runs import execute
+
+    models = {"pbs": {"name": "pbs", "network": NET, "ks": [0, 10000]},
+              "pb-std-two-step": {"name": "pb", "network": NET, "mode": "two-step",
+                                  "representation": {"name": "euclidean", "scaling": "std"}},
+              "pb-dr-two-step": {"name": "pb", "network": NET, "mode": "two-step",
+                                 "representation": {"name": "dr", "scaling": "norm"}}}
+    recipe = {"name": "bs-modes", "task": "blendshapes", "seed": 0, "train": {"epochs": 1, "batch_size": 4},
+              **PARAMS, "models": models}
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
+    run = execute(str(tmp_path / "r.yaml"), runs_dir=str(tmp_path / "runs"), quiet=True)
+    report = (run / "report.md").read_text()
+    section = report.split("layout of thesis table 5.1")[1].split("\n## ")[0]
+    header = next(line for line in section.splitlines() if line.startswith("| expression"))
+    cols = [c.strip() for c in header.strip("|").split("|")]
+    assert cols[2:] == ["pbs:pb-euclidean-std", "pb-std-two-step", "change",
+                        "pbs:pb-dr-norm", "pb-dr-two-step", "change"], cols

@@ -20,7 +20,8 @@ context from ``fwk.runs.make_test_context``. The suite checks:
 * the state round trip: ``torch.save(model.state_dict())`` into a new instance through
   ``load_state_dict(d, ctx=None)`` gives the same predictions;
 * determinism: a second fit with the same seed gives the same predictions;
-* where played, ``CompositeModel.parts`` (labelled (b, n, 3) predictions) and
+* where played, ``CompositeModel.parts`` (labelled (b, n, 3) predictions, the labels of
+  ``part_models``) and
   ``CutSelectingModel`` (a chosen ``k`` per expression, the sweep that chose it).
 
 ``exact`` asks for bit-identical results (true on CPU for every built-in); set it to False
@@ -158,6 +159,7 @@ class BlendshapeModelContract:
             assert parts and all(isinstance(k, str) and k for k in parts)
             for k, P in parts.items():
                 assert P.shape == N.shape and np.all(np.isfinite(P)), k
+            assert list(m.part_models()) == list(parts), "part_models and parts carry the same labels"
 
     def test_cut_selection(self, fitted):
         m, data = fitted

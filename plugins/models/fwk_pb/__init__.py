@@ -520,14 +520,19 @@ class PBS(_Blend):
         pb.nets = nn.ModuleDict({"b0": self.nets[f"b{b}"]})
         return pb
 
+    def part_models(self) -> dict:
+        """The two single end-to-end PBs inside PBS (``fwk.protocols.CompositeModel``), labelled
+        ``pb-<representation>-<scaling>``: the spatial network first, then the dr one."""
+        return {f"pb-{s.name}-{s.params.get('scaling', 'std' if b == 0 else 'norm')}": self.single(b)
+                for b, s in enumerate(self.branch_specs)}
+
     def parts(self, neutrals, expression: str, target=None) -> dict:
-        """The two single end-to-end PB predictions inside PBS (``fwk.protocols.CompositeModel``):
-        ``pb-<representation>-<scaling>`` of each network, the spatial one at k = n and the dr
-        one registered onto ``target`` when given, as the thesis evaluates dr outputs."""
+        """The two single end-to-end PB predictions inside PBS (``part_models``): the spatial one
+        (k = n) and the dr one registered onto ``target`` when given, as the thesis evaluates dr
+        outputs."""
         N = self._check(neutrals, expression)
-        names = [f"pb-{s.name}-{s.params.get('scaling', 'std' if b == 0 else 'norm')}"
-                 for b, s in enumerate(self.branch_specs)]
-        return {names[0]: self.single(0).predict(N, expression), names[1]: self.single(1).predict(N, expression, target)}
+        (a, spatial), (b, differential) = self.part_models().items()
+        return {a: spatial.predict(N, expression), b: differential.predict(N, expression, target)}
 
     # ------------------------------------------------------------------ k selection
     def fit(self, data, ctx) -> None:

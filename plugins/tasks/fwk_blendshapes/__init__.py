@@ -196,6 +196,10 @@ class Blendshapes:
                         write_obj(ctx.path("predictions", r.replace(":", "_"), f"{test.subjects[idx[i]]}_{e}.obj"),
                                   Pin[i], col.template)
         modes = {lb: (m.mode, m.places_rigidly) for lb, m in fitted.items() if isinstance(m, TrainingModes)}
+        if self.pbs_ends:  # a composite's parts reported alone pair in table 5.1 like any PB
+            modes.update({f"{lb}:{name}": (p.mode, p.places_rigidly) for lb, m in fitted.items()
+                          if isinstance(m, CompositeModel) for name, p in m.part_models().items()
+                          if isinstance(p, TrainingModes)})
         # the baselines the summary compares each cut-selecting model with (DT): neither cut-selecting nor a PB
         others = [lb for lb, m in fitted.items() if not isinstance(m, (CutSelectingModel, TrainingModes))]
         sections = self._tables(results, expressions, row_labels, [m.name for m in metrics], shown, modes,
