@@ -142,6 +142,38 @@ def _joint_module(owner, kl_weight: float, stage_name: str):
     return loss_module({"nets": owner.nets}, loss)
 
 
+def _conditional_module(owner, kl_weight: float, stage_name: str):
+    """A conditional model's training on (subject, expression) pairs: each sample of a batch is
+    one pair, encoded from its neutral and decoded with its own expression's one-hot condition;
+    per network the loss is the mean L1 over the batch's pairs plus phi KL, as one per-expression
+    network's (eqs. 5.5 / 5.6)."""
+
+    def loss(module, batch, stage):
+        B = owner.n_branches
+        X, Y, e = batch[:B], batch[B:2 * B], batch[-1]
+        total = 0.0
+        for b in range(B):
+            unscale = owner.out_reps[b].unscale
+            zs, kl = owner._latent(b, X[b], sample=module.training, only=0)
+            err = torch.abs(unscale(owner._decode(b, e, zs[0])) - unscale(Y[b])).mean()
+            module.log(f"{stage}_l1_{owner.branch_names[b]}", err, on_epoch=True, on_step=False, batch_size=len(e))
+            total = total + err + kl_weight * kl
+        module.log(f"{stage}_loss", total, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(e))
+        return total
+
+    return loss_module({"nets": owner.nets}, loss)
+
+
+def _pairs(X: list, Y: list, mask: torch.Tensor) -> tuple:
+    """Per-subject tensors (inputs X[b] (S, n, c), targets Y[b * E + e] (S, n, c), mask (S, E))
+    -> one sample per present (subject, expression) pair: (*X[b][s], *Y[b][s, e], e), subject-major."""
+    s, e = torch.nonzero(mask, as_tuple=True)
+    B, E = len(X), mask.shape[1]
+    Xp = [x[s] for x in X]
+    Yp = [torch.stack([Y[b * E + j][i] for i, j in zip(s.tolist(), e.tolist())]) for b in range(B)]
+    return (*Xp, *Yp, e)
+
+
 class _Blend:
     """Shared machinery: branches (one representation each), networks per branch and expression."""
 
@@ -217,13 +249,18 @@ class _Blend:
         return zs, kl
 
     def _decode(self, b, e, zs):
+        """Branch b's decoder output for expression e (an index, or for a conditional model a
+        (batch,) tensor of indices: one expression per sample) from the codes ``zs``."""
         net = self.nets[f"b{b}"]
-        z = zs[e]
         if self.conditional:
+            z = zs[e] if isinstance(e, int) else zs
             cond = torch.zeros(len(z), len(self.expressions), dtype=z.dtype, device=z.device)
-            cond[:, e] = 1.0
+            if isinstance(e, int):
+                cond[:, e] = 1.0
+            else:
+                cond[torch.arange(len(z), device=z.device), e] = 1.0
             return net.dec(torch.cat([z, cond], dim=1))
-        return net.dec[e](z)
+        return net.dec[e](zs[e])
 
     # ------------------------------------------------------------------ fitting
     def fit(self, data, ctx) -> None:
@@ -287,10 +324,16 @@ class _Blend:
                 for p in self.nets[f"b{b}"].enc.parameters():
                     p.requires_grad_(False)
         self.nets.train()
-        train_t = (*X, *Y, mask)
-        val_t = (*val[0], *val[1], val[2]) if val is not None else None
-        engine.fit(_joint_module(self, kl, self.name), train_t, val_t, ctx,
-            f"{self.name}-step2" if self.mode == "two-step" else self.name, config)
+        if self.conditional:  # batches of (subject, expression) pairs: batch_size pairs per step
+            train_t = _pairs(X, Y, mask)
+            val_t = _pairs(*val[:3]) if val is not None and bool(val[2].any()) else None
+            module = _conditional_module(self, kl, self.name)
+        else:
+            train_t = (*X, *Y, mask)
+            val_t = (*val[0], *val[1], val[2]) if val is not None else None
+            module = _joint_module(self, kl, self.name)
+        engine.fit(module, train_t, val_t, ctx, f"{self.name}-step2" if self.mode == "two-step" else self.name,
+                   config)
         self.nets.eval()
 
     # ------------------------------------------------------------------ inference
@@ -337,15 +380,13 @@ class _Blend:
         X = torch.as_tensor(self.in_reps[b].encode(N))
         zs, _ = self._latent(b, X, sample=False)
         z = zs[0]  # conditional: one code for every expression
-        net, E, nb = self.nets[f"b{b}"], len(self.expressions), len(z)
+        nb = len(z)
         out = {}
         per = max(1, batch // max(nb, 1))  # expressions per decoder call
         for s in range(0, len(expressions), per):
             chunk = idx[s:s + per]
             zz = z.repeat(len(chunk), 1)  # (len(chunk) * nb, latent), expression-major
-            cond = torch.zeros(len(zz), E, dtype=z.dtype, device=z.device)
-            cond[torch.arange(len(zz)), torch.as_tensor(chunk).repeat_interleave(nb)] = 1.0
-            F = net.dec(torch.cat([zz, cond], dim=1)).numpy()
+            F = self._decode(b, torch.as_tensor(chunk).repeat_interleave(nb), zz).numpy()
             for j, e in enumerate(expressions[s:s + per]):
                 out[e] = F[j * nb:(j + 1) * nb]
         return out
