@@ -6,8 +6,9 @@ RUN is a run of ``recipes/thesis/ch3/plateau.yaml`` (members ``<conv>-<represent
 ``metrics.json``; unfinished members are listed as missing). Prints, in markdown:
 
 * one row per conv: L1 and DAME (and L2, FMPD) of each representation on the split, mean over
-  meshes in the evaluation space, with each member's epochs, what ended its training and the
-  plateau rule's verdict (the report's Training section);
+  meshes in the evaluation space, with each member's epochs, what ended its training, the
+  plateau rule's verdict (the report's Training section) and its training minutes (the sum of its
+  epochs' seconds, resumed runs included);
 * C1 per conv: whether a Euclidean-based representation (Euclidean or Euclidean Std.) has the
   lower L1 and L2 than DR Norm., and DR Norm. the lower DAME and FMPD than both; C1 holds "for
   most of the five convs" when it holds for at least three;
@@ -37,8 +38,12 @@ def load(run: Path, split: str) -> dict:
             (label, res), = m["models"].items()
             row = {k: v["mean"] for k, v in res[split].items()}
             t = m["training"]["networks"][label]
+            # training minutes: the epochs' own seconds (curves/), which a resumed run keeps from before
+            # the kill (its fit_s counts only the time since the resume)
+            curves = sorted((run / f"{conv}-{rep}" / "curves" / label).glob("*.json"))
+            secs = sum(e.get("seconds", 0.0) for c in curves for e in json.loads(c.read_text())["epochs"])
             row.update(epochs=f"{t['epochs_run']}/{t['max_epochs']}", ended=t["stopped_by"], verdict=t["plateau"],
-                       fit_min=m["timing"][label]["fit_s"] / 60)
+                       fit_min=(secs or m["timing"][label]["fit_s"]) / 60)
             out[conv, rep] = row
     return out
 
