@@ -51,7 +51,9 @@ in the state and saved with the run; ``predict`` and ``fwk apply`` use the chose
 Beyond the thesis (its future work, ``conditional: true``): one network pair for all
 expressions, the expression given to the decoders as a one-hot condition concatenated to z
 (a foreign flat code: ``build_decoder(..., latent_in=)`` reads it through a linear layer, also
-when the network's own code is a latent map).
+when the network's own code is a latent map). It trains on (subject, expression) pairs: a batch
+is ``batch_size`` pairs, each decoded with its own expression's one-hot, the loss per network the
+mean L1 over the pairs plus phi KL.
 """
 from __future__ import annotations
 
@@ -253,12 +255,13 @@ class _Blend:
         (batch,) tensor of indices: one expression per sample) from the codes ``zs``."""
         net = self.nets[f"b{b}"]
         if self.conditional:
-            z = zs[e] if isinstance(e, int) else zs
+            per_sample = torch.is_tensor(e)
+            z = zs if per_sample else zs[e]
             cond = torch.zeros(len(z), len(self.expressions), dtype=z.dtype, device=z.device)
-            if isinstance(e, int):
-                cond[:, e] = 1.0
-            else:
+            if per_sample:
                 cond[torch.arange(len(z), device=z.device), e] = 1.0
+            else:
+                cond[:, e] = 1.0
             return net.dec(torch.cat([z, cond], dim=1))
         return net.dec[e](zs[e])
 
