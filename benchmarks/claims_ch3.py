@@ -68,7 +68,7 @@ def main(argv=None) -> int:
     print("\n| conv | C1: Euclidean-based lower L1 | lower L2 | C1: DR Norm. lower DAME | lower FMPD | "
           "C2: Std. lower L1 | C2: Std. lower DAME |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
-    c1 = c2 = n1 = n2 = 0
+    c1 = c2 = n = 0  # n: convs with all three members
     for conv in CONVS:
         r = {rep: rows.get((conv, rep)) for rep in REPS}
         if any(v is None for v in r.values()):
@@ -82,12 +82,11 @@ def main(argv=None) -> int:
         fmpd = d["fmpd"] < min(e["fmpd"], s["fmpd"])
         std_l1, std_dame = s["l1"] < e["l1"], s["dame"] < e["dame"]
         print(f"| {conv} | {yes(l1)} | {yes(l2)} | {yes(dame)} | {yes(fmpd)} | {yes(std_l1)} | {yes(std_dame)} |")
-        n1 += 1
-        n2 += 1
+        n += 1
         c1 += l1 and dame
         c2 += std_l1 and std_dame
-    print(f"\nC1 (Euclidean-based lower L1 and DR Norm. lower DAME) holds for {c1} of {n1} complete convs; "
-          f"C2 (Std. lowers both L1 and DAME) for {c2} of {n2}.")
+    print(f"\nC1 (Euclidean-based lower L1 and DR Norm. lower DAME) holds for {c1} of {n} complete convs; "
+          f"C2 (Std. lowers both L1 and DAME) for {c2} of {n}.")
     return 0
 
 

@@ -277,6 +277,7 @@ def test_conditional_training_decodes_batch_size_pairs_per_step(tmp_path):
 
     m._make_nets = make_nets
     m.fit(data, make_test_context(tmp_path, epochs=1, batch_size=4))
+    pairs = len(data.train.positions) * 3
     for b in range(2):
         per_code = []  # samples decoded from each encoder pass (one step's graph)
         for bb, part, n in events:
@@ -286,5 +287,4 @@ def test_conditional_training_decodes_batch_size_pairs_per_step(tmp_path):
                 per_code.append(0)
             else:
                 per_code[-1] += n
-        pairs = len(data.train.positions) * 3
         assert len(per_code) >= pairs / 4 and max(per_code) <= 4, per_code

@@ -3,7 +3,6 @@ an exact tie is no win, k = 0 and k = n say that nothing was assembled; the smok
 gives one row per expression."""
 import json
 
-import numpy as np
 import pytest
 
 from fwk.plugins import get_registry
