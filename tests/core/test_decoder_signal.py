@@ -1,0 +1,68 @@
+"""benchmarks/decoder_signal.py: a layer's spread is its variation across codes relative to its
+size; checked on decoders whose answers are known."""
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+from torch import nn
+
+SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "decoder_signal.py"
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("decoder_signal", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+class Dec(nn.Module):
+    """fc -> (conv, act) x 2 -> out, the layout of fwk's AE decoders."""
+
+    def __init__(self, gain=1.0, bias=0.0):
+        super().__init__()
+        self.fc = nn.Linear(4, 6)
+        self.convs = nn.ModuleList([nn.Linear(6, 6), nn.Linear(6, 6)])
+        self.act = nn.Identity()
+        self.out = nn.Linear(6, 3)
+        with torch.no_grad():
+            for c in self.convs:
+                c.weight.copy_(gain * torch.eye(6))
+                c.bias.fill_(bias)
+
+    def forward(self, z):
+        x = self.fc(z)
+        for c in self.convs:
+            x = self.act(c(x))
+        return self.out(x)
+
+
+def test_spreads_follow_the_signal():
+    mod = _module()
+    z = torch.randn(64, 4, generator=torch.Generator().manual_seed(0))
+    d = Dec()
+    with torch.no_grad():
+        d.fc.bias.zero_()
+        d.out.bias.zero_()
+    s = mod.spreads(d, z)
+    assert list(s) == ["fc", "conv0", "conv1", "out"]
+    # identity convs: the same relative spread all the way
+    assert s["conv0"] == pytest.approx(s["fc"], rel=1e-6) and s["conv1"] == pytest.approx(s["fc"], rel=1e-6)
+    # a naive reference: std across codes over mean |activation|
+    a = d.fc(z).detach()
+    assert s["fc"] == pytest.approx((a.std(0).mean() / a.abs().mean()).item(), rel=1e-6)
+    # convs that shrink the code's part and add a constant: the spread falls layer by layer
+    s2 = mod.spreads(Dec(gain=0.1, bias=1.0), z)
+    assert s2["fc"] > s2["conv0"] > s2["conv1"]
+
+
+def test_redrawn_copy_is_fresh_and_grad_norms_are_finite():
+    mod = _module()
+    d = Dec()
+    f = mod.redrawn(d, 0)
+    assert not torch.equal(f.convs[0].weight, d.convs[0].weight)  # the identity was re-drawn
+    assert torch.equal(d.convs[0].weight, torch.eye(6))  # the original is untouched
+    assert torch.equal(mod.redrawn(d, 0).fc.weight, f.fc.weight)  # seeded
+    g1, g2 = mod.grad_norms(f, torch.randn(8, 4), 0)
+    assert g1 > 0 and g2 > 0
