@@ -86,6 +86,7 @@ def test_report_has_the_training_section_and_metrics_keep_their_keys(tmp_path):
     assert reg == summarise(rec)
     assert reg["stopped_by"] == "early_stopping" and reg["epochs_run"] == rec["stopped_epoch"] < 40
     assert reg["best_val_loss"] == min(e["val_loss"] for e in rec["epochs"])
+    assert reg["train_s"] == pytest.approx(sum(e["seconds"] for e in rec["epochs"]), abs=1e-3) and reg["train_s"] > 0
     assert t["networks"]["b/b-step1"]["plateau"] == "no validation"
     assert t["figures"] == ["figures/training_curves.png"]
     assert (ctx.run_dir / "figures" / "training_curves.png").stat().st_size > 1000
@@ -95,8 +96,18 @@ def test_report_has_the_training_section_and_metrics_keep_their_keys(tmp_path):
     row = next(line for line in lines if line.startswith("| reg |"))
     assert f"| {reg['epochs_run']} / 40 | rule, epoch {reg['epochs_run']} |" in row
     assert "| 40 / 40 | max epochs |" in next(line for line in lines if line.startswith("| b/b-step1 |"))
+    assert row.rstrip().endswith(" s |")  # the training time, e.g. "| 0 s |"
     assert "plateau when its best validation loss improved by less than 1%" in md
     assert "stop after 2 epochs in a row without a val_loss below the best by more than 0.02" in md
+
+
+def test_training_time_counts_every_epoch_of_a_resumed_run():
+    """train_s sums the epochs the curves hold, those of an earlier attempt included; an epoch
+    without a time (an old curves file) gives no total."""
+    epochs = [{"epoch": i + 1, "val_loss": 1.0 / (i + 1), "seconds": 2.5} for i in range(6)]
+    assert summarise({"epochs": epochs})["train_s"] == 15.0
+    epochs[2]["seconds"] = None
+    assert summarise({"epochs": epochs})["train_s"] is None
 
 
 def test_report_without_training_has_no_section(tmp_path):

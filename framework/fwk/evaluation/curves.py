@@ -79,9 +79,16 @@ def plateau(values: list) -> dict:
     return {"window": w, "improvement": rel, "verdict": "plateau" if rel < PLATEAU_THRESHOLD else "improving"}
 
 
+def _epoch_seconds(epochs: list):
+    secs = [e.get("seconds") for e in epochs]
+    return round(sum(secs), 3) if secs and all(_finite(v) for v in secs) else None
+
+
 def summarise(record: dict) -> dict:
     """One network's row: epochs run and the maximum, why training ended, the best validation
-    loss and its epoch, the last one, and the plateau test."""
+    loss and its epoch, the last one, the plateau test, and ``train_s``: the sum of the epochs'
+    own seconds (a resumed run's earlier epochs included, unlike the task's ``timing.fit_s``,
+    which counts the last attempt; None when an epoch has no time)."""
     monitor = record.get("monitor") or "val_loss"
     val = [e.get(monitor) for e in record["epochs"]]
     out = {
@@ -96,6 +103,7 @@ def summarise(record: dict) -> dict:
         "best_epoch": record.get("best_epoch"),
         "last_val_loss": val[-1] if val else None,
         "last_train_loss": record["epochs"][-1].get("train_loss"),
+        "train_s": _epoch_seconds(record["epochs"]),
     }
     p = plateau(val)
     out.update(plateau_window=p["window"], plateau_improvement=p["improvement"], plateau=p["verdict"])
@@ -175,6 +183,7 @@ def _ended(s: dict) -> str:
 
 def training_section(training: dict) -> str:
     """The report's "Training" section: the table, the plateau rule, the figures."""
+    from ..engine.callbacks import duration  # deferred: the engine imports Lightning
     from .report import markdown_table
 
     rows = []
@@ -182,13 +191,16 @@ def training_section(training: dict) -> str:
         imp = s["plateau_improvement"]
         rows.append([name, f"{s['epochs_run']} / {s['max_epochs']}", _ended(s), _fmt(s["best_val_loss"]),
                      s["best_epoch"] if s["best_epoch"] is not None else "-", _fmt(s["last_val_loss"]),
-                     f"{imp:.2%}" if _finite(imp) else "-", s["plateau_window"], s["plateau"]])
+                     f"{imp:.2%}" if _finite(imp) else "-", s["plateau_window"], s["plateau"],
+                     duration(s["train_s"]) if _finite(s.get("train_s")) else "-"])
     cols = ["network", "epochs run / max", "ended by", "best val loss", "best epoch", "last val loss",
-            "improvement, last w epochs", "w", "verdict"]
+            "improvement, last w epochs", "w", "verdict", "training time"]
     rules = {json.dumps(s["early_stopping"], sort_keys=True) for s in training["networks"].values()
              if s.get("early_stopping")}
     parts = [markdown_table(rows, cols), "",
-             "Losses as each network logs them (its own units and terms). " + training["plateau_rule"]]
+             "Losses as each network logs them (its own units and terms). " + training["plateau_rule"]
+             + " Training time: the sum of the epochs' own seconds (training and validation; a resumed run's "
+               "earlier epochs included)."]
     if rules:
         parts.append("Stopping rule (train.early_stopping): " + "; ".join(
             f"stop after {r['patience']} epochs in a row without a {r['monitor']} below the best by more than "
