@@ -1,6 +1,6 @@
 """Where PBS's two networks err, by frequency band: why its k sweep looks as it does (issue 13, item 3).
 
-    python benchmarks/pbs_band_errors.py RUN [--split val|test] [--model pbs]
+    python benchmarks/pbs_band_errors.py RUN [--split val|test] [--model pbs] [--expressions a,b]
 
 RUN is a finished blendshapes run with a ``pbs`` model (e.g. the main job,
 ``fwk run recipes/pbs_face_compression.yaml``). The split is rebuilt as the run made it (its
@@ -61,6 +61,7 @@ def main():
     ap.add_argument("run")
     ap.add_argument("--split", default="val", choices=["train", "val", "test"])
     ap.add_argument("--model", default="pbs")
+    ap.add_argument("--expressions", default=None, help="comma-separated; default: all of the model's")
     a = ap.parse_args()
     run = open_run(a.run)
     m = run.model(a.model)
@@ -76,7 +77,11 @@ def main():
     names = [f"[{lo},{hi})" for lo, hi in zip(edges[:-1], edges[1:])] + [f">={K}"]
     l1 = get_registry().get("metric", "l1")()
     j0 = c.shape_index("neutral")
-    for e in m.expressions:
+    chosen = m.expressions if a.expressions is None else a.expressions.split(",")
+    unknown = sorted(set(chosen) - set(m.expressions))
+    if unknown:
+        ap.error(f"--expressions: not expressions of {a.model}: {', '.join(unknown)}")
+    for e in chosen:
         je = c.shape_index(e)
         ok = c.present[:, j0] & c.present[:, je]
         N, G = np.asarray(c.positions[ok, j0]), np.asarray(c.positions[ok, je])
