@@ -78,6 +78,8 @@ class Representation(Protocol):
     places_rigidly: bool
     relative: bool          # features taken against ``ref`` (an offset / a deformation from it)
     relative_option: bool   # class attribute: the constructor takes ``relative`` (else fixed)
+    scaler: Any             # the fwk.scaling.Scaler that ``encode`` applies last (its settings are
+                            # read by models that re-scale groups of features: pb per expression)
 
     def fit(self, P: np.ndarray, ref: np.ndarray | None, template: "Template") -> None: ...
     def encode(self, P: np.ndarray, ref: np.ndarray | None = None) -> np.ndarray:

@@ -93,6 +93,13 @@ class Scaler:
         self.div: np.ndarray | None = None  # what it is divided by (after the shift)
         self._torch: dict = {}  # (dtype, device) -> (div, shift) tensors for inverse_torch
 
+    @classmethod
+    def like(cls, other: "Scaler") -> "Scaler":
+        """An unfitted scaler with ``other``'s settings (kind, granularity, a, eps, range, q,
+        centre). Fitted on features that ``other`` already scaled, it composes with it into the
+        scaling of that kind fitted on the raw features (both maps are affine and increasing)."""
+        return cls(other.kind, other.granularity, other.a, other.eps, other.range, other.q, other.centre)
+
     def _lo_hi(self, D: np.ndarray, axes) -> tuple[np.ndarray, np.ndarray]:
         if self.range == "minmax":
             return D.min(axis=axes), D.max(axis=axes)

@@ -237,8 +237,9 @@ def test_conditional_loss_is_the_mean_over_pairs_each_with_its_own_condition(tmp
     E = len(m.expressions)
     X = [torch.as_tensor(r.encode(np.asarray(tr.positions[:, 0]))) for r in m.in_reps]
     N = np.asarray(tr.positions[:, 0])
-    Y = [torch.as_tensor(m.out_reps[b].encode(np.asarray(tr.positions[:, tr.shape_index(e)]), N))
-         for b in range(2) for e in m.expressions]
+    Y = [torch.as_tensor(m.expr_scalers[b][i].transform(
+        m.out_reps[b].encode(np.asarray(tr.positions[:, tr.shape_index(e)]), N)).astype(np.float32))
+         for b in range(2) for i, e in enumerate(m.expressions)]
     batch = _pairs(X, Y, torch.ones(len(N), E, dtype=torch.bool))
     module = _conditional_module(m, 0.0, "t")
     module.eval()
@@ -248,12 +249,14 @@ def test_conditional_loss_is_the_mean_over_pairs_each_with_its_own_condition(tmp
     want = 0.0
     with torch.no_grad():
         for b in range(2):
-            un = m.out_reps[b].unscale
+            def un(e, T):  # the expression's own scaler, then the representation's: one pair at a time
+                return m.out_reps[b].unscale(m.expr_scalers[b][e].inverse_torch(T))
+
             errs = []
             for s in range(len(N)):
                 for e in range(E):
                     zs, _ = m._latent(b, X[b][s:s + 1], sample=False)
-                    errs.append(torch.abs(un(m._decode(b, e, zs)) - un(Y[b * E + e][s:s + 1])).mean())
+                    errs.append(torch.abs(un(e, m._decode(b, e, zs)) - un(e, Y[b * E + e][s:s + 1])).mean())
             want += float(torch.stack(errs).mean())
     assert abs(got - want) < 1e-5 * want
 
@@ -288,3 +291,76 @@ def test_conditional_training_decodes_batch_size_pairs_per_step(tmp_path):
             else:
                 per_code[-1] += n
         assert len(per_code) >= pairs / 4 and max(per_code) <= 4, per_code
+
+
+@pytest.mark.parametrize("rep", [{"name": "euclidean", "scaling": "std"}, {"name": "dr", "scaling": "norm"}])
+def test_targets_are_scaled_per_expression_as_a_representation_fitted_on_it_alone(tmp_path, rep):
+    """Thesis 5.2.1: the network of expression n sees g fitted on that expression's training
+    subjects. fwk fits the representation on all expressions and re-scales per expression; the
+    features equal those of a representation fitted on the expression alone, and decoding them
+    back gives the mesh."""
+    import torch
+
+    from fwk_pb import PB, _build_rep
+    from fwk.recipes import make_spec
+
+    data = _data3()
+    m = PB(representation=rep, network=NET)
+    m.fit(data, make_test_context(tmp_path, epochs=1, batch_size=4))
+    tr, va = data.train, data.val
+    N, Nv = np.asarray(tr.positions[:, 0]), np.asarray(va.positions[:, 0])
+    for i, e in enumerate(m.expressions):
+        P, Pv = np.asarray(tr.positions[:, tr.shape_index(e)]), np.asarray(va.positions[:, va.shape_index(e)])
+        alone = _build_rep(make_spec("representation", rep, "representation"))
+        alone.fit(P, N, data.template)
+        ours = m.expr_scalers[0][i].transform(m.out_reps[0].encode(Pv, Nv))
+        # equal up to the float32 rounding of the pooled features, compared in the representation's
+        # own units (where the loss is): divided by a per-expression spread much smaller than the
+        # pool's, that rounding grows in the scaled units
+        assert np.abs((ours - alone.encode(Pv, Nv)) * alone.scaler.div).max() < 1e-6, e
+        back = m.out_reps[0].decode(m.expr_inverse(0, i, torch.as_tensor(ours)).numpy(), Nv, Pv)
+        # the representation's own round trip (dr integrates in the least-squares sense: not exact)
+        assert np.abs(back - m.out_reps[0].decode(m.out_reps[0].encode(Pv, Nv), Nv, Pv)).max() < 1e-5
+
+
+def test_a_zero_network_output_is_the_expressions_mean_offset(tmp_path):
+    """With the per-expression scaling the decoders start from each expression's mean training
+    offset (a small expression is not drowned by a large one): zero features decode to the
+    neutral plus that expression's mean offset, different per expression."""
+    import torch
+
+    from fwk_pb import PB
+
+    data = _data3()
+    m = PB(representation={"name": "euclidean", "scaling": "std"}, network=NET, conditional=True)
+    m.fit(data, make_test_context(tmp_path, epochs=1, batch_size=4))
+    tr = data.train
+    N = np.asarray(tr.positions[:, 0])
+    Nv = np.asarray(data.val.positions[:, 0])
+    for i, e in enumerate(m.expressions):
+        mean_offset = (np.asarray(tr.positions[:, tr.shape_index(e)]) - N).mean(0)
+        F = m.expr_inverse(0, i, torch.zeros(len(Nv), N.shape[1], 3)).numpy()
+        assert np.allclose(m.out_reps[0].decode(F, Nv), Nv + mean_offset, atol=1e-6), e
+    # per-sample indices (a conditional batch) gather the same scalers as one index at a time
+    G = torch.randn(6, N.shape[1], 3)
+    e = torch.tensor([0, 2, 1, 1, 0, 2])
+    want = torch.stack([m.expr_inverse(0, int(j), G[s:s + 1])[0] for s, j in enumerate(e)])
+    assert torch.allclose(m.expr_inverse(0, e, G), want, atol=1e-6)
+
+
+def test_a_model_saved_before_the_per_expression_scaling_loads_with_one_scaling(tmp_path):
+    from fwk_pb import PB
+
+    data = _data3()
+    m = PB(representation={"name": "euclidean", "scaling": "std"}, network=NET)
+    m.fit(data, make_test_context(tmp_path, epochs=1, batch_size=4))
+    state = m.state_dict()
+    assert len(state["expr_scalers"][0]) == len(m.expressions)
+    del state["expr_scalers"]
+    old = PB(representation={"name": "euclidean", "scaling": "std"}, network=NET)
+    old.load_state_dict(state)
+    assert old.expr_scalers is None
+    N = np.asarray(data.val.positions[:, 0])
+    e = m.expressions[0]
+    F = old.branch_features(N, e, 0)  # the network's output taken as pooled features, as it was trained
+    assert np.allclose(old.predict(N, e), old.out_reps[0].decode(F, N))

@@ -191,3 +191,24 @@ def test_option_errors():
         Scaler("norm", centre="median")
     with pytest.raises(RecipeError, match="q"):
         Scaler("norm", range="quantile", q=0.5)
+
+
+@pytest.mark.parametrize("settings", [
+    dict(kind="std", granularity="vertex"), dict(kind="std", granularity="channel"),
+    dict(kind="norm", granularity="channel"), dict(kind="norm", granularity="vertex", a=2.0),
+    dict(kind="norm", granularity="vertex", range="quantile", q=0.1, centre="mean"), dict(kind="none")])
+def test_like_composes_into_the_scaling_fitted_on_raw_features(settings):
+    """Scaler.like(s) fitted on features s already scaled, applied after s, equals the scaling of
+    s's settings fitted on the raw features of that group (pb's per-expression scaling)."""
+    pooled = _F(seed=1, b=20)
+    group = pooled[:6] * 0.3 + 0.1  # a group whose statistics differ from the pool's
+    s = Scaler(**settings).fit(np.concatenate([pooled, group]))
+    again = Scaler.like(s)
+    assert (again.kind, again.granularity, again.a, again.eps, again.range, again.q, again.centre) == \
+        (s.kind, s.granularity, s.a, s.eps, s.range, s.q, s.centre) and again.shift is None
+    again.fit(s.transform(group))
+    direct = Scaler(**settings).fit(group)
+    test = _F(seed=2, b=4) * 0.3
+    assert np.allclose(again.transform(s.transform(test)), direct.transform(test), atol=1e-9)
+    G = direct.transform(test)
+    assert np.allclose(s.inverse(again.inverse(G)), direct.inverse(G), atol=1e-9)

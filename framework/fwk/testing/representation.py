@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from fwk.protocols import Representation, plays
+from fwk.scaling import Scaler
 
 from .metric import small_mesh
 
@@ -55,6 +56,7 @@ class RepresentationContract:
         assert isinstance(c.places_rigidly, bool) and isinstance(c.relative_option, bool)
         r, P, t = self.fitted()
         assert isinstance(r, Representation) and isinstance(r.relative, bool)
+        assert isinstance(r.scaler, Scaler), "scaler: the fwk.scaling.Scaler that encode applies last"
         if c.relative_option:  # the constructor takes `relative`
             assert self.component(**{**self.params, "relative": True}).relative is True
             assert self.component(**{**self.params, "relative": False}).relative is False

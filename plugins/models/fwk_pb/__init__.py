@@ -10,6 +10,20 @@ where g is a representation: ``euclidean`` (std: per-vertex standardisation of t
 ``dr`` (norm: the deformation of the neutral from P-bar, and of the expression from the
 subject's own neutral, normalised into [-1, 1]).
 
+g of expression n is scaled with the statistics of that expression's training subjects, as the
+thesis's network for expression n sees them (its means P-bar_expression n, 5.2.1): a network's
+zero output is its expression's mean offset. fwk fits the representation once on every
+expression's offsets (one operator set for ``dr``) and then re-scales each expression's
+features with a scaler of the representation's settings (``fwk.scaling.Scaler.like``) fitted
+on that expression alone: both maps are affine and increasing, so the features are those of a
+representation fitted on the expression alone (tested), for std and norm alike. This matters
+most for a conditional model (below): with one scaling for all expressions, its zero output is
+the mean offset over all of them, and an expression whose offset is small against the others'
+(a blink against a jaw opening) contributes so little to the loss that the network learned to
+leave it out (measured on the 57-expression ICT rig: gains of 0.001-0.01 for eyeBlink_L and
+browInnerUp_L, on training subjects too). A model saved before this scaling loads as it was
+trained (one scaling).
+
 ``pb`` (section 5.2), ``mode: end-to-end``: per expression one variational graph autoencoder
 E_neutral -> z -> D_expression, loss (eqs. 5.5 / 5.6)
 
@@ -72,6 +86,7 @@ from fwk.evaluation import evaluate, pareto_front
 from fwk.hookspecs import hookimpl
 from fwk.protocols import BLENDSHAPES, NetworkFactory
 from fwk.recipes import Kind, Spec, make_spec
+from fwk.scaling import Scaler
 
 # thesis 5.3.4: K = {0, 10, ..., 100, 120, ..., 200, 230, ..., 470, 500, 550, ..., 1000, 14921}, |K| = 37
 THESIS_KS = [*range(0, 101, 10), *range(120, 201, 20), *range(230, 471, 30), *range(500, 1001, 50)]
@@ -125,7 +140,6 @@ def _joint_module(owner, kl_weight: float, stage_name: str):
         X, Y, mask = batch[:B], batch[B:B + B * E], batch[-1]
         total = 0.0
         for b in range(B):
-            unscale = owner.out_reps[b].unscale
             z = owner._latent(b, X[b], sample=module.training)
             kl = z[1]
             for e in range(E):
@@ -133,7 +147,7 @@ def _joint_module(owner, kl_weight: float, stage_name: str):
                 if not bool(m.any()):
                     continue
                 G = owner._decode(b, e, z[0])
-                err = torch.abs(unscale(G[m]) - unscale(Y[b * E + e][m])).mean()
+                err = torch.abs(owner.unscale(b, e, G[m]) - owner.unscale(b, e, Y[b * E + e][m])).mean()
                 total = total + err
                 module.log(f"{stage}_l1_{owner.branch_names[b]}_{owner.expressions[e]}", err, on_epoch=True,
                            on_step=False, batch_size=int(m.sum()))
@@ -155,9 +169,8 @@ def _conditional_module(owner, kl_weight: float, stage_name: str):
         X, Y, e = batch[:B], batch[B:2 * B], batch[-1]
         total = 0.0
         for b in range(B):
-            unscale = owner.out_reps[b].unscale
             zs, kl = owner._latent(b, X[b], sample=module.training, only=0)
-            err = torch.abs(unscale(owner._decode(b, e, zs[0])) - unscale(Y[b])).mean()
+            err = torch.abs(owner.unscale(b, e, owner._decode(b, e, zs[0])) - owner.unscale(b, e, Y[b])).mean()
             module.log(f"{stage}_l1_{owner.branch_names[b]}", err, on_epoch=True, on_step=False, batch_size=len(e))
             total = total + err + kl_weight * kl
         module.log(f"{stage}_loss", total, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(e))
@@ -193,6 +206,8 @@ class _Blend:
         self.expressions = list(expressions) if expressions else None
         self.kl_weight, self.train_overrides = kl_weight, dict(train or {})
         self.in_reps = self.out_reps = None
+        self.expr_scalers = None  # per branch, per expression: fwk.scaling.Scaler (see the module docstring)
+        self._expr_stacks = {}  # (branch, dtype, device) -> the expression scalers' (div, shift) stacked
         self.nets = None
         self._net_model = None
         self.template = None
@@ -265,6 +280,44 @@ class _Blend:
             return net.dec(torch.cat([z, cond], dim=1))
         return net.dec[e](zs[e])
 
+    def _fit_expr_scalers(self, b, F, mask) -> None:
+        """Branch b's per-expression scalers: for expression i one ``Scaler.like`` the
+        representation's, fitted on the training subjects that have it (F[i] (S, n, c), mask (S, E));
+        an expression no training subject has keeps its features as they are."""
+        like = self.out_reps[b].scaler
+        out = []
+        for i, Fi in enumerate(F):
+            rows = Fi[mask[:, i]]
+            if like is None or len(rows) == 0:
+                out.append(Scaler("none").fit(Fi[:1]))
+            else:
+                out.append(Scaler.like(like).fit(rows))
+        self.expr_scalers[b] = out
+        self._expr_stacks = {}
+
+    def expr_inverse(self, b, e, G):
+        """Network output G (torch, (B, n, c)) of branch b for expression e (an index, or a (B,)
+        tensor of indices: one per sample) -> the representation's features (undo the
+        per-expression scaling); the identity for a model saved before it existed."""
+        if self.expr_scalers is None:
+            return G
+        if not torch.is_tensor(e):
+            return self.expr_scalers[b][e].inverse_torch(G)
+        key = (b, G.dtype, G.device)
+        if key not in self._expr_stacks:
+            sc = self.expr_scalers[b]
+            rows = max(x.div.shape[0] for x in sc)  # per vertex (n, c), or (1, c) where one kind is per channel
+            self._expr_stacks[key] = tuple(
+                torch.as_tensor(np.stack([np.broadcast_to(getattr(x, a), (rows, x.div.shape[1])) for x in sc]),
+                                dtype=G.dtype, device=G.device) for a in ("div", "shift"))
+        div, shift = self._expr_stacks[key]
+        return G * div[e] + shift[e]
+
+    def unscale(self, b, e, G):
+        """The loss space of eqs. 5.5 / 5.6: branch b's output for expression e (as ``expr_inverse``)
+        in the representation's own units (``Representation.unscale``), differentiable."""
+        return self.out_reps[b].unscale(self.expr_inverse(b, e, G))
+
     # ------------------------------------------------------------------ fitting
     def fit(self, data, ctx) -> None:
         tr, va = data.train, data.val
@@ -286,6 +339,8 @@ class _Blend:
             if len(N) == 0:
                 return None
             X, Y = [], []
+            if fit_reps:
+                self.expr_scalers = [None] * self.n_branches
             for b in range(self.n_branches):
                 if fit_reps:
                     self.in_reps[b].fit(N, None, data.template)
@@ -298,10 +353,14 @@ class _Blend:
                     if len(Pe) == 0 or not has.any():
                         raise DataError(f"{self.name}: no training subject has any of {', '.join(self.expressions)}")
                     self.out_reps[b].fit(Pe, Ne, data.template)
+                F = []
                 for i, j in enumerate(idx):
                     Pj = np.asarray(col.positions[keep, j]).copy()
                     Pj[~mask[:, i]] = N[~mask[:, i]]  # missing shapes: any finite stand-in, masked out of the loss
-                    Y.append(torch.as_tensor(self.out_reps[b].encode(Pj, N)))
+                    F.append(self.out_reps[b].encode(Pj, N))
+                if fit_reps:
+                    self._fit_expr_scalers(b, F, mask)
+                Y += [torch.as_tensor(self.expr_scalers[b][i].transform(Fi).astype(np.float32)) for i, Fi in enumerate(F)]
             return X, Y, torch.as_tensor(mask), N
 
         train = arrays(tr, True)
@@ -358,7 +417,7 @@ class _Blend:
         e = self.expressions.index(expression)
         X = torch.as_tensor(self.in_reps[b].encode(N))
         zs, _ = self._latent(b, X, sample=False, only=e)
-        return self._decode(b, e, zs).numpy()
+        return self.expr_inverse(b, e, self._decode(b, e, zs)).numpy()
 
     def branch_predict(self, N, expression: str, b: int, target=None) -> np.ndarray:
         """Eq. 5.7: P'_expr = g^-1(F'_expr) relative to the neutral (dr integrated against it)."""
@@ -389,7 +448,8 @@ class _Blend:
         for s in range(0, len(expressions), per):
             chunk = idx[s:s + per]
             zz = z.repeat(len(chunk), 1)  # (len(chunk) * nb, latent), expression-major
-            F = self._decode(b, torch.as_tensor(chunk).repeat_interleave(nb), zz).numpy()
+            ei = torch.as_tensor(chunk).repeat_interleave(nb)
+            F = self.expr_inverse(b, ei, self._decode(b, ei, zz)).numpy()
             for j, e in enumerate(expressions[s:s + per]):
                 out[e] = F[j * nb:(j + 1) * nb]
         return out
@@ -410,6 +470,8 @@ class _Blend:
     def _base_state(self) -> dict:
         return {"expressions": self.expressions, "nets": self.nets.state_dict(), "shape": self.shape,
                 "in_reps": [r.state_dict() for r in self.in_reps], "out_reps": [r.state_dict() for r in self.out_reps],
+                "expr_scalers": None if self.expr_scalers is None else [[x.state_dict() for x in sc]
+                                                                        for sc in self.expr_scalers],
                 "template_vertices": self.template.vertices, "template_triangles": self.template.triangles}
 
     def _load_base(self, d: dict, ctx=None) -> None:
@@ -422,6 +484,9 @@ class _Blend:
             r.load_state_dict(s, ctx=ctx)
         for r, s in zip(self.out_reps, d["out_reps"]):
             r.load_state_dict(s, ctx=ctx)
+        es = d.get("expr_scalers")  # None in a model saved before the per-expression scaling: pooled
+        self.expr_scalers = None if es is None else [[Scaler().load_state_dict(x) for x in sc] for sc in es]
+        self._expr_stacks = {}
         self._make_nets(self.template, self.shape[1], ctx)
         self.nets.load_state_dict(d["nets"])
         self.nets.eval()
@@ -561,6 +626,7 @@ class PBS(_Blend):
         pb.expressions, pb.template, pb._net_model = list(self.expressions), self.template, self._net_model
         pb.shape = (self.shape[0], [self.shape[1][b]])
         pb.in_reps, pb.out_reps = [self.in_reps[b]], [self.out_reps[b]]
+        pb.expr_scalers = None if self.expr_scalers is None else [self.expr_scalers[b]]
         pb.nets = nn.ModuleDict({"b0": self.nets[f"b{b}"]})
         return pb
 

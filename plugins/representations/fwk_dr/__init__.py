@@ -228,6 +228,7 @@ class DR:
     places_rigidly = True  # decode integrates up to a rigid motion: placed onto `target` when given
     relative_option = False  # always the deformation from ref
     relative = True
+    scaler: Scaler | None = None  # each instance sets its own: the scaling encode applies last
 
     def __init__(self, scaling: str = "norm", granularity: str | None = "vertex", a: float = 1.0, ref: str = "mean",
                  align: str = "reference", normal_weight: float = 0.1, weight_floor: float = 1e-3,

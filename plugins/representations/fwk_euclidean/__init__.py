@@ -23,6 +23,7 @@ class Euclidean:
     places_rigidly = False  # positions come back where they were
     relative_option = True  # `relative: true` takes the features against ref (an offset)
     relative = False  # the constructor's `relative` sets it per instance
+    scaler: Scaler | None = None  # each instance sets its own: the scaling encode applies last
 
     def __init__(self, scaling: str = "std", granularity: str | None = None, a: float = 1.0, relative: bool = False,
                  eps: float = 1e-8):
