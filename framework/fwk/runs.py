@@ -388,6 +388,11 @@ def versions(registry: Registry) -> dict:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
         if commit.returncode == 0:
             out["git_commit"] = commit.stdout.strip()
+            # tracked files changed since that commit: the run is not exactly the commit
+            dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                                   capture_output=True, text=True, timeout=5)
+            if dirty.returncode == 0:
+                out["git_dirty"] = bool(dirty.stdout.strip())
     except Exception:
         pass
     return out
