@@ -13,7 +13,11 @@ with the same weights (``inferno``).
 ``--screenshot out.png`` renders without a window (open3d's offscreen renderer: EGL or a
 software Vulkan; CI runs it under Xvfb): with ``--expression NAME`` (repeatable) or
 ``--weights name=w,...`` one picture of that blend, else a sheet of the neutral and up to
-``--max-tiles`` expressions, each titled, with the colour bar in the rig's units.
+``--max-tiles`` expressions, each titled, with the colour bar in the rig's units. The colour
+scale is shared by every tile (``--scale shared``: the largest displacement of any expression at
+weight 1, so tiles compare), or each tile's own (``--scale per-tile``: its largest value is the
+top colour and its title gives that value; a rig whose jaw moves 4 cm and whose brows 3 mm shows
+both).
 
 open3d is in the optional extra ``rig`` (``pip install 'fwk[rig]'``); it is imported when a
 picture or a window is made (0.9 s of import time, and absent without the extra).
@@ -242,8 +246,9 @@ def _camera(rig: Rig):
     return centre, centre + np.array([0.0, 0.0, 1.9 * size]), np.array([0.0, 1.0, 0.0])
 
 
-def render_tiles(rig: Rig, weights: list[np.ndarray], size=(480, 540)) -> list[np.ndarray]:
-    """One offscreen picture (h, w, 3) uint8 per weight vector, front view, lit: open3d's OpenGL
+def render_tiles(rig: Rig, weights: list[np.ndarray], size=(480, 540), tops: list[float] | None = None) -> list[np.ndarray]:
+    """One offscreen picture (h, w, 3) uint8 per weight vector (coloured against ``tops[i]``, or
+    against the rig's shared ``colour_limit``), front view, lit: open3d's OpenGL
     visualiser in a hidden window (EGL without a display, or an X server such as Xvfb; a few
     seconds on 2 cores, where its Filament renderer on a software Vulkan takes 30 s or more)."""
     o3d = _o3d()
@@ -257,11 +262,11 @@ def render_tiles(rig: Rig, weights: list[np.ndarray], size=(480, 540)) -> list[n
         opt.mesh_show_back_face = True
         opt.light_on = True
         centre, eye, up = _camera(rig)
-        top = rig.colour_limit()
+        shared = rig.colour_limit() if tops is None else None
         out = []
         mesh = None
-        for w in weights:
-            m, _ = _mesh(o3d, rig, w, top)
+        for i, w in enumerate(weights):
+            m, _ = _mesh(o3d, rig, w, shared if tops is None else tops[i])
             if mesh is None:
                 mesh = m
                 vis.add_geometry(mesh)
@@ -282,9 +287,16 @@ def render_tiles(rig: Rig, weights: list[np.ndarray], size=(480, 540)) -> list[n
         vis.destroy_window()
 
 
-def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tiles: int = 12) -> Path:
+SCALES = ("shared", "per-tile")
+
+
+def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tiles: int = 12,
+               scale: str = "shared") -> Path:
     """Write ``path`` (PNG): the blend ``weights`` alone, or a sheet of the neutral and up to
-    ``max_tiles - 1`` expressions at weight 1, titled, with the colour bar."""
+    ``max_tiles - 1`` expressions at weight 1, titled, with the colour bar (``scale``: one colour
+    scale for all tiles, or ``per-tile``: each tile's largest value at the top colour)."""
+    if scale not in SCALES:
+        raise FwkError(f"--scale {scale}: expected one of {', '.join(SCALES)}")
     import matplotlib  # deferred: see _colours
 
     matplotlib.use("Agg")
@@ -297,9 +309,15 @@ def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tile
         shown = rig.names[:max(0, max_tiles - 1)]
         ws = [np.zeros(len(rig.names))] + [rig.weights({e: 1.0}) for e in shown]
         titles = ["neutral", *shown]
-    tiles = render_tiles(rig, ws)
-    top = rig.colour_limit()
     label = rig.scalars(ws[-1])[1]
+    if scale == "per-tile":
+        tops = [float(rig.scalars(w)[0].max()) for w in ws]
+        titles = [f"{t}\nmax {top:.3g} {rig.units}" for t, top in zip(titles, tops)]
+        tops = [top or 1.0 for top in tops]  # the neutral: nothing moves
+        top, label = 1.0, f"{label.split(' (')[0]} / the tile's max"
+    else:
+        tops, top = None, rig.colour_limit()
+    tiles = render_tiles(rig, ws, tops=tops)
     cols = min(len(tiles), 4)
     rows = -(-len(tiles) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(max(4.8, 2.4 * cols + 1.2), 2.9 * rows + 0.4), squeeze=False)
@@ -419,6 +437,8 @@ def add_view_parser(subparsers):
     p.add_argument("--expression", action="append", help="with --screenshot: this expression at weight 1 (repeatable)")
     p.add_argument("--weights", help="with --screenshot: a blend, name=weight,... (e.g. jawOpen=0.6,eyeBlinkLeft=1)")
     p.add_argument("--max-tiles", type=int, default=12, help="with --screenshot: tiles of the sheet (default 12)")
+    p.add_argument("--scale", choices=SCALES, default="shared",
+                   help="with --screenshot: one colour scale for all tiles (default), or each tile's own")
     return p
 
 
@@ -426,7 +446,7 @@ def run_view(args) -> int:
     """``fwk view``'s entry (cli.EXTRA_COMMANDS)."""
     rig = load_rig(args.path, args.neutral, args.truth)
     if args.screenshot:
-        out = screenshot(rig, args.screenshot, _weights(args), args.max_tiles)
+        out = screenshot(rig, args.screenshot, _weights(args), args.max_tiles, args.scale)
         print(out)
         return 0
     open_window(rig)

@@ -104,6 +104,13 @@ def test_screenshot_shows_the_displacement(rig_dir, tmp_path):
     assert r1.returncode == 0 and r0.returncode == 0, (r1.stderr[-2000:], r0.stderr[-2000:])
     jaw, zero = mpimg.imread(tmp_path / "jaw.png"), mpimg.imread(tmp_path / "zero.png")
     assert _yellow(jaw) > 50 and _yellow(zero) == 0
+    # a fifth of jawOpen: a fifth of the shared scale (no top colour), all of its own
+    r_sh = _view([out / "anna.glb", "--screenshot", tmp_path / "fifth.png", "--weights", "jawOpen=0.2"], tmp_path)
+    r_pt = _view([out / "anna.glb", "--screenshot", tmp_path / "fifth-own.png", "--weights", "jawOpen=0.2",
+                  "--scale", "per-tile"], tmp_path)
+    assert r_sh.returncode == 0 and r_pt.returncode == 0, (r_sh.stderr[-2000:], r_pt.stderr[-2000:])
+    assert _yellow(mpimg.imread(tmp_path / "fifth.png")) == 0
+    assert _yellow(mpimg.imread(tmp_path / "fifth-own.png")) > 50
     bad = _view([out / "anna.glb", "--screenshot", tmp_path / "x.png", "--expression", "smile"], tmp_path)
     assert bad.returncode == 2 and "fwk: error: --expression smile: not in the rig" in bad.stderr
 
