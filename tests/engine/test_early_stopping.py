@@ -72,6 +72,37 @@ def test_stopping_rule_against_a_naive_reference():
         assert d["stop"] == (d["epoch"] is not None)
 
 
+def _naive_relative(values, patience, frac):
+    """The relative rule spelled out: the reference is the last value that beat the reference
+    before it by more than frac of that reference's magnitude; stop when patience values in a
+    row did not."""
+    ref, wait = None, 0
+    for e, v in enumerate(values, start=1):
+        if ref is None or ref - v > frac * abs(ref):
+            ref, wait = v, 0
+        else:
+            wait += 1
+        if wait >= patience:
+            return e
+    return None
+
+
+def test_relative_min_delta_against_a_naive_reference_and_scale_free():
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        n = int(rng.integers(1, 40))
+        patience = int(rng.integers(1, 6))
+        frac = float(rng.choice([0.0, 0.001, 0.01, 0.05]))
+        v = list(np.exp(-np.cumsum(np.abs(rng.normal(0.03, 0.03, n)))) * (1 + rng.normal(0, 0.01, n)))
+        d = stopping_rule(v, patience, frac, relative=True)
+        assert d["epoch"] == _naive_relative(v, patience, frac)
+        # the same curve in other units stops at the same epoch (the absolute rule would not)
+        assert stopping_rule([x * 1e-4 for x in v], patience, frac, relative=True)["epoch"] == d["epoch"]
+    # 0.1 % of 1e-2 is 1e-5: an improvement of 2e-5 counts, one of 5e-6 does not
+    assert stopping_rule([1e-2, 0.998e-2], 1, 1e-3, relative=True)["stop"] is False
+    assert stopping_rule([1e-2, 0.9995e-2], 1, 1e-3, relative=True)["stop"] is True
+
+
 def test_stopping_rule_min_delta_and_non_finite():
     # improvements of 0.01 are not improvements with min_delta 0.02: the reference stays at 1.0
     assert stopping_rule([1.0, 0.99, 0.98], 2, 0.02) == {"stop": True, "reason": "no improvement", "epoch": 3,
@@ -107,7 +138,13 @@ def test_recipe_key(tmp_path):
             "train": {"epochs": 50, "early_stopping": {"patience": 5, "min_delta": 1e-4}}}
     train = resolve(data, get_registry()).train
     assert train.epochs == 50 and train.early_stopping == EarlyStopping(5, 1e-4, "val_loss")
-    assert to_plain(train)["early_stopping"] == {"patience": 5, "min_delta": 1e-4, "monitor": "val_loss"}
+    assert to_plain(train)["early_stopping"] == {"patience": 5, "min_delta": 1e-4, "monitor": "val_loss",
+                                                 "relative": False}
+    rel = resolve({**data, "train": {"early_stopping": {"patience": 5, "min_delta": 1e-3, "relative": True}}},
+                  get_registry()).train.early_stopping
+    assert rel.relative is True and rel.min_delta == 1e-3
+    with pytest.raises(RecipeError, match="train.early_stopping.relative"):
+        resolve({**data, "train": {"early_stopping": {"relative": "yes"}}}, get_registry())
     with pytest.raises(RecipeError, match="train.early_stopping.patience"):
         resolve({**data, "train": {"early_stopping": {"patience": "x"}}}, get_registry())
 
@@ -122,7 +159,7 @@ def test_the_rule_ends_training_and_the_record_says_why(tmp_path):
     m = fit(_module(), train, val, ctx, "reg")
     r = _curves(ctx)
     assert r["stopped_by"] == "early_stopping" and r["stop_reason"] == "no improvement"
-    assert r["finished"] and r["max_epochs"] == 40 and r["early_stopping"] == {**RULE, "monitor": "val_loss"}
+    assert r["finished"] and r["max_epochs"] == 40 and r["early_stopping"] == {**RULE, "monitor": "val_loss", "relative": False}
     e = r["stopped_epoch"]
     assert 2 < e < 40 and r["epochs_run"] == e and m.steps == 4 * e  # 32 samples, batch 8
     val_losses = [x["val_loss"] for x in r["epochs"]]

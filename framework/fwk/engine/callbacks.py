@@ -101,9 +101,10 @@ class ThreadShare(pl.Callback):
             self.report(f"threads: {n} ({why})")
 
 
-def stopping_rule(values, patience: int, min_delta: float) -> dict:
+def stopping_rule(values, patience: int, min_delta: float, relative: bool = False) -> dict:
     """The early-stopping rule over the monitored values of epochs 1..E (in order): the best
-    value so far counts as improved upon when a value falls below it by more than ``min_delta``;
+    value so far counts as improved upon when a value falls below it by more than ``min_delta``
+    (``relative``: by more than ``min_delta`` times its magnitude);
     training stops at the first epoch after which ``patience`` epochs in a row brought no
     improvement, or at a non-finite value. Returns {stop, reason, epoch (1-based, where it
     stopped, else None), wait (epochs without improvement at the end), best (the rule's
@@ -112,7 +113,7 @@ def stopping_rule(values, patience: int, min_delta: float) -> dict:
     for e, v in enumerate(values, start=1):
         if v is None or not math.isfinite(v):
             return {"stop": True, "reason": "non-finite", "epoch": e, "wait": wait, "best": best}
-        if best is None or v < best - min_delta:
+        if best is None or v < best - (min_delta * abs(best) if relative else min_delta):
             best, wait = v, 0
         else:
             wait += 1
@@ -183,7 +184,7 @@ class TrainingCurves(pl.Callback):
                 raise RecipeError(f"train.early_stopping.monitor: {self.network} logs no {self.rule.monitor!r} "
                                   f"(logged: {logged})")
             d = stopping_rule([h.get(self.rule.monitor) for h in self.history], self.rule.patience,
-                              self.rule.min_delta)
+                              self.rule.min_delta, self.rule.relative)
             if d["stop"]:
                 self.stop = {"epoch": d["epoch"], "reason": d["reason"]}
                 trainer.should_stop = True
@@ -206,7 +207,8 @@ class TrainingCurves(pl.Callback):
             stopped_by = None  # still training, or killed
         rule = None
         if self.rule is not None:
-            rule = {"patience": self.rule.patience, "min_delta": self.rule.min_delta, "monitor": self.rule.monitor}
+            rule = {"patience": self.rule.patience, "min_delta": self.rule.min_delta, "monitor": self.rule.monitor,
+                    "relative": self.rule.relative}
         return {
             "network": self.network,
             "max_epochs": self.max_epochs,

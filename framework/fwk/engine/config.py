@@ -17,13 +17,16 @@ class EarlyStopping:
     """The stopping rule of ``train.early_stopping`` (off unless given): training ends after the
     first epoch e at which the monitored validation loss has not improved for ``patience``
     epochs in a row, an improvement being a value below the best so far by more than
-    ``min_delta`` (in the loss's own units); a non-finite value also ends it. ``train.epochs``
-    stays the maximum. The weights kept are those of the last epoch trained (not the best one).
+    ``min_delta`` (in the loss's own units; with ``relative: true`` a fraction of the best value,
+    so one rule suits losses of any scale: 0.001 is 0.1 %); a non-finite value also ends it.
+    ``train.epochs`` stays the maximum. The weights kept are those of the last epoch trained (not
+    the best one).
     """
 
     patience: int = 10
     min_delta: float = 0.0
     monitor: str = "val_loss"
+    relative: bool = False
 
     def __post_init__(self):
         if isinstance(self.patience, bool) or not isinstance(self.patience, int) or self.patience < 1:
@@ -32,6 +35,8 @@ class EarlyStopping:
             raise RecipeError(f"train.early_stopping.min_delta: expected a number >= 0, got {self.min_delta!r}")
         if not isinstance(self.monitor, str) or not self.monitor:
             raise RecipeError(f"train.early_stopping.monitor: expected a logged metric's name, got {self.monitor!r}")
+        if not isinstance(self.relative, bool):
+            raise RecipeError(f"train.early_stopping.relative: expected true or false, got {self.relative!r}")
         self.min_delta = float(self.min_delta)
 
 
@@ -64,7 +69,7 @@ class TrainConfig:
                 raise RecipeError(f"train.early_stopping.{bad[0]}: unknown setting{did_you_mean(bad[0], names)}")
             self.early_stopping = EarlyStopping(**self.early_stopping)
         elif self.early_stopping is not None and not isinstance(self.early_stopping, EarlyStopping):
-            raise RecipeError(f"train.early_stopping: expected a mapping {{patience, min_delta, monitor}} or null, "
+            raise RecipeError(f"train.early_stopping: expected a mapping {{patience, min_delta, monitor, relative}} or null, "
                               f"got {self.early_stopping!r}")
         checks = [("epochs", self.epochs >= 1), ("batch_size", self.batch_size >= 1), ("lr", self.lr > 0),
                   ("lr_decay", 0 < self.lr_decay <= 1), ("kl_weight", self.kl_weight >= 0),

@@ -204,7 +204,8 @@ def training_section(training: dict) -> str:
     if rules:
         parts.append("Stopping rule (train.early_stopping): " + "; ".join(
             f"stop after {r['patience']} epochs in a row without a {r['monitor']} below the best by more than "
-            f"{r['min_delta']:g}" for r in map(json.loads, sorted(rules)))
+            + (f"{r['min_delta']:g} of it" if r.get("relative") else f"{r['min_delta']:g}")
+            for r in map(json.loads, sorted(rules)))
             + "; the weights kept are the last epoch's; train.epochs is the maximum.")
     else:
         parts.append("No stopping rule: every network trained train.epochs epochs (train.early_stopping is off).")
