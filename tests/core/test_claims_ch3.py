@@ -1,17 +1,12 @@
 """benchmarks/claims_ch3.py reads a chapter 3 grid run and decides C1/C2 per conv by the sign of
 differences of means: checked on a fake run whose answers are known."""
-import importlib.util
 import json
-from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "claims_ch3.py"
+from .scripts import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("claims_ch3", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("claims_ch3")
 
 
 def _member(run, name, l1, dame, l2=None, fmpd=None):

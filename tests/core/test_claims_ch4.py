@@ -1,17 +1,12 @@
 """benchmarks/claims_ch4.py reads a chapter 4 run (and its k study) and decides C4 per dsm model
 and split by the Pareto front of the learned models: checked on fake runs whose answers are known."""
-import importlib.util
 import json
-from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "claims_ch4.py"
+from .scripts import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("claims_ch4", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("claims_ch4")
 
 
 def _run(d, models: dict, seconds=30.0):

@@ -1,18 +1,13 @@
 """benchmarks/claims_ch5.py reads a chapter 5 run and decides C5 (end-to-end against two-step)
 and C6 (PBS against DT) per expression by the sign of differences of means: checked on a fake
 run whose answers are known."""
-import importlib.util
 import json
-from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "claims_ch5.py"
+from .scripts import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("claims_ch5", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("claims_ch5")
 
 
 def _m(l1, dame, fmpd):

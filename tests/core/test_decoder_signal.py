@@ -1,20 +1,15 @@
 """benchmarks/decoder_signal.py: a layer's spread is its variation across codes relative to its
 size; checked on decoders whose answers are known."""
-import importlib.util
-from pathlib import Path
 
 import pytest
 import torch
 from torch import nn
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "decoder_signal.py"
+from .scripts import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("decoder_signal", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("decoder_signal")
 
 
 class Dec(nn.Module):
