@@ -61,7 +61,7 @@ def _values(metrics: dict) -> dict:
         elif isinstance(v, list):
             for i, x in enumerate(v):
                 walk(x, f"{path}[{i}]")
-        elif "timing" not in path and not path.endswith("/seconds"):
+        elif "timing" not in path and not path.endswith(("/seconds", "/train_s")):  # wall times
             out[path] = v
 
     walk(metrics, "")
