@@ -360,7 +360,9 @@ class _Blend:
                     F.append(self.out_reps[b].encode(Pj, N))
                 if fit_reps:
                     self._fit_expr_scalers(b, F, mask)
-                Y += [torch.as_tensor(self.expr_scalers[b][i].transform(Fi).astype(np.float32)) for i, Fi in enumerate(F)]
+                for i in range(len(F)):  # each expression's features released once scaled (a rig has 57)
+                    Y.append(torch.as_tensor(self.expr_scalers[b][i].transform(F[i]).astype(np.float32)))
+                    F[i] = None
             return X, Y, torch.as_tensor(mask), N
 
         train = arrays(tr, True)
