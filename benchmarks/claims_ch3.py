@@ -37,7 +37,10 @@ def load(run: Path, split: str) -> dict:
             m = json.loads(f.read_text())
             (label, res), = m["models"].items()
             row = {k: v["mean"] for k, v in res[split].items()}
-            t = m["training"]["networks"][label]
+            # the model's network: labelled as the model, or "<label>/<network>" where the model
+            # trains a network of another kind (vcconv's fully convolutional AE trains a "vae")
+            nets = m["training"]["networks"]
+            t = nets.get(label) or next(v for k, v in nets.items() if k.startswith(label + "/"))
             # training minutes: the epochs' own seconds (curves/), which a resumed run keeps from before
             # the kill (its fit_s counts only the time since the resume)
             curves = sorted((run / f"{conv}-{rep}" / "curves" / label).glob("*.json"))

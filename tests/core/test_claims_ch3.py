@@ -9,13 +9,14 @@ def _module():
     return load_benchmark("claims_ch3")
 
 
-def _member(run, name, l1, dame, l2=None, fmpd=None):
+def _member(run, name, l1, dame, l2=None, fmpd=None, network="ae"):
+    """A finished member; ``network``: the training record's name (vcconv's AE trains "ae/vae")."""
     d = run / name
     d.mkdir(parents=True)
     res = {"test": {k: {"mean": v} for k, v in {"l1": l1, "l2": l2 or l1 ** 2, "dame": dame,
                                                   "fmpd": fmpd or dame}.items()}}
     t = {"epochs_run": 20, "max_epochs": 50, "stopped_by": "early_stopping", "plateau": "plateau"}
-    (d / "metrics.json").write_text(json.dumps({"models": {"ae": res}, "training": {"networks": {"ae": t}},
+    (d / "metrics.json").write_text(json.dumps({"models": {"ae": res}, "training": {"networks": {network: t}},
                                                 "timing": {"ae": {"fit_s": 60.0}}}))
 
 
@@ -28,7 +29,7 @@ def test_c1_and_c2_per_conv(tmp_path, capsys):
     # lsa: DR best on everything (C1 fails on L1), raw Euclidean better DAME than Std. (C2 fails)
     _member(run, "lsa-euclidean", 3.0, 0.3)
     _member(run, "lsa-euclidean-std", 2.9, 0.4)
-    _member(run, "lsa-dr-norm", 1.0, 0.1)
+    _member(run, "lsa-dr-norm", 1.0, 0.1, network="ae/vae")  # a network of another kind inside the model
     _member(run, "feast-euclidean", 3.0, 0.3)  # incomplete conv
     assert _module().main([str(run)]) == 0
     out = capsys.readouterr().out
