@@ -316,7 +316,8 @@ def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tile
         tops = [top or 1.0 for top in tops]  # the neutral: nothing moves
         top, label = 1.0, f"{label.split(' (')[0]} / the tile's max"
     else:
-        tops, top = None, rig.colour_limit()
+        top = rig.colour_limit()
+        tops = [top] * len(ws)  # computed once: render_tiles would compute it again
     tiles = render_tiles(rig, ws, tops=tops)
     cols = min(len(tiles), 4)
     rows = -(-len(tiles) // cols)
