@@ -3,7 +3,7 @@
     python benchmarks/pbs_band_errors.py RUN [--split val|test] [--model pbs] [--expressions a,b]
 
 RUN is a finished blendshapes run with a ``pbs`` model (e.g. the main job,
-``fwk run recipes/pbs_face_compression.yaml``). The split is rebuilt as the run made it (its
+``fwk run recipes/pbs_synthetic_heads.yaml``). The split is rebuilt as the run made it (its
 recipe, seed and preprocessing). For every expression and every subject of the split it takes
 the two networks' predictions P_s (spatial) and P_d (differential, placed rigidly onto P_s, as PBS
 does at inference) and the ground truth G, and prints:
