@@ -20,7 +20,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _claims import training  # noqa: E402
 
 REPS = ("euclidean", "euclidean-std", "dr-norm")
 CONVS = ("spiral", "spiralpp", "feast", "lsa", "vcconv")
@@ -37,16 +41,8 @@ def load(run: Path, split: str) -> dict:
             m = json.loads(f.read_text())
             (label, res), = m["models"].items()
             row = {k: v["mean"] for k, v in res[split].items()}
-            # the model's network: labelled as the model, or "<label>/<network>" where the model
-            # trains a network of another kind (vcconv's fully convolutional AE trains a "vae")
-            nets = m["training"]["networks"]
-            t = nets.get(label) or next(v for k, v in nets.items() if k.startswith(label + "/"))
-            # training minutes: the epochs' own seconds (curves/), which a resumed run keeps from before
-            # the kill (its fit_s counts only the time since the resume)
-            curves = sorted((run / f"{conv}-{rep}" / "curves" / label).glob("*.json"))
-            secs = sum(e.get("seconds", 0.0) for c in curves for e in json.loads(c.read_text())["epochs"])
-            row.update(epochs=f"{t['epochs_run']}/{t['max_epochs']}", ended=t["stopped_by"], verdict=t["plateau"],
-                       fit_min=(secs or m["timing"][label]["fit_s"]) / 60)
+            t = training(m, label, run / f"{conv}-{rep}")
+            row.update(epochs=t["epochs"], ended=t["ended"], verdict=t["verdict"], fit_min=t["minutes"])
             out[conv, rep] = row
     return out
 
@@ -67,7 +63,8 @@ def main(argv=None) -> int:
                 print(f"| {conv} | {rep} | missing | | | | | | | |")
                 continue
             print(f"| {conv} | {rep} | {r['l1'] * 1e3:.3f} | {r['l2'] * 1e5:.3f} | {r['dame'] * 1e2:.3f} | "
-                  f"{r['fmpd'] * 1e2:.3f} | {r['epochs']} | {r['ended']} | {r['verdict']} | {r['fit_min']:.1f} |")
+                  f"{r['fmpd'] * 1e2:.3f} | {r['epochs']} | {r['ended']} | {r['verdict']} | "
+                  f"{'' if r['fit_min'] is None else format(r['fit_min'], '.1f')} |")
     print("\n| conv | C1: Euclidean-based lower L1 | lower L2 | C1: DR Norm. lower DAME | lower FMPD | "
           "C2: Std. lower L1 | C2: Std. lower DAME |")
     print("| --- | --- | --- | --- | --- | --- | --- |")

@@ -24,31 +24,22 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import sys
 from pathlib import Path
 
 from fwk.evaluation.core import pareto_front
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _claims import training  # noqa: E402
+
 BASELINE = "mean-shape"
-
-
-def _training(m: dict, label: str) -> dict:
-    """Epochs, ended-by, verdicts and minutes over the model's networks (``label`` or ``label/...``)."""
-    nets = {k: v for k, v in m.get("training", {}).get("networks", {}).items()
-            if k == label or k.startswith(label + "/")}
-    if not nets:
-        return {"epochs": "", "ended": "", "verdict": "", "minutes": None}
-    secs = [v.get("train_s") for v in nets.values()]
-    return {"epochs": ", ".join(f"{v['epochs_run']}/{v['max_epochs']}" for v in nets.values()),
-            "ended": ", ".join(str(v["stopped_by"]) for v in nets.values()),
-            "verdict": ", ".join(v["plateau"] for v in nets.values()),
-            "minutes": sum(secs) / 60 if all(s is not None for s in secs) else None}
 
 
 def load(run: Path) -> dict:
     """{label: {split: {metric: mean}, "training": {...}}} of the run's models."""
     m = json.loads((run / "metrics.json").read_text())
     return {label: {**{split: {k: v["mean"] for k, v in res.items()} for split, res in r.items()},
-                    "training": _training(m, label)}
+                    "training": training(m, label, run)}
             for label, r in m["models"].items()}
 
 
