@@ -398,6 +398,33 @@ def versions(registry: Registry) -> dict:
     return out
 
 
+CODE_KEYS = ("fwk", "git_commit", "git_dirty", "torch")
+
+
+def record_resume(ctx: RunContext, registry: Registry) -> dict:
+    """Append the code a resume runs with to the run's ``versions.json`` (``resumed``: one entry
+    per resume, with its time) and log a line when it differs from the code that ran the run last
+    (its start, or its latest resume): the run's numbers then come from more than one version of
+    fwk. Returns the entry. A ``versions.json`` that is missing or unreadable is started afresh."""
+    path = ctx.path("versions.json")
+    try:
+        stored = json.loads(path.read_text())
+    except (OSError, ValueError):
+        stored = {}
+    now = versions(registry)
+    entry = {"at": _dt.datetime.now().isoformat(timespec="seconds"),
+             **{k: now[k] for k in CODE_KEYS if k in now}}
+    before = (stored.get("resumed") or [stored])[-1]
+    changed = [k for k in CODE_KEYS if k in entry and k in before and entry[k] != before[k]]
+    if changed:
+        ctx.log("resuming with other code than the run last ran with: "
+                + ", ".join(f"{k} {before[k]} -> {entry[k]}" for k in changed)
+                + " (versions.json lists every resume)")
+    stored.setdefault("resumed", []).append(entry)
+    ctx.write_json("versions.json", stored)
+    return entry
+
+
 def run_task(resolved, ctx: RunContext) -> None:
     """Build the recipe's task and run it in ``ctx``."""
     task = resolved.task.build()
@@ -473,6 +500,7 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
                 failed.unlink()
             elif killed:
                 ctx.log("resuming a run whose process was killed")
+            record_resume(ctx, registry)
         run_task(resolved, ctx)
         ctx.log(f"done: {run_dir}")
     except BaseException as exc:
