@@ -13,7 +13,8 @@ with the same weights (``inferno``).
 ``--screenshot out.png`` renders without a window (open3d's offscreen renderer: EGL or a
 software Vulkan; CI runs it under Xvfb): with ``--expression NAME`` (repeatable) or
 ``--weights name=w,...`` one picture of that blend, else a sheet of the neutral and up to
-``--max-tiles`` expressions, each titled, with the colour bar in the rig's units. The colour
+``--max-tiles`` expressions (``--tiles 'jawOpen,brow*'``: those, by name or shell pattern), each
+titled, with the colour bar in the rig's units. The colour
 scale is shared by every tile (``--scale shared``: the largest displacement of any expression at
 weight 1, so tiles compare), or each tile's own (``--scale per-tile``: its largest value is the
 top colour and its title gives that value; a rig whose jaw moves 4 cm and whose brows 3 mm shows
@@ -290,13 +291,36 @@ def render_tiles(rig: Rig, weights: list[np.ndarray], size=(480, 540), tops: lis
 SCALES = ("shared", "per-tile")
 
 
+def select_tiles(names: list[str], patterns: list[str] | None, max_tiles: int) -> tuple[list[str], int]:
+    """(the expressions of a sheet, how many were selected): those matching ``patterns`` (names or
+    shell patterns such as ``brow*``, case-sensitive; in the patterns' order, each expression once,
+    rig order within a pattern), or every expression when there are none; the first
+    ``max_tiles - 1`` of them (one tile is the neutral). A pattern that matches nothing is a
+    one-line error naming the rig's expressions."""
+    import fnmatch
+
+    if not patterns:
+        chosen = list(names)
+    else:
+        chosen = []
+        for pat in patterns:
+            hits = [n for n in names if fnmatch.fnmatchcase(n, pat)]
+            if not hits:
+                raise FwkError(f"--tiles {pat}: matches no expression of the rig (expressions: {', '.join(names)})")
+            chosen += [n for n in hits if n not in chosen]
+    return chosen[:max(0, max_tiles - 1)], len(chosen)
+
+
 def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tiles: int = 12,
-               scale: str = "shared") -> Path:
+               scale: str = "shared", tiles: list[str] | None = None) -> Path:
     """Write ``path`` (PNG): the blend ``weights`` alone, or a sheet of the neutral and up to
-    ``max_tiles - 1`` expressions at weight 1, titled, with the colour bar (``scale``: one colour
-    scale for all tiles, or ``per-tile``: each tile's largest value at the top colour)."""
+    ``max_tiles - 1`` expressions at weight 1 (those matching ``tiles``, names or shell patterns,
+    else the rig's first), titled, with the colour bar (``scale``: one colour scale for all tiles,
+    or ``per-tile``: each tile's largest value at the top colour)."""
     if scale not in SCALES:
         raise FwkError(f"--scale {scale}: expected one of {', '.join(SCALES)}")
+    if weights and tiles:
+        raise FwkError("--tiles makes a sheet of expressions at weight 1: use it without --expression/--weights")
     import matplotlib  # deferred: see _colours
 
     matplotlib.use("Agg")
@@ -306,7 +330,7 @@ def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tile
     if weights:
         ws, titles = [rig.weights(weights)], [", ".join(f"{k} {v:g}" for k, v in weights.items())]
     else:
-        shown = rig.names[:max(0, max_tiles - 1)]
+        shown, n_selected = select_tiles(rig.names, tiles, max_tiles)
         ws = [np.zeros(len(rig.names))] + [rig.weights({e: 1.0}) for e in shown]
         titles = ["neutral", *shown]
     label = rig.scalars(ws[-1])[1]
@@ -331,7 +355,9 @@ def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tile
     cmap = "inferno" if label.startswith("error") else "viridis"
     sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0, top), cmap=cmap)
     fig.colorbar(sm, cax=fig.add_axes([0.83, 0.2, 0.02, 0.6]), label=label)
-    fig.suptitle(Path(rig.source).name, fontsize=10)
+    more = f" ({len(ws) - 1} of {n_selected} expressions: --max-tiles)" \
+        if not weights and n_selected > len(ws) - 1 else ""
+    fig.suptitle(Path(rig.source).name + more, fontsize=10)
     return save_figure(fig, path, dpi=100)
 
 
@@ -437,7 +463,10 @@ def add_view_parser(subparsers):
     p.add_argument("--screenshot", metavar="PNG", help="write a picture instead of opening a window")
     p.add_argument("--expression", action="append", help="with --screenshot: this expression at weight 1 (repeatable)")
     p.add_argument("--weights", help="with --screenshot: a blend, name=weight,... (e.g. jawOpen=0.6,eyeBlinkLeft=1)")
-    p.add_argument("--max-tiles", type=int, default=12, help="with --screenshot: tiles of the sheet (default 12)")
+    p.add_argument("--tiles", help="with --screenshot: the sheet's expressions, names or shell patterns, "
+                   "comma-separated (e.g. 'jawOpen,brow*'; default: the rig's first)")
+    p.add_argument("--max-tiles", type=int, default=12, help="with --screenshot: tiles of the sheet, the neutral "
+                   "included (default 12)")
     p.add_argument("--scale", choices=SCALES, default="shared",
                    help="with --screenshot: one colour scale for all tiles (default), or each tile's own")
     return p
@@ -447,9 +476,12 @@ def run_view(args) -> int:
     """``fwk view``'s entry (cli.EXTRA_COMMANDS)."""
     rig = load_rig(args.path, args.neutral, args.truth)
     if args.screenshot:
-        out = screenshot(rig, args.screenshot, _weights(args), args.max_tiles, args.scale)
+        tiles = [t.strip() for t in args.tiles.split(",") if t.strip()] if args.tiles else None
+        out = screenshot(rig, args.screenshot, _weights(args), args.max_tiles, args.scale, tiles)
         print(out)
         return 0
+    if args.tiles:
+        raise FwkError("--tiles chooses the tiles of a --screenshot sheet; the window has a slider per expression")
     open_window(rig)
     return 0
 

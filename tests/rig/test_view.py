@@ -126,3 +126,40 @@ def test_window_sliders_drive_the_blend(rig_dir):
     state = open_window(rig, ticks=3, set_weights={"jawOpen": 1.0})
     assert state["weights"][rig.names.index("jawOpen")] == 1.0
     assert np.isclose(state["max_displacement"], np.linalg.norm(rig.deltas[rig.names.index("jawOpen")], axis=1).max())
+
+
+def test_tiles_select_by_name_and_pattern_in_order():
+    from fwk.view import select_tiles
+
+    names = ["jawOpen", "browDown_L", "browDown_R", "eyeBlink_L", "browInnerUp"]
+    assert select_tiles(names, None, 3) == (["jawOpen", "browDown_L"], 5)
+    assert select_tiles(names, ["eyeBlink_L", "brow*"], 12) == (
+        ["eyeBlink_L", "browDown_L", "browDown_R", "browInnerUp"], 4)
+    assert select_tiles(names, ["browDown_?", "*_L"], 12)[0] == ["browDown_L", "browDown_R", "eyeBlink_L"]
+    assert select_tiles(names, ["brow*"], 3) == (["browDown_L", "browDown_R"], 3)  # capped, the count kept
+    with pytest.raises(FwkError, match=r"--tiles cheek\*: matches no expression of the rig \(expressions: jawOpen,"):
+        select_tiles(names, ["jawOpen", "cheek*"], 12)
+
+
+def test_screenshot_sheet_renders_the_selected_tiles(rig_dir, tmp_path, monkeypatch):
+    import fwk.view
+    from fwk.view import load_rig, screenshot
+
+    _, out = rig_dir
+    rig = load_rig(out / "anna.glb")
+    seen = {}
+
+    def fake_render(rig, weights, size=(480, 540), tops=None):  # the weights asked for, no renderer needed
+        seen["weights"] = [np.asarray(w) for w in weights]
+        return [np.zeros((8, 8, 3)) for _ in weights]
+
+    monkeypatch.setattr(fwk.view, "render_tiles", fake_render)
+    pick = [n for n in rig.names if n != rig.names[0]][::-1][:2]
+    screenshot(rig, tmp_path / "sheet.png", tiles=pick)
+    expected = [np.zeros(len(rig.names))] + [np.eye(len(rig.names))[rig.names.index(n)] for n in pick]
+    assert len(seen["weights"]) == 3
+    for got, want in zip(seen["weights"], expected):
+        np.testing.assert_array_equal(got, want)
+    assert (tmp_path / "sheet.png").stat().st_size > 0
+    with pytest.raises(FwkError, match="use it without --expression"):
+        screenshot(rig, tmp_path / "x.png", weights={pick[0]: 1.0}, tiles=pick)
