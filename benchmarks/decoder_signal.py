@@ -51,12 +51,20 @@ def spreads(dec, z) -> dict:
 
 
 def redrawn(dec, seed: int):
-    """A copy of the decoder with every module's parameters drawn afresh (seeded)."""
+    """A copy of the decoder with every module's parameters drawn afresh (seeded), children before
+    their parents: a module's own ``reset_parameters`` has the last word over its children's (the
+    feast conv re-draws its ``FeaStConv`` and then applies its ``init`` scaling, which a reset of
+    the ``FeaStConv`` afterwards would undo)."""
     fresh = copy.deepcopy(dec)
     torch.manual_seed(seed)
-    for mod in fresh.modules():
+
+    def reset(mod):
+        for child in mod.children():
+            reset(child)
         if mod is not fresh and hasattr(mod, "reset_parameters"):
             mod.reset_parameters()
+
+    reset(fresh)
     return fresh
 
 

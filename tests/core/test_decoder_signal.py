@@ -61,3 +61,26 @@ def test_redrawn_copy_is_fresh_and_grad_norms_are_finite():
     assert torch.equal(mod.redrawn(d, 0).fc.weight, f.fc.weight)  # seeded
     g1, g2 = mod.grad_norms(f, torch.randn(8, 4), 0)
     assert g1 > 0 and g2 > 0
+
+
+def test_redrawn_lets_a_module_have_the_last_word_over_its_children():
+    """A module whose reset_parameters re-draws a child and then rescales it (the feast conv's
+    init: variance) keeps its scaling in the re-drawn copy."""
+
+    class Scaled(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.lin = nn.Linear(6, 6)
+            self.reset_parameters()
+
+        def reset_parameters(self):
+            self.lin.reset_parameters()
+            with torch.no_grad():
+                self.lin.weight.mul_(100.0)
+
+    d = Dec()
+    d.convs[0] = Scaled()
+    f = _module().redrawn(d, 0)
+    bound = 100.0 / 6 ** 0.5  # nn.Linear draws within 1/sqrt(fan_in)
+    assert f.convs[0].lin.weight.abs().max() > 0.2 * bound
+    assert f.convs[0].lin.weight.abs().max() <= bound

@@ -350,6 +350,19 @@ class FeaSt(nn.Module):
             ``aggregate``; see the module docstring), ``aggregate``, ``transform``, or ``edges``
             (torch_geometric's ``FeaStConv.forward`` itself: W x_j per edge, the model pooling
             after the conv; slow, the reference).
+        init (str): ``feastconv`` (default: the weights ``FeaStConv`` draws, as the thesis
+            trained) or ``variance`` (beyond the thesis: W_h scaled by sqrt(3H) after that draw,
+            so that a layer passes its input's variance on; see below).
+
+    Initialisation. ``FeaStConv`` draws each W_h with entries ~ U(-1/sqrt(c_in), 1/sqrt(c_in)),
+    variance 1/(3 c_in), so W_h x has per-channel variance var(x)/3 for x of independent
+    channels; with the steering weights near uniform at the start (q_h ~ 1/H), x'_i averages H
+    independent such products: variance var(x)/(3H), about 1/24 of the input's with H = 8. Five
+    layers of it take the code's variation to ~1e-3 of itself at the output, which is why a
+    FeaStNet decoder stays at the mean shape within the CPU studies' budget
+    (``benchmarks/decoder_signal.py``, docs/methods/autoencoders.md). ``init: variance``
+    multiplies W_h by sqrt(3H) after FeaStConv's draw, so var(x'_i - b) = var(x) at the start;
+    the parameters, the forward and the checkpoints are FeaStConv's as before.
 
     Shapes:
         - **input:** (b, n, c_in), n = ``hierarchy.levels[level].n_vertices``
@@ -368,9 +381,10 @@ class FeaSt(nn.Module):
     strided = False
     fuses_pooling = True  # forward(x, rows=...) and forward_up(x, up): pooling fused into the conv
     ORDERS = ("auto", "aggregate", "transform", "edges")
+    INITS = ("feastconv", "variance")
 
     def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0, heads: int = 8,
-                 order: str = "auto"):
+                 order: str = "auto", init: str = "feastconv"):
         super().__init__()
         # deferred: torch_geometric adds ~1.3 s of import time (measured on top of torch) to every
         # `fwk` command that loads the plugins; only this conv needs it, when it is built
@@ -378,6 +392,8 @@ class FeaSt(nn.Module):
 
         if order not in self.ORDERS:
             raise RecipeError(f"conv feast: order must be one of {', '.join(self.ORDERS)}, not {order!r}")
+        if init not in self.INITS:
+            raise RecipeError(f"conv feast: init must be one of {', '.join(self.INITS)}, not {init!r}")
         lv = hierarchy.levels[level]
         self.n = lv.n_vertices
         self.register_buffer("edges", edge_index(lv.edges, lv.n_vertices, self_loops=False))
@@ -388,12 +404,20 @@ class FeaSt(nn.Module):
         if order == "edges":
             self.fuses_pooling = False  # the model pools after the conv, as it did with FeaStConv alone
         self.heads = heads
+        self.init = init
+        self._scale_weights()
         self._nbh = neighbourhoods(self.edges, self.n)  # (counts, sources) as numpy arrays
         self._plans = {}  # (rows key, b, device, threads) -> Plan
 
     def reset_parameters(self) -> None:
-        """Re-draw FeaStConv's parameters (its own ``reset_parameters``)."""
+        """Re-draw FeaStConv's parameters (its own ``reset_parameters``), then ``init``'s scaling."""
         self.conv.reset_parameters()
+        self._scale_weights()
+
+    def _scale_weights(self) -> None:
+        if self.init == "variance":
+            with torch.no_grad():
+                self.conv.lin.weight.mul_(float(np.sqrt(3 * self.heads)))
 
     def _plan(self, rows, b, device, width):
         threads = torch.get_num_threads() if device.type == "cpu" else 1
