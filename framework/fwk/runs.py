@@ -401,11 +401,11 @@ def versions(registry: Registry) -> dict:
 CODE_KEYS = ("fwk", "git_commit", "git_dirty", "torch")
 
 
-def record_resume(ctx: RunContext, registry: Registry) -> dict:
+def record_resume(ctx: RunContext, registry: Registry) -> None:
     """Append the code a resume runs with to the run's ``versions.json`` (``resumed``: one entry
     per resume, with its time) and log a line when it differs from the code that ran the run last
     (its start, or its latest resume): the run's numbers then come from more than one version of
-    fwk. Returns the entry. A ``versions.json`` that is missing or unreadable is started afresh."""
+    fwk. A ``versions.json`` that is missing or unreadable is started afresh."""
     path = ctx.path("versions.json")
     try:
         stored = json.loads(path.read_text())
@@ -422,7 +422,6 @@ def record_resume(ctx: RunContext, registry: Registry) -> dict:
                 + " (versions.json lists every resume)")
     stored.setdefault("resumed", []).append(entry)
     ctx.write_json("versions.json", stored)
-    return entry
 
 
 def run_task(resolved, ctx: RunContext) -> None:

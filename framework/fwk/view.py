@@ -327,12 +327,15 @@ def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tile
     import matplotlib.pyplot as plt
 
     path = Path(path)
+    more = ""  # a capped sheet's title says how many were selected
     if weights:
         ws, titles = [rig.weights(weights)], [", ".join(f"{k} {v:g}" for k, v in weights.items())]
     else:
         shown, n_selected = select_tiles(rig.names, tiles, max_tiles)
         ws = [np.zeros(len(rig.names))] + [rig.weights({e: 1.0}) for e in shown]
         titles = ["neutral", *shown]
+        if n_selected > len(shown):
+            more = f" ({len(shown)} of {n_selected} expressions: --max-tiles)"
     label = rig.scalars(ws[-1])[1]
     if scale == "per-tile":
         tops = [float(rig.scalars(w)[0].max()) for w in ws]
@@ -355,8 +358,6 @@ def screenshot(rig: Rig, path, weights: dict[str, float] | None = None, max_tile
     cmap = "inferno" if label.startswith("error") else "viridis"
     sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0, top), cmap=cmap)
     fig.colorbar(sm, cax=fig.add_axes([0.83, 0.2, 0.02, 0.6]), label=label)
-    more = f" ({len(ws) - 1} of {n_selected} expressions: --max-tiles)" \
-        if not weights and n_selected > len(ws) - 1 else ""
     fig.suptitle(Path(rig.source).name + more, fontsize=10)
     return save_figure(fig, path, dpi=100)
 
