@@ -66,3 +66,22 @@ def test_grid_sweep_names_a_member_without_the_key(tmp_path):
     with pytest.raises(RecipeError, match="not a number"):
         g.sweep_values({"a": {"models": {"dsm": {"k": "big"}}}})
     assert g.sweep_values({"a": {"models": {"dsm": {"k": 50}}}}) == {"a": 50.0}
+
+
+def test_grid_train_and_seed_apply_to_every_member(tmp_path, monkeypatch):
+    # the base trains 2 epochs with seed 0; the grid's train (here from the command line) and
+    # seed win in every member, the member's other train keys are kept
+    import yaml
+
+    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
+    grid = tmp_path / "g.yaml"
+    grid.write_text(f"task: grid\nbase: {REPO / 'recipes/smoke/grid_base.yaml'}\nseed: 3\n"
+                    "configs:\n  a: {models: {ae: {conv: spiral++}}}\n  b: {train: {epochs: 5}}\n")
+    runs = tmp_path / "runs"
+    assert main(["--quiet", "run", str(grid), "train.epochs=1", "--runs-dir", str(runs)]) == 0
+    (d,) = list(runs.iterdir())
+    for member in ("a", "b"):
+        r = yaml.safe_load((d / member / "recipe.yaml").read_text())
+        assert r["seed"] == 3 and r["train"]["epochs"] == 1 and r["train"]["batch_size"] == 8
+        (curve,) = (d / member / "curves").glob("*/*.json")
+        assert json.loads(curve.read_text())["epochs_run"] == 1

@@ -19,6 +19,10 @@ logged with its error, gets a ``FAILED`` file in its sub-run, and is listed in t
 others go on; the grid then ends with an error (exit 2, the run marked ``FAILED``), and
 ``fwk run --resume`` reruns only the members without ``metrics.json``.
 
+The grid recipe's own ``seed`` and ``train`` apply to every member, over what the member's recipe
+says: ``fwk run grid.yaml train.epochs=3`` trains every member 3 epochs (a quick timing or smoke
+run of a whole study), ``seed: 1`` in the grid reruns the study with another seed.
+
 ``sweep: models.dsm.k`` (a dotted key of the members' recipes, numeric in each) names the value a
 study varies: the report then also plots every metric against it, one line per split (the k
 study of thesis figure 4.11).
@@ -39,6 +43,8 @@ from fwk.hookspecs import hookimpl
 from fwk.recipes import Kind, Spec, deep_merge, load_recipe, resolve
 
 from .executors import FAILED, Executor, member_job, run_local, run_ray
+
+SHARED = ("seed", "train")  # keys of the grid recipe that apply to every member
 
 
 class Grid:
@@ -81,8 +87,11 @@ class Grid:
         return out
 
     def members(self, ctx) -> dict[str, dict]:
-        """{member name: its recipe}: the recipe files, then the configurations merged on ``base``."""
+        """{member name: its recipe}: the recipe files, then the configurations merged on ``base``;
+        the grid recipe's own ``seed`` and ``train`` (given in it or as ``train.epochs=3`` on the
+        command line) merged onto every member last, so they win."""
         here = Path(ctx.source).parent if ctx.source else Path.cwd()
+        shared = {k: (ctx.recipe or {})[k] for k in SHARED if k in (ctx.recipe or {})}
         out = {}
         for r in self.recipes:
             p = (here / r).resolve()
@@ -93,7 +102,7 @@ class Grid:
                 d = deep_merge(base, cfg or {})
                 d["name"] = name
                 out[name] = d
-        return out
+        return {name: deep_merge(d, shared) for name, d in out.items()}
 
     def run(self, ctx):
         """Validate every member, run the unfinished ones as sub-runs, then combine their reports."""
