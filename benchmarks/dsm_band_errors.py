@@ -33,26 +33,21 @@ for another network's) band, assembled by the model's own assembler.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from fwk.data.preprocess import PreprocessConfig, split_and_preprocess
-from fwk.data.split import SplitConfig
 from fwk.evaluation import evaluate
 from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 from fwk.protocols import FitData
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _runs import run_data  # noqa: E402
+
 METRICS = ("l1", "dame", "fmpd")
 SCALE = {"l1": 1e3, "dame": 1e2, "fmpd": 1e2}
-
-
-class _Quiet:
-    """A stand-in run context for split_and_preprocess: writes and logs nothing."""
-
-    def __getattr__(self, name):
-        return lambda *a, **k: None
 
 
 def attribute(m, G, others: dict) -> list[tuple[str, np.ndarray]]:
@@ -84,10 +79,7 @@ def main():
                     help="whole-mesh models of RUN to cross with dsm's bands (comma-separated; '' for none)")
     a = ap.parse_args()
     run = open_run(a.run)
-    p = run.params
-    col = p["dataset"].build().load(run.ctx.cache)
-    _, pre, cols, _ = split_and_preprocess(col, p.get("split") or SplitConfig(), p.get("preprocess") or PreprocessConfig(),
-                                           run.ctx.seed, _Quiet())
+    col, pre, cols = run_data(run)
     template = col.template.with_vertices(pre.mean_neutral)
     G = FitData(template, cols[a.split], cols[a.split], ["neutral"]).stack("train")
     reg = get_registry()

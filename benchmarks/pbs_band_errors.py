@@ -30,21 +30,17 @@ numbers say whether that holds. Threads: torch's default (``OMP_NUM_THREADS``).
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
-from fwk.data.preprocess import PreprocessConfig, split_and_preprocess
-from fwk.data.split import SplitConfig
 from fwk.evaluation import evaluate
 from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 
-
-class _Quiet:
-    """A stand-in run context for split_and_preprocess: writes and logs nothing."""
-
-    def __getattr__(self, name):
-        return lambda *a, **k: None
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _runs import run_data  # noqa: E402
 
 
 def band_table(U, m, E, edges):
@@ -65,10 +61,7 @@ def main():
     a = ap.parse_args()
     run = open_run(a.run)
     m = run.model(a.model)
-    p = run.params
-    col = p["dataset"].build().load(run.ctx.cache)
-    _, _, cols, _ = split_and_preprocess(col, p.get("split") or SplitConfig(), p.get("preprocess") or PreprocessConfig(),
-                                         run.ctx.seed, _Quiet())
+    _, _, cols = run_data(run)
     c = cols[a.split]
     U, w = m.assembler.proj.U, m.assembler.proj.m
     w = np.ones(U.shape[0]) if w is None else w
