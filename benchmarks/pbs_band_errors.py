@@ -25,7 +25,13 @@ does at inference) and the ground truth G, and prints:
 
 The assembly (eq. 5.10) takes the bands below k from P_s and the rest from P_d, so it can only
 beat both networks where E_s is the smaller in the low bands and E_d in the high ones; these
-numbers say whether that holds. Threads: torch's default (``OMP_NUM_THREADS``).
+numbers say whether that holds.
+
+Last, at the chosen k, where PBS's perceptual error comes from (L1, DAME, FMPD; means over the
+subjects): PBS itself; the truth below k with the differential network above it (the
+differential network's error above k alone); the spatial network below k with the truth above
+it (the spatial network's error below k alone); and each network alone. Threads: torch's
+default (``OMP_NUM_THREADS``).
 """
 from __future__ import annotations
 
@@ -52,6 +58,14 @@ def band_table(U, m, E, edges):
     return parts, total, c
 
 
+def swaps(m, Ps, Pd, G, k) -> list[tuple[str, np.ndarray]]:
+    """[(row label, meshes)]: PBS at k and the swaps of the docstring's last paragraph."""
+    pbs, low_true, high_true = (m.assemble(a, b, [k])[0] for a, b in ((Ps, Pd), (G, Pd), (Ps, G)))
+    return [(f"PBS (k = {k})", pbs), ("truth below k, differential above", low_true),
+            ("spatial below k, truth above", high_true), ("differential network alone", Pd),
+            ("spatial network alone", Ps)]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run")
@@ -68,7 +82,8 @@ def main():
     n, K = U.shape
     edges = [e for e in (0, 10, 30, 100, 300) if e < K] + [K]
     names = [f"[{lo},{hi})" for lo, hi in zip(edges[:-1], edges[1:])] + [f">={K}"]
-    l1 = get_registry().get("metric", "l1")()
+    metrics = [get_registry().get("metric", name)() for name in ("l1", "dame", "fmpd")]
+    l1 = metrics[0]
     j0 = c.shape_index("neutral")
     chosen = m.expressions if a.expressions is None else a.expressions.split(",")
     unknown = sorted(set(chosen) - set(m.expressions))
@@ -108,6 +123,12 @@ def main():
                   f"{np.einsum('bnc,bnc,n->b', E, E, w).mean():.4e}  spread (mean / RMS of |E_i|) "
                   f"{d.mean() / np.sqrt((d ** 2).mean()):.3f}  L1 with P_d placed on the truth "
                   f"{evaluate(Q, G, m.template, [l1])['l1']['scores'].mean():.4e}")
+        if m.k.get(e) is not None:
+            print("  at the chosen k: | assembled from | L1 x1e-3 | DAME x1e-2 | FMPD x1e-2 |")
+            for label, P in swaps(m, Ps, Pd, G, m.k[e]):
+                res = evaluate(P, G, m.template, metrics)
+                print(f"  | {label} | {res['l1']['scores'].mean() * 1e3:.3f} | "
+                      f"{res['dame']['scores'].mean() * 1e2:.3f} | {res['fmpd']['scores'].mean() * 1e2:.3f} |")
 
 
 if __name__ == "__main__":

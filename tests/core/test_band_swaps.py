@@ -1,5 +1,6 @@
-"""benchmarks/dsm_band_errors.py: the swaps that attribute dsm's error to its bands, checked with
-the real spectral assembler and band predictions whose errors are known by construction."""
+"""benchmarks/dsm_band_errors.py and pbs_band_errors.py: the swaps that attribute an assembled
+output's error to its bands, checked with the real spectral assembler and band predictions whose
+errors are known by construction."""
 import numpy as np
 import trimesh
 
@@ -61,3 +62,27 @@ def test_an_other_models_bands_replace_dsms_one_at_a_time():
     np.testing.assert_allclose(rows["vae"], R)
     np.testing.assert_allclose(rows["vae's low band + dsm's high"], G + 2 * low_err + high_err, atol=1e-10)
     np.testing.assert_allclose(rows["dsm's low + vae's high band"], G + low_err - high_err, atol=1e-10)
+
+
+class _Pbs:
+    """A stand-in PBS: eq. 5.10 as the spectral assembler's two-band assembly at its one k."""
+
+    def __init__(self, assembler):
+        self.a = assembler
+
+    def assemble(self, Ps, Pd, ks):
+        return [self.a.assemble([Ps, Pd]) for _ in ks]
+
+
+def test_pbs_swaps_keep_one_networks_error_in_its_own_band():
+    # benchmarks/pbs_band_errors.py's swaps: the truth below k keeps only the differential
+    # network's error above k, the truth above k only the spatial network's below k
+    a, G, low_err, high_err = _setup()
+    Es = low_err + high_err                               # the spatial network errs in both bands
+    Ed = 2 * low_err - high_err
+    rows = dict(load_benchmark("pbs_band_errors").swaps(_Pbs(a), G + Es, G + Ed, G, 30))
+    np.testing.assert_allclose(rows["PBS (k = 30)"], G + low_err - high_err, atol=1e-10)
+    np.testing.assert_allclose(rows["truth below k, differential above"], G - high_err, atol=1e-10)
+    np.testing.assert_allclose(rows["spatial below k, truth above"], G + low_err, atol=1e-10)
+    np.testing.assert_allclose(rows["differential network alone"], G + Ed)
+    np.testing.assert_allclose(rows["spatial network alone"], G + Es)
