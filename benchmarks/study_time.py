@@ -10,7 +10,8 @@ few epochs on an otherwise idle machine, e.g.
     fwk run recipes/thesis/ch4/plateau.yaml train.epochs=3
 
 Every network fwk trained writes ``curves/<label>/<network>.json`` (a grid member's under
-``<member>/``): the epochs it ran and each epoch's seconds and threads. For each network of STUDY
+``<member>/``): the epochs it ran and each epoch's seconds and threads; both runs' are read by
+``fwk.evaluation.curves.find_curves``, as the reports read them. For each network of STUDY
 this prints the epochs it ran, its median epoch seconds there, the median seconds of TIMING's
 epochs after the first (the first carries one-off warm-up; a one-epoch TIMING uses it) and the
 predicted minutes, epochs x TIMING's median. Everything that does not scale with epochs (loading
@@ -30,15 +31,7 @@ import statistics
 import sys
 from pathlib import Path
 
-
-def curves(run: Path) -> dict[str, dict]:
-    """{member/label/network (member omitted outside grids): the curve} of every network in ``run``."""
-    out = {}
-    for f in sorted(run.glob("curves/*/*.json")) + sorted(run.glob("*/curves/*/*.json")):
-        rel = f.relative_to(run).parts
-        key = "/".join(p for p in rel[:-1] if p != "curves") + "/" + f.stem
-        out[key] = json.loads(f.read_text())
-    return out
+from fwk.evaluation.curves import find_curves
 
 
 def epoch_seconds(curve: dict) -> float:
@@ -81,7 +74,7 @@ def main():
     ap.add_argument("timing", type=Path)
     ap.add_argument("--wall", type=float, default=None, help="TIMING's wall time in seconds")
     a = ap.parse_args()
-    study, timing = curves(a.study), curves(a.timing)
+    study, timing = find_curves(a.study), find_curves(a.timing)
     if not study:
         sys.exit(f"{a.study}: no training curves")
     unfinished = [k for k, c in study.items() if not c.get("finished")]
