@@ -38,26 +38,23 @@ from pathlib import Path
 
 import numpy as np
 
-from fwk.evaluation import evaluate
 from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 from fwk.protocols import FitData
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _runs import run_data  # noqa: E402
+from _runs import METRICS, metric_cells, run_data  # noqa: E402
 
-METRICS = ("l1", "dame", "fmpd")
-SCALE = {"l1": 1e3, "dame": 1e2, "fmpd": 1e2}
 
 
 def attribute(m, G, others: dict) -> list[tuple[str, np.ndarray]]:
     """[(row label, meshes)] for dsm model ``m`` on ground truth G (b, n, 3): the swaps of the
     docstring, ``others`` {label: its reconstruction of G}."""
-    true = m.split(G)
-    pred = m.decode_bands(m.encode(G))
-    low, high = 0, m.n_bands - 1
     if m.n_bands != 2:
         raise SystemExit(f"{m.n_bands} bands: this attribution is written for dsm's two bands (one k)")
+    true = m.split(G)
+    pred = m.decode_bands(m.encode(G))
+    low, high = 0, 1
     rows = [("both bands predicted", m.assemble(pred)),
             ("low predicted, high true", m.assemble([pred[low], true[high]])),
             ("low true, high predicted", m.assemble([true[low], pred[high]]))]
@@ -98,8 +95,7 @@ def main():
         print(f"\n### {label} (k = {m.cuts[0]})\n")
         print("| assembled from | L1 | DAME | FMPD |\n| --- | --- | --- | --- |")
         for row, P in attribute(m, G, others):
-            res = evaluate(P, G, template, metrics)
-            print(f"| {row} | " + " | ".join(f"{res[n]['scores'].mean() * SCALE[n]:.3f}" for n in METRICS) + " |")
+            print(f"| {row} | " + metric_cells(P, G, template, metrics))
 
 
 if __name__ == "__main__":

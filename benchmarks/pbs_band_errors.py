@@ -46,7 +46,7 @@ from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _runs import run_data  # noqa: E402
+from _runs import METRICS, metric_cells, run_data  # noqa: E402
 
 
 def band_table(U, m, E, edges):
@@ -82,7 +82,7 @@ def main():
     n, K = U.shape
     edges = [e for e in (0, 10, 30, 100, 300) if e < K] + [K]
     names = [f"[{lo},{hi})" for lo, hi in zip(edges[:-1], edges[1:])] + [f">={K}"]
-    metrics = [get_registry().get("metric", name)() for name in ("l1", "dame", "fmpd")]
+    metrics = [get_registry().get("metric", name)() for name in METRICS]
     l1 = metrics[0]
     j0 = c.shape_index("neutral")
     chosen = m.expressions if a.expressions is None else a.expressions.split(",")
@@ -126,9 +126,7 @@ def main():
         if m.k.get(e) is not None:
             print("  at the chosen k: | assembled from | L1 x1e-3 | DAME x1e-2 | FMPD x1e-2 |")
             for label, P in swaps(m, Ps, Pd, G, m.k[e]):
-                res = evaluate(P, G, m.template, metrics)
-                print(f"  | {label} | {res['l1']['scores'].mean() * 1e3:.3f} | "
-                      f"{res['dame']['scores'].mean() * 1e2:.3f} | {res['fmpd']['scores'].mean() * 1e2:.3f} |")
+                print(f"  | {label} | " + metric_cells(P, G, m.template, metrics))
 
 
 if __name__ == "__main__":
