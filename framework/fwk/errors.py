@@ -44,3 +44,20 @@ class Terminated(BaseException):
     """The process received SIGTERM (``kill``, a job scheduler's time limit) while ``fwk run``
     ran: raised where the process was, so that the run marks itself ``FAILED`` before it ends.
     A BaseException, like KeyboardInterrupt, so that no ``except Exception`` swallows it."""
+
+
+#: the most characters of a user's value an error message quotes (``quote``)
+QUOTE_LIMIT = 200
+
+
+def quote(value, limit: int = QUOTE_LIMIT) -> str:
+    """``repr(value)`` for an error message, cut to about ``limit`` characters (a recipe value or
+    a key can be megabytes long: the message stays one short line)."""
+    try:
+        text = repr(value)
+    except Exception:  # a value whose repr fails (or recurses) is named by its type
+        text = f"<{type(value).__name__}>"
+    text = text.replace("\n", "\\n").replace("\r", "\\r")
+    if len(text) > limit:
+        text = f"{text[:limit]}... ({len(text):,} characters)"
+    return text
