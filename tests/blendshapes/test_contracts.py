@@ -25,3 +25,15 @@ class TestPBS(BlendshapeModelContract):
 class TestDT(BlendshapeModelContract):
     component = DeformationTransfer
     params = {"sources": 0}
+
+
+class TestPBSAnchoredOnDT(BlendshapeModelContract):
+    """Beyond the thesis: both networks learn the residual from Deformation Transfer's output."""
+    component = PBS
+    params = {"network": NET, "ks": [0, 10, 40, 10_000], "anchor": {"name": "dt", "sources": [0, 1]}}
+
+
+class TestPBSBending(BlendshapeModelContract):
+    """Beyond the thesis: the spatial network trained with the bending term."""
+    component = PBS
+    params = {"network": NET, "ks": [0, 10, 40, 10_000], "bending_weight": 1.0}

@@ -84,7 +84,8 @@ from fwk.engine import autoencoder_module, kl_divergence, loss_module, reparamet
 from fwk.errors import DataError, RecipeError
 from fwk.evaluation import evaluate, pareto_front
 from fwk.hookspecs import hookimpl
-from fwk.protocols import BLENDSHAPES, NetworkFactory
+from fwk.geometry.operators import cotangent_laplacian
+from fwk.protocols import BLENDSHAPES, BlendshapeModel, NetworkFactory, plays
 from fwk.recipes import Kind, Spec, make_spec
 from fwk.scaling import Scaler
 
@@ -147,8 +148,14 @@ def _joint_module(owner, kl_weight: float, stage_name: str):
                 if not bool(m.any()):
                     continue
                 G = owner._decode(b, e, z[0])
-                err = torch.abs(owner.unscale(b, e, G[m]) - owner.unscale(b, e, Y[b * E + e][m])).mean()
+                D = owner.unscale(b, e, G[m]) - owner.unscale(b, e, Y[b * E + e][m])
+                err = torch.abs(D).mean()
                 total = total + err
+                if b == 0 and owner.bending_weight:
+                    bend = owner.bending_error(D)
+                    total = total + owner.bending_weight * bend
+                    module.log(f"{stage}_bending_{owner.expressions[e]}", bend, on_epoch=True, on_step=False,
+                               batch_size=int(m.sum()))
                 module.log(f"{stage}_l1_{owner.branch_names[b]}_{owner.expressions[e]}", err, on_epoch=True,
                            on_step=False, batch_size=int(m.sum()))
             total = total + kl_weight * kl
@@ -170,9 +177,12 @@ def _conditional_module(owner, kl_weight: float, stage_name: str):
         total = 0.0
         for b in range(B):
             zs, kl = owner._latent(b, X[b], sample=module.training, only=0)
-            err = torch.abs(owner.unscale(b, e, owner._decode(b, e, zs[0])) - owner.unscale(b, e, Y[b])).mean()
+            D = owner.unscale(b, e, owner._decode(b, e, zs[0])) - owner.unscale(b, e, Y[b])
+            err = torch.abs(D).mean()
             module.log(f"{stage}_l1_{owner.branch_names[b]}", err, on_epoch=True, on_step=False, batch_size=len(e))
             total = total + err + kl_weight * kl
+            if b == 0 and owner.bending_weight:
+                total = total + owner.bending_weight * owner.bending_error(D)
         module.log(f"{stage}_loss", total, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(e))
         return total
 
@@ -195,7 +205,8 @@ class _Blend:
     task_family = BLENDSHAPES
     expressions: list[str] | None = None  # the blendshape role's member, declared on the class; set per instance
 
-    def _init(self, network, branches, mode, expressions, conditional, kl_weight, train):
+    def _init(self, network, branches, mode, expressions, conditional, kl_weight, train, anchor=None,
+              bending_weight=0.0):
         if mode not in MODES:
             raise RecipeError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
         if conditional and mode != "end-to-end":
@@ -212,6 +223,48 @@ class _Blend:
         self._net_model = None
         self.template = None
         self.shape = None
+        self.anchor_spec = None if anchor is None else make_spec("model", anchor, "anchor")
+        if self.anchor_spec is not None and not plays(self.anchor_spec.cls, BlendshapeModel):
+            raise RecipeError(f"anchor: model {self.anchor_spec.name!r} is not a blendshape model "
+                              "(predict / predict_all: see fwk.protocols.BlendshapeModel)")
+        if not (np.isfinite(bending_weight) and bending_weight >= 0):
+            raise RecipeError(f"bending_weight: expected a finite number >= 0, got {bending_weight!r}")
+        self.bending_weight = float(bending_weight)
+        self.anchor = None       # the fitted anchor model (a BlendshapeModel), when anchor_spec is set
+        self._anchor_memo = {}   # one entry: (neutrals' hash) -> {expression: anchor prediction}
+        self._bending = None     # (torch sparse cotangent Laplacian of the template, its dtype)
+
+    # ------------------------------------------------------------------ anchor and bending
+    def refs(self, N, expressions) -> dict:
+        """{expression: (b, n, 3) the reference each expression's features are taken against}: the
+        neutrals themselves (thesis eqs. 5.3 / 5.4), or with an ``anchor`` its prediction for them
+        (the anchor's ``predict_all``: one DT factorisation per neutral for every expression).
+        The last neutrals' anchor predictions are kept (PBS's two networks and a k sweep ask for
+        the same neutrals again)."""
+        if self.anchor is None:
+            return {e: N for e in expressions}
+        key = (N.shape, hash(np.ascontiguousarray(N).tobytes()))
+        memo = self._anchor_memo.get(key)
+        if memo is None or any(e not in memo for e in expressions):
+            wanted = list(dict.fromkeys([*expressions, *(self.expressions or [])]))
+            memo = {e: np.asarray(v, dtype=np.float64) for e, v in self.anchor.predict_all(N, wanted).items()}
+            self._anchor_memo.clear()  # in place: the part models (``single``) share it
+            self._anchor_memo[key] = memo
+        return {e: memo[e] for e in expressions}
+
+    def bending_error(self, D):
+        """Mean |L D| of a (B, n, c) feature error D, L the cotangent Laplacian (no mass matrix)
+        of the template: for euclidean offsets the error of the discrete mean-curvature normals
+        integrated over each vertex's area, in the offsets' own units (cotangent weights are
+        dimensionless), so a weight of 1 weighs bending as much as position."""
+        if self._bending is None or self._bending.dtype != D.dtype:
+            L = cotangent_laplacian(self.template.vertices, self.template.triangles).tocoo()
+            idx = torch.as_tensor(np.stack([L.row, L.col]), dtype=torch.long)
+            self._bending = torch.sparse_coo_tensor(idx, torch.as_tensor(L.data, dtype=D.dtype), L.shape,
+                                                    check_invariants=True).coalesce()
+        B, n, c = D.shape
+        LD = torch.sparse.mm(self._bending, D.permute(1, 0, 2).reshape(n, B * c))
+        return LD.abs().mean()
 
     # ------------------------------------------------------------------ networks
     @property
@@ -329,6 +382,15 @@ class _Blend:
         self.template = data.template
         self.in_reps = [_build_rep(s) for s in self.branch_specs]
         self.out_reps = [_build_rep(s) for s in self.branch_specs]
+        self._bending = None
+        if self.anchor_spec is not None:
+            self.anchor = self.anchor_spec.build()
+            self.anchor.expressions = list(self.expressions)
+            self.anchor.fit(data, ctx)
+            missing = [e for e in self.expressions if e not in (self.anchor.expressions or [])]
+            if missing:
+                raise DataError(f"{self.name}: the anchor ({self.anchor_spec.name}) has no {', '.join(missing)}")
+            self._anchor_memo = {}
 
         def arrays(col, fit_reps: bool):
             j0 = col.shape_index("neutral")
@@ -338,6 +400,7 @@ class _Blend:
             mask = col.present[keep][:, idx]
             if len(N) == 0:
                 return None
+            R = self.refs(N, self.expressions)  # what each expression's features are taken against
             X, Y = [], []
             if fit_reps:
                 self.expr_scalers = [None] * self.n_branches
@@ -349,20 +412,22 @@ class _Blend:
                 if fit_reps:
                     has = mask.any(1)
                     Pe = np.concatenate([np.asarray(col.positions[keep, j])[mask[:, i]] for i, j in enumerate(idx)])
-                    Ne = np.concatenate([N[mask[:, i]] for i in range(len(idx))])
+                    Ne = np.concatenate([R[e][mask[:, i]] for i, e in enumerate(self.expressions)])
                     if len(Pe) == 0 or not has.any():
                         raise DataError(f"{self.name}: no training subject has any of {', '.join(self.expressions)}")
                     self.out_reps[b].fit(Pe, Ne, data.template)
                 F = []
                 for i, j in enumerate(idx):
+                    Ri = R[self.expressions[i]]
                     Pj = np.asarray(col.positions[keep, j]).copy()
-                    Pj[~mask[:, i]] = N[~mask[:, i]]  # missing shapes: any finite stand-in, masked out of the loss
-                    F.append(self.out_reps[b].encode(Pj, N))
+                    Pj[~mask[:, i]] = Ri[~mask[:, i]]  # missing shapes: any finite stand-in, masked out of the loss
+                    F.append(self.out_reps[b].encode(Pj, Ri))
                 if fit_reps:
                     self._fit_expr_scalers(b, F, mask)
                 for i in range(len(F)):  # each expression's features released once scaled (a rig has 57)
                     Y.append(torch.as_tensor(self.expr_scalers[b][i].transform(F[i]).astype(np.float32)))
                     F[i] = None
+            del R
             return X, Y, torch.as_tensor(mask), N
 
         train = arrays(tr, True)
@@ -422,8 +487,10 @@ class _Blend:
         return self.expr_inverse(b, e, self._decode(b, e, zs)).numpy()
 
     def branch_predict(self, N, expression: str, b: int, target=None) -> np.ndarray:
-        """Eq. 5.7: P'_expr = g^-1(F'_expr) relative to the neutral (dr integrated against it)."""
-        return self.out_reps[b].decode(self.branch_features(N, expression, b), N, target)
+        """Eq. 5.7: P'_expr = g^-1(F'_expr) relative to the neutral (dr integrated against it), or
+        with an ``anchor`` relative to the anchor's prediction for the neutral."""
+        R = self.refs(N, [expression])[expression]
+        return self.out_reps[b].decode(self.branch_features(N, expression, b), R, target)
 
     def predict_all(self, neutrals, expressions: list[str], target: dict | None = None) -> dict:
         """{expression: ``predict(neutrals, expression, target[expression])``} (``target``:
@@ -460,7 +527,8 @@ class _Blend:
         """{expression: eq. 5.7's P'_expr} for a conditional model (``branch_predict`` batched)."""
         F = self.branch_features_many(N, expressions, b)
         target = target or {}
-        return {e: self.out_reps[b].decode(F[e], N, target.get(e)) for e in expressions}
+        R = self.refs(N, expressions)
+        return {e: self.out_reps[b].decode(F[e], R[e], target.get(e)) for e in expressions}
 
     def predict_many(self, neutrals, expressions: list[str], target: dict) -> dict:
         """``predict_all`` of a conditional model, batched over the expressions."""
@@ -474,7 +542,8 @@ class _Blend:
                 "in_reps": [r.state_dict() for r in self.in_reps], "out_reps": [r.state_dict() for r in self.out_reps],
                 "expr_scalers": None if self.expr_scalers is None else [[x.state_dict() for x in sc]
                                                                         for sc in self.expr_scalers],
-                "template_vertices": self.template.vertices, "template_triangles": self.template.triangles}
+                "template_vertices": self.template.vertices, "template_triangles": self.template.triangles,
+                **({} if self.anchor is None else {"anchor": self.anchor.state_dict()})}
 
     def _load_base(self, d: dict, ctx=None) -> None:
         self.expressions = list(d["expressions"])
@@ -492,6 +561,13 @@ class _Blend:
         self._make_nets(self.template, self.shape[1], ctx)
         self.nets.load_state_dict(d["nets"])
         self.nets.eval()
+        self._anchor_memo, self._bending, self.anchor = {}, None, None
+        if self.anchor_spec is not None:
+            if d.get("anchor") is None:
+                raise DataError(f"{self.name}: the recipe gives an anchor ({self.anchor_spec.name}) but the saved "
+                                "model has none")
+            self.anchor = self.anchor_spec.build()
+            self.anchor.load_state_dict(d["anchor"], ctx=ctx)
 
 
 class PB(_Blend):
@@ -502,8 +578,12 @@ class PB(_Blend):
     def __init__(self, representation: Annotated[Spec, Kind("representation")] = "euclidean",
                  network: Annotated[Spec, Kind("model")] = "vae", mode: str = "end-to-end",
                  expressions: list[str] | None = None, conditional: bool = False,
-                 kl_weight: float | None = None, train: dict | None = None):
-        self._init(network, [representation], mode, expressions, conditional, kl_weight, train)
+                 kl_weight: float | None = None, train: dict | None = None,
+                 anchor: Annotated[Spec | None, Kind("model")] = None, bending_weight: float = 0.0):
+        if anchor is not None and mode != "end-to-end":
+            raise RecipeError("anchor: only with mode end-to-end")
+        self._init(network, [representation], mode, expressions, conditional, kl_weight, train, anchor,
+                   bending_weight)
         self.branch_names = [self.branch_specs[0].name]
 
     @property
@@ -541,8 +621,10 @@ class PBS(_Blend):
                  expressions: list[str] | None = None,
                  conditional: bool = False, k: int | dict[str, int] | None = None, ks: list[int] | None = None,
                  knee_metric: str = "fmpd", sweep_metrics: list[str] = ("l1", "dame", "fmpd"),
-                 distance_metric: str = "l1", kl_weight: float | None = None, train: dict | None = None):
-        self._init(network, [spatial, differential], "end-to-end", expressions, conditional, kl_weight, train)
+                 distance_metric: str = "l1", kl_weight: float | None = None, train: dict | None = None,
+                 anchor: Annotated[Spec | None, Kind("model")] = None, bending_weight: float = 0.0):
+        self._init(network, [spatial, differential], "end-to-end", expressions, conditional, kl_weight, train,
+                   anchor, bending_weight)
         self.branch_names = ["spatial", "differential"]
         self.assembler_spec = make_spec("assembler", assembler, "assembler")
         self.k_fixed, self.ks_param = k, ks
@@ -624,8 +706,10 @@ class PBS(_Blend):
     def single(self, b: int) -> PB:
         """Branch b (0 spatial, 1 differential) as a single end-to-end ``pb`` model sharing
         this model's fitted representations and networks."""
-        pb = PB(representation=self.branch_specs[b], network=self.network, conditional=self.conditional)
+        pb = PB(representation=self.branch_specs[b], network=self.network, conditional=self.conditional,
+                anchor=self.anchor_spec)
         pb.expressions, pb.template, pb._net_model = list(self.expressions), self.template, self._net_model
+        pb.anchor, pb._anchor_memo = self.anchor, self._anchor_memo
         pb.shape = (self.shape[0], [self.shape[1][b]])
         pb.in_reps, pb.out_reps = [self.in_reps[b]], [self.out_reps[b]]
         pb.expr_scalers = None if self.expr_scalers is None else [self.expr_scalers[b]]
