@@ -6,6 +6,7 @@ A recipe names a task and gives the task's parameters as top-level keys::
     extends: base.yaml           # optional: inherit and override another recipe (path relative to this file)
     name: my-study               # optional: the run directory's name (default: the file's stem)
     seed: 0                      # one seed for sampling, splits, initialisation and batching
+    seeds: [0, 1, 2]             # optional: train every model once per seed on the split of `seed` (fwk.runs)
     train: {epochs: 10}          # fwk.engine.TrainConfig
     dataset: {name: synthetic-heads, n_vertices: 1500}
     models: {pca: {name: pca, n_components: 32}}
@@ -35,7 +36,7 @@ from .errors import RecipeError
 from .plugins import get_registry
 from .registry import Registry, did_you_mean
 
-RESERVED = ("task", "extends", "name", "seed", "train", "description", "source")
+RESERVED = ("task", "extends", "name", "seed", "seeds", "train", "description", "source")
 
 
 class Kind:
@@ -360,7 +361,8 @@ def convert(value, tp, path: str, registry: Registry):
 
 @dataclass
 class Resolved:
-    """A validated recipe: the task spec, the seed, the train config and the plain data."""
+    """A validated recipe: the task spec, the seed, the train config and the plain data;
+    ``seeds``: the recipe's ``seeds:`` as a list (None without it; see ``fwk.runs.run_seeds``)."""
 
     name: str
     task: Spec
@@ -368,6 +370,28 @@ class Resolved:
     train: Any
     data: dict
     source: str | None = None
+    seeds: list[int] | None = None
+
+
+def parse_seeds(value, path: str = "seeds") -> list[int] | None:
+    """A recipe's ``seeds:``: None (absent), a count n (seeds 0..n-1) or a list of distinct
+    integers >= 0, as a list; a RecipeError naming ``path`` otherwise."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, list, tuple)):
+        raise RecipeError(f"{path}: expected a number of seeds or a list of seeds, got {value!r}")
+    if isinstance(value, int):
+        if value < 1:
+            raise RecipeError(f"{path}: expected at least one seed, got {value}")
+        return list(range(value))
+    seeds = [convert(v, int, f"{path}[{i}]", None) for i, v in enumerate(value)]
+    if not seeds:
+        raise RecipeError(f"{path}: an empty list; give at least one seed")
+    if any(s < 0 for s in seeds):
+        raise RecipeError(f"{path}: seeds must be >= 0, got {seeds}")
+    if len(set(seeds)) != len(seeds):
+        raise RecipeError(f"{path}: a seed is given twice ({seeds})")
+    return seeds
 
 
 def resolve(data: dict, registry: Registry) -> Resolved:
@@ -383,10 +407,11 @@ def resolve(data: dict, registry: Registry) -> Resolved:
     if not isinstance(name, str):
         raise RecipeError(f"name: expected a string, got {name!r}")
     seed = convert(data.get("seed", 0), int, "seed", registry)
+    seeds = parse_seeds(data.get("seeds"))
     train = convert(data.get("train") or {}, TrainConfig, "train", registry)
     cls = registry.get("task", task_name, key_path="task")
     params = {k: v for k, v in data.items() if k not in RESERVED}
     params = validate_params(cls, params, "", registry, label=f"task {task_name}")
     spec = Spec("task", task_name, params, cls, "")
     plain = {k: v for k, v in data.items()}
-    return Resolved(name, spec, seed, train, plain, source)
+    return Resolved(name, spec, seed, train, plain, source, seeds)
