@@ -38,7 +38,7 @@ def test_sparse_state_is_named():
 def test_devices_to_processes():
     assert _world_size(2, True) == 2 and _world_size("3", True) == 3 and _world_size([0, 1], False) == 2
     assert _world_size("auto", True) == 1 and _world_size(-1, True) == 1
-    assert wants_ddp(TrainConfig(strategy="ddp")) and not wants_ddp(TrainConfig(strategy="ddp_spawn"))
+    assert wants_ddp(TrainConfig(strategy="ddp")) and not wants_ddp(TrainConfig(strategy="single_device"))
     assert not wants_ddp(TrainConfig())
 
 
