@@ -22,6 +22,9 @@ from __future__ import annotations
 import copy
 import dataclasses
 import inspect
+import math
+import os
+import stat
 import types
 import typing
 from dataclasses import dataclass, field
@@ -32,9 +35,16 @@ import yaml
 
 from .data.template import check_units
 from .engine.config import TrainConfig
-from .errors import RecipeError
+from .errors import RecipeError, quote
 from .plugins import get_registry
 from .registry import Registry, did_you_mean
+
+#: the largest integer a recipe may give (a signed 64-bit integer's)
+MAX_INT = 2**63 - 1
+#: the seeds ``seed:`` accepts (Lightning's seed_everything takes unsigned 32-bit seeds)
+MAX_SEED = 2**32 - 1
+#: the longest run name (the run directory adds ``-yyyymmdd-HHMMSS``; a file name has 255 bytes)
+MAX_NAME = 100
 
 RESERVED = ("task", "extends", "name", "seed", "seeds", "train", "description", "source")
 
@@ -86,13 +96,136 @@ def to_plain(v):
 
 # ----------------------------------------------------------------------------- loading
 
-def _read_yaml(path: Path) -> dict:
-    if not path.exists():
-        raise RecipeError(f"recipe file {path} does not exist")
+#: the largest recipe file read (a recipe is a few kilobytes; a bigger one is a mistake or an attack)
+MAX_RECIPE_BYTES = 1 << 20
+#: the most YAML nodes a recipe may hold once its aliases are expanded (``*name`` repeats the
+#: node ``&name`` anchors; nested aliases grow exponentially, the "billion laughs")
+MAX_RECIPE_NODES = 100_000
+
+
+class RecipeLoader(yaml.SafeLoader):
+    """PyYAML's SafeLoader (no Python objects), refusing a key given twice in one mapping (both
+    line numbers named) and a document whose aliases expand past ``MAX_RECIPE_NODES`` nodes."""
+
+    source = "recipe"
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = {}  # key -> the line it was first given on
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *base`: explicit keys override it
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                line = key_node.start_mark.line + 1
+                try:
+                    first = seen.get(key)
+                except TypeError:
+                    continue  # an unhashable key: PyYAML's own error follows
+                if first is not None:
+                    raise RecipeError(f"{self.source}, line {line}: key {quote(key)} given twice "
+                                      f"(first on line {first})")
+                seen[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+    def get_single_node(self):
+        node = super().get_single_node()
+        if node is not None:
+            n = _expanded_size(node, {}, set())
+            if n > MAX_RECIPE_NODES:
+                raise RecipeError(f"{self.source}: more than {MAX_RECIPE_NODES:,} values once its aliases (*name) "
+                                  f"are expanded; a recipe repeats a part with extends: or an override instead")
+        return node
+
+
+def _expanded_size(node, memo: dict, active: set) -> int:
+    """How many nodes ``node`` holds with every alias expanded (counted once per node: O(nodes));
+    stops counting past the limit, and refuses an alias of a node inside itself."""
+    key = id(node)
+    if key in memo:
+        return memo[key]
+    if key in active:
+        raise RecipeError("recipe: an alias (*name) refers to a node that contains it (a recursive structure)")
+    if isinstance(node, yaml.ScalarNode):
+        return 1
+    active.add(key)
+    total = 1
+    for item in node.value:
+        for child in (item if isinstance(item, tuple) else (item,)):
+            total += _expanded_size(child, memo, active)
+            if total > MAX_RECIPE_NODES:
+                break
+        if total > MAX_RECIPE_NODES:
+            break
+    active.discard(key)
+    memo[key] = total
+    return total
+
+
+def yaml_load(text: str, source: str = "recipe"):
+    """``text`` read as YAML with ``RecipeLoader``; a RecipeError naming ``source`` (and the line)
+    for anything wrong."""
     try:
-        data = yaml.safe_load(path.read_text())
+        return _construct(text, source)
     except yaml.YAMLError as exc:
-        raise RecipeError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{source}, line {mark.line + 1}" if mark is not None else source
+        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise RecipeError(f"{where}: not valid YAML ({quote(what)[1:-1]})") from None
+    except RecursionError:
+        raise RecipeError(f"{source}: nested too deeply") from None
+
+
+def _construct(text: str, source: str):
+    loader = RecipeLoader(text)
+    loader.source = source
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
+
+
+def read_recipe_text(path: Path, what: str = "recipe file") -> str:
+    """The text of the recipe file ``path``: a regular file (not a folder, a device or a FIFO,
+    which would block), at most ``MAX_RECIPE_BYTES`` bytes, UTF-8."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO opens at once; it is refused below
+    except ValueError:  # a NUL in the path
+        raise RecipeError(f"{what} {quote(str(path))}: not a valid path") from None
+    except FileNotFoundError:
+        raise RecipeError(f"{what} {path} does not exist") from None
+    except IsADirectoryError:
+        raise RecipeError(f"{what} {path} is a folder, not a file") from None
+    except OSError as exc:
+        raise RecipeError(f"{what} {path}: cannot be read ({exc.strerror or exc})") from None
+    try:
+        st = os.fstat(fd)
+        if stat.S_ISDIR(st.st_mode):
+            raise RecipeError(f"{what} {path} is a folder, not a file")
+        if not stat.S_ISREG(st.st_mode):
+            raise RecipeError(f"{what} {path} is not a regular file (a device, FIFO or socket)")
+        if st.st_size > MAX_RECIPE_BYTES:
+            raise RecipeError(f"{what} {path}: {st.st_size:,} bytes, more than a recipe may have "
+                              f"({MAX_RECIPE_BYTES:,})")
+        with os.fdopen(fd, "rb") as f:
+            fd = None
+            data = f.read(MAX_RECIPE_BYTES + 1)
+    except OSError as exc:
+        raise RecipeError(f"{what} {path}: cannot be read ({exc.strerror or exc})") from None
+    finally:
+        if fd is not None:
+            os.close(fd)
+    if len(data) > MAX_RECIPE_BYTES:
+        raise RecipeError(f"{what} {path}: more than {MAX_RECIPE_BYTES:,} bytes")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise RecipeError(f"{what} {path}, line {line}: not UTF-8 text (byte 0x{data[exc.start]:02x}); "
+                          f"save it as UTF-8") from None
+
+
+def _read_yaml(path: Path, what: str = "recipe file") -> dict:
+    data = yaml_load(read_recipe_text(path, what), str(path))
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -114,33 +247,38 @@ def deep_merge(base: dict, over: dict) -> dict:
     return out
 
 
-def _load_with_extends(path: Path, seen: tuple = ()) -> dict:
-    path = path.resolve()
+def _load_with_extends(path: Path, seen: tuple = (), what: str = "recipe file") -> dict:
+    try:
+        path = path.resolve()
+    except (OSError, ValueError, RuntimeError):  # a NUL in the path, a symlink loop
+        raise RecipeError(f"{what} {quote(str(path))}: not a valid path") from None
     if path in seen:
         chain = " -> ".join(str(p.name) for p in (*seen, path))
         raise RecipeError(f"extends: recipes extend each other in a cycle ({chain})")
-    data = _read_yaml(path)
+    data = _read_yaml(path, what)
     parent = data.pop("extends", None)
     if parent is None:
         return data
-    if not isinstance(parent, str):
-        raise RecipeError(f"{path.name}: extends: expected a recipe path, got {parent!r}")
-    base = _load_with_extends((path.parent / parent), (*seen, path))
+    if not isinstance(parent, str) or not parent:
+        raise RecipeError(f"{path.name}: extends: expected a recipe path, got {quote(parent)}")
+    base = _load_with_extends((path.parent / parent), (*seen, path), f"{path.name}: extends:")
     return deep_merge(base, data)
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
     """``a.b.c=value`` -> (['a', 'b', 'c'], the value read as YAML)."""
     if "=" not in text:
-        raise RecipeError(f"override {text!r}: expected key.path=value")
+        raise RecipeError(f"override {quote(text)}: expected key.path=value")
     key, _, raw = text.partition("=")
     key = key.strip()
     if not key or any(not p for p in key.split(".")):
-        raise RecipeError(f"override {text!r}: expected key.path=value")
+        raise RecipeError(f"override {quote(text)}: expected key.path=value")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
+        value = _construct(raw, f"override {quote(key)}") if raw.strip() else ""
     except yaml.YAMLError:
-        value = raw
+        value = raw  # not YAML: the text itself
+    except RecursionError:
+        raise RecipeError(f"override {quote(key)}: nested too deeply") from None
     return key.split("."), value
 
 
@@ -156,7 +294,7 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
                 nxt = {"name": nxt}
             if not isinstance(nxt, dict):
                 if nxt is not None:
-                    raise RecipeError(f"override {text}: {'.'.join(keys[: i + 1])} is not a mapping")
+                    raise RecipeError(f"override {quote(text)}: {'.'.join(keys[: i + 1])} is not a mapping")
                 nxt = {}
             node[k] = nxt
             node = nxt
@@ -175,6 +313,31 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> dict:
 
 
 # ----------------------------------------------------------------------------- validation
+
+def _key(key) -> str:
+    """A recipe key for a key path in an error message, cut like ``fwk.errors.quote``."""
+    text = str(key)
+    return text if len(text) <= 200 else f"{text[:200]}... ({len(text):,} characters)"
+
+
+def check_run_name(name, key: str = "name") -> str:
+    """``name`` when it can name a run directory inside the runs folder: a non-empty string of at
+    most ``MAX_NAME`` characters without a path separator, ``..``, NUL or another control
+    character; else a RecipeError naming ``key``."""
+    if not isinstance(name, str):
+        raise RecipeError(f"{key}: expected a string, got {type(name).__name__} {quote(name)}")
+    if not name.strip():
+        raise RecipeError(f"{key}: empty; a run needs a name")
+    if len(name) > MAX_NAME:
+        raise RecipeError(f"{key}: {len(name):,} characters, at most {MAX_NAME} ({quote(name)})")
+    bad = [c for c in ("/", "\\", "\0") if c in name]
+    if bad or ".." in name or any(ord(c) < 32 or ord(c) == 127 for c in name):
+        what = {"/": "a path separator /", "\\": "a path separator \\", "\0": "a NUL character"}.get(
+            bad[0] if bad else "", "`..`" if ".." in name else "a control character")
+        raise RecipeError(f"{key}: {quote(name)} contains {what}; a run name is one folder name "
+                          f"inside the runs folder")
+    return name
+
 
 def _type_name(tp) -> str:
     if tp is inspect.Parameter.empty or tp is Any:
@@ -197,7 +360,7 @@ def _hints(func) -> dict:
 def validate_params(cls: type, params: dict, path: str, registry: Registry, label: str | None = None) -> dict:
     """Check ``params`` against ``cls``'s constructor and convert nested components."""
     if not isinstance(params, dict):
-        raise RecipeError(f"{path}: expected a mapping of parameters, got {params!r}")
+        raise RecipeError(f"{path}: expected a mapping of parameters, got {quote(params)}")
     label = label or getattr(cls, "name", cls.__name__)
     init = cls.__init__ if not dataclasses.is_dataclass(cls) else cls
     sig = inspect.signature(init)  # justified: the constructor is the recipe schema (fwk.hookspecs)
@@ -208,7 +371,7 @@ def validate_params(cls: type, params: dict, path: str, registry: Registry, labe
     var_kw = any(p.kind == p.VAR_KEYWORD for p in sig.parameters.values())
     out = {}
     for key, value in params.items():
-        kp = f"{path}.{key}" if path else str(key)
+        kp = f"{path}.{_key(key)}" if path else _key(key)
         if key in supplied:
             raise RecipeError(f"{kp}: supplied by the model that builds {label}, not a recipe parameter")
         if key not in ps:
@@ -257,7 +420,7 @@ def make_spec(kind: str, value, path: str, registry: Registry | None = None) -> 
         params = {k: v for k, v in value.items() if k != "name"}
         name = value["name"]
     else:
-        raise RecipeError(f"{path}: expected a {kind} name or a mapping with `name`, got {value!r}")
+        raise RecipeError(f"{path}: expected a {kind} name or a mapping with `name`, got {quote(value)}")
     cls = registry.get(kind, name, key_path=f"{path}.name" if isinstance(value, dict) else path)
     params = validate_params(cls, params, path, registry, label=name)
     if kind == "dataset" and "units" in params:  # a dataset's `units` names its meshes' unit (Template.units)
@@ -283,8 +446,8 @@ def convert(value, tp, path: str, registry: Registry):
                 b_origin = get_origin(base)
             if b_origin is dict:
                 if not isinstance(value, dict):
-                    raise RecipeError(f"{path}: expected a mapping of label -> {kind}, got {value!r}")
-                return {k: make_spec(kind, v, f"{path}.{k}", registry) for k, v in value.items()}
+                    raise RecipeError(f"{path}: expected a mapping of label -> {kind}, got {quote(value)}")
+                return {k: make_spec(kind, v, f"{path}.{_key(k)}", registry) for k, v in value.items()}
             if b_origin in (list, tuple):
                 if not isinstance(value, (list, tuple)):
                     value = [value]
@@ -306,24 +469,24 @@ def convert(value, tp, path: str, registry: Registry):
                 errors.append(exc)
         if len(errors) == 1:
             raise errors[0]
-        raise RecipeError(f"{path}: expected {_type_name(tp)}, got {type(value).__name__} {value!r}")
+        raise RecipeError(f"{path}: expected {_type_name(tp)}, got {type(value).__name__} {quote(value)}")
     if origin is typing.Literal:
         if value not in get_args(tp):
-            raise RecipeError(f"{path}: expected one of {', '.join(map(repr, get_args(tp)))}, got {value!r}")
+            raise RecipeError(f"{path}: expected one of {', '.join(map(repr, get_args(tp)))}, got {quote(value)}")
         return value
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):
-            raise RecipeError(f"{path}: expected a list, got {type(value).__name__} {value!r}")
+            raise RecipeError(f"{path}: expected a list, got {type(value).__name__} {quote(value)}")
         args = get_args(tp)
         item = args[0] if args and (origin is list or (len(args) == 2 and args[1] is Ellipsis)) else Any
         conv = [convert(v, item, f"{path}[{i}]", registry) for i, v in enumerate(value)]
         return conv if origin is list else tuple(conv)
     if origin is dict:
         if not isinstance(value, dict):
-            raise RecipeError(f"{path}: expected a mapping, got {type(value).__name__} {value!r}")
+            raise RecipeError(f"{path}: expected a mapping, got {type(value).__name__} {quote(value)}")
         args = get_args(tp)
         vt = args[1] if len(args) == 2 else Any
-        return {k: convert(v, vt, f"{path}.{k}", registry) for k, v in value.items()}
+        return {k: convert(v, vt, f"{path}.{_key(k)}", registry) for k, v in value.items()}
     if dataclasses.is_dataclass(tp) and isinstance(tp, type):
         if isinstance(value, tp):
             return value
@@ -332,30 +495,42 @@ def convert(value, tp, path: str, registry: Registry):
         return tp(**validate_params(tp, value, path, registry, label=path.split(".")[-1] or tp.__name__))
     if tp is bool:
         if not isinstance(value, bool):
-            raise RecipeError(f"{path}: expected true or false, got {value!r}")
+            raise RecipeError(f"{path}: expected true or false, got {quote(value)}")
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             if isinstance(value, float) and value.is_integer():
-                return int(value)
-            raise RecipeError(f"{path}: expected an integer, got {type(value).__name__} {value!r}")
+                value = int(value)
+            else:
+                raise RecipeError(f"{path}: expected an integer, got {type(value).__name__} {quote(value)}")
+        if not -MAX_INT <= value <= MAX_INT:
+            raise RecipeError(f"{path}: {quote(value)} is out of range (at most {MAX_INT} in magnitude, 64 bits)")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
+            number = None
             if isinstance(value, str):
                 try:
-                    return float(value)  # YAML reads 1e-3 as a string
+                    number = float(value)  # YAML reads 1e-3 as a string
                 except ValueError:
                     pass
-            raise RecipeError(f"{path}: expected a number, got {type(value).__name__} {value!r}")
-        return float(value)
+            if number is None:
+                raise RecipeError(f"{path}: expected a number, got {type(value).__name__} {quote(value)}")
+            value = number
+        try:
+            value = float(value)
+        except OverflowError:  # an integer beyond a double's range
+            raise RecipeError(f"{path}: {quote(value)} is out of range") from None
+        if not math.isfinite(value):
+            raise RecipeError(f"{path}: expected a finite number, got {value}")
+        return value
     if tp is str:
         if not isinstance(value, str):
-            raise RecipeError(f"{path}: expected a string, got {type(value).__name__} {value!r}")
+            raise RecipeError(f"{path}: expected a string, got {type(value).__name__} {quote(value)}")
         return value
     if tp in (dict, list):
         if not isinstance(value, tp):
-            raise RecipeError(f"{path}: expected a {tp.__name__}, got {type(value).__name__} {value!r}")
+            raise RecipeError(f"{path}: expected a {tp.__name__}, got {type(value).__name__} {quote(value)}")
     return value
 
 
@@ -379,7 +554,7 @@ def parse_seeds(value, path: str = "seeds") -> list[int] | None:
     if value is None:
         return None
     if isinstance(value, bool) or not isinstance(value, (int, list, tuple)):
-        raise RecipeError(f"{path}: expected a number of seeds or a list of seeds, got {value!r}")
+        raise RecipeError(f"{path}: expected a number of seeds or a list of seeds, got {quote(value)}")
     if isinstance(value, int):
         if value < 1:
             raise RecipeError(f"{path}: expected at least one seed, got {value}")
@@ -403,10 +578,11 @@ def resolve(data: dict, registry: Registry) -> Resolved:
     task_name = data["task"]
     if isinstance(task_name, dict):
         raise RecipeError("task: expected a task name; its parameters are the recipe's top-level keys")
-    name = data.get("name") or "run"
-    if not isinstance(name, str):
-        raise RecipeError(f"name: expected a string, got {name!r}")
+    name = data.get("name")
+    name = check_run_name("run" if name is None else name)
     seed = convert(data.get("seed", 0), int, "seed", registry)
+    if not 0 <= seed <= MAX_SEED:
+        raise RecipeError(f"seed: {seed} is out of range (0 to {MAX_SEED}, 32 bits)")
     seeds = parse_seeds(data.get("seeds"))
     train = convert(data.get("train") or {}, TrainConfig, "train", registry)
     cls = registry.get("task", task_name, key_path="task")
