@@ -106,12 +106,26 @@ def cmd_show(args) -> int:
     return 0
 
 
+def _seeds(value: str) -> list[int]:
+    """``--seeds 3`` (seeds 0, 1, 2), ``--seeds 0,4,7`` (those seeds), ``--seeds 5,`` (seed 5)."""
+    listed = "," in value
+    parts = [p.strip() for p in value.split(",") if p.strip() or not listed]
+    if not parts or not all(p.isdigit() for p in parts) or (not listed and int(parts[0]) < 1):
+        raise argparse.ArgumentTypeError(f"expected a number of seeds >= 1 or a list like 0,1,2, got {value!r}")
+    return [int(p) for p in parts] if listed else list(range(int(parts[0])))
+
+
 def cmd_run(args) -> int:
-    """``fwk run RECIPE [key=value ...] [--resume RUN_DIR]``: prints the run directory."""
+    """``fwk run RECIPE [key=value ...] [--resume RUN_DIR] [--seeds N|S,S,...]``: prints the run
+    directory."""
     if not args.recipe and not args.resume:
         raise FwkError("fwk run: give a recipe file, or --resume RUN_DIR")
     recipe = args.recipe
     overrides = list(args.overrides or [])
+    if args.seeds is not None:  # the recipe's `seeds:` (fwk.seeds); recipe.yaml records it
+        if args.resume:
+            raise FwkError("--seeds: a resumed run keeps the seeds it started with (its recipe.yaml)")
+        overrides.append(f"seeds=[{', '.join(map(str, args.seeds))}]")
     if recipe and "=" in recipe and not os.path.exists(recipe):
         raise FwkError(f"fwk run: the first argument must be a recipe file, got {recipe!r}")
     run_dir = execute(recipe, overrides, runs_dir=args.runs_dir, resume=args.resume, quiet=args.quiet,
@@ -143,6 +157,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--resume", metavar="RUN_DIR", help="continue a killed run to the same final result")
     sp.add_argument("--runs-dir", help="where run directories go (default ./runs or $FWK_RUNS_DIR)")
     sp.add_argument("--device", choices=["cpu", "cuda"], help="default: cuda when available")
+    sp.add_argument("--seeds", type=_seeds, metavar="N|S,S,...",
+                    help="train every model once per seed on one split: N seeds 0..N-1, or a list "
+                         "(the recipe's seeds:; docs/recipes.md)")
     sp.set_defaults(func=cmd_run)
     for add, run in EXTRA_COMMANDS.values():
         add(sub).set_defaults(func=run)
