@@ -1,14 +1,25 @@
 """Content-hash keyed cache for derived data (parsed meshes, operators, eigenbases, ...).
 
 A key covers every input that changes the value (arrays are hashed by dtype, shape and bytes).
-Every entry (a pickled value, or a large ``.npy`` array that is memory-mapped) is written
-atomically (temporary file + rename, with the process umask's file mode) with the SHA-256 of
-its bytes beside it (``<key>.sha256``). Every read checks the bytes against that hash: an entry
-that does not verify (changed, truncated, half-written by a killed process) or cannot be parsed
-is never used: it is rebuilt, with one warning line on stderr (an entry without its hash, a
-write cut short, is a plain miss). Temporary files that killed writers left are removed (after
-``STALE_S``) when the folder is next written. Location: ``Cache(root)``, else
-``$FWK_CACHE``, else ``~/.cache/fwk``.
+Every entry is written atomically (temporary file + rename, with the process umask's file mode)
+with a check value beside it, written last:
+
+* a pickled value (``<key>.bin``: plugins cache objects such as a sampler's levels) with its
+  HMAC-SHA256 (``<key>.hmac``), keyed by a secret of the user's that never lies in the cache
+  (``cache_key``: ``$FWK_KEY_FILE``, else ``$XDG_CONFIG_HOME/fwk/cache.key``, else
+  ``~/.config/fwk/cache.key``; created with mode 600; refused, one line, when its mode lets others
+  in or another user owns it). Unpickling runs code, so an entry is unpickled only when its HMAC
+  verifies: one that anyone else wrote (a cache folder received, shared or planted) cannot, and
+  is rebuilt instead;
+* a large array (``<key>.npy``, memory-mapped; read with ``allow_pickle=False``, so it can hold
+  numbers only) with the SHA-256 of its bytes (``<key>.sha256``).
+
+Every read checks the bytes: an entry that does not verify (changed, truncated, half-written by
+a killed process, written without the user's key) or cannot be parsed is never used: it is
+rebuilt, with one warning line on stderr (an entry without its check value, a write cut short,
+or with a check value of an older format, is a plain miss). Temporary files that killed writers
+left are removed (after ``STALE_S``) when the folder is next written. Location: ``Cache(root)``,
+else ``$FWK_CACHE``, else ``~/.cache/fwk``.
 
 ``memo(namespace, key, build)`` is the in-process counterpart (nothing written): values derived
 from a topology or a level (edge structures, spirals, factorisations, metric stencils) built once
@@ -18,10 +29,12 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import hmac
 import io
 import os
 import pickle
 import re
+import secrets
 import sys
 import tempfile
 import threading
@@ -31,7 +44,7 @@ from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
-from .errors import WriteError
+from .errors import FwkError, WriteError
 
 
 @runtime_checkable
@@ -147,6 +160,77 @@ def file_sha256(path: Path) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
+#: the variable that names the cache key file
+KEY_ENV = "FWK_KEY_FILE"
+_KEYS: dict[str, bytes] = {}
+_NO_KEY_WARNED: set[str] = set()
+
+
+def key_path() -> Path:
+    """Where the user's cache key lives: ``$FWK_KEY_FILE``, else ``$XDG_CONFIG_HOME/fwk/cache.key``,
+    else ``~/.config/fwk/cache.key``: never in the cache folder, which others may have written."""
+    if os.environ.get(KEY_ENV):
+        return Path(os.environ[KEY_ENV]).expanduser()
+    base = os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config"
+    return Path(base).expanduser() / "fwk" / "cache.key"
+
+
+def _create_key(path: Path) -> None:
+    """A new random key at ``path``, mode 600, its folder 700 when made here; made whole in a
+    temporary file and linked into place, so that a concurrent creator's key wins untouched."""
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")  # mode 0600
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(secrets.token_hex(32) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            pass
+    finally:
+        os.unlink(tmp)
+
+
+def cache_key() -> bytes | None:
+    """The user's secret that authenticates pickled cache entries (see the module docstring),
+    created on first use. ``FwkError`` (one line) when the file is another user's or others may
+    read or write it; None, with one warning line, when it cannot be created or read (then
+    pickled entries are neither read nor written)."""
+    path = key_path()
+    found = _KEYS.get(str(path))
+    if found is not None:
+        return found
+    try:
+        if not path.exists():
+            _create_key(path)
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+        with os.fdopen(fd, "rb") as f:
+            st = os.fstat(f.fileno())
+            if st.st_uid != os.getuid():
+                raise FwkError(f"{path}: the cache key belongs to another user (uid {st.st_uid}); fwk trusts "
+                               f"only a key file of its own user (${KEY_ENV} chooses another place)")
+            if st.st_mode & 0o077:
+                raise FwkError(f"{path}: the cache key may be read or written by others (mode "
+                               f"{stat_mode(st.st_mode)}); make it private with: chmod 600 {path}")
+            secret = f.read(4096).strip()
+    except OSError as exc:
+        if str(path) not in _NO_KEY_WARNED:
+            _NO_KEY_WARNED.add(str(path))
+            warn(f"{path}: the cache key cannot be created or read ({exc.strerror or exc}); cached objects "
+                 f"are neither read nor written (set ${KEY_ENV} to a private file)")
+        return None
+    if len(secret) < 32:
+        raise FwkError(f"{path}: the cache key is too short ({len(secret)} bytes); remove it and fwk makes a new one")
+    _KEYS[str(path)] = secret
+    return secret
+
+
+def stat_mode(mode: int) -> str:
+    return f"{mode & 0o777:03o}"
+
+
 class Cache:
     """Derived data on disk under ``root``, keyed by the content of its inputs (see the module
     docstring)."""
@@ -158,13 +242,35 @@ class Cache:
 
     def _paths(self, namespace: str, key: str) -> tuple[Path, Path]:
         d = self.root / namespace
-        return d / f"{key}.bin", d / f"{key}.sha256"
+        return d / f"{key}.bin", d / f"{key}.hmac"
+
+    @staticmethod
+    def _mac(secret: bytes, namespace: str, key: str, data: bytes) -> str:
+        """The HMAC-SHA256 of an entry: its namespace and key, then its bytes (an authentic entry
+        moved to another key does not verify there)."""
+        h = hmac.new(secret, f"fwk-cache/1\0{namespace}\0{key}\0".encode(), hashlib.sha256)
+        h.update(data)
+        return h.hexdigest()
+
+    def authentic(self, data_p: Path) -> bool:
+        """Whether the pickled entry at ``data_p`` (``<namespace>/<key>.bin``) carries the HMAC the
+        user's key gives its bytes (nothing is unpickled)."""
+        secret = cache_key()
+        data_p = Path(data_p)
+        sum_p = data_p.with_suffix(".hmac")
+        try:
+            expected = sum_p.read_text().strip()
+            mac = self._mac(secret, data_p.parent.name, data_p.stem, data_p.read_bytes()) if secret else ""
+        except OSError:
+            return False
+        return bool(secret) and hmac.compare_digest(mac, expected)
 
     def _verified(self, data_p: Path, sum_p: Path, digest: Callable[[], str]) -> bool:
-        """Whether the entry at ``data_p`` is whole: its bytes' SHA-256 equals ``sum_p``'s. A
-        missing entry, or one without its hash (a write cut short: the hash is written last), is
-        a plain miss; one whose bytes do not match gets one warning line (an entry of an older
-        format, whose hash file holds something else, is rebuilt silently)."""
+        """Whether the entry at ``data_p`` is whole: ``digest()`` (its bytes' SHA-256, or for a
+        pickled entry their HMAC) equals ``sum_p``'s. A missing entry, or one without its check
+        value (a write cut short: it is written last), is a plain miss; one whose bytes do not
+        match gets one warning line (an entry of an older format, whose check file holds
+        something else, is rebuilt silently)."""
         if not data_p.exists():
             return False
         try:
@@ -173,26 +279,36 @@ class Cache:
             expected = sum_p.read_text().strip()
             if not _HEX64.match(expected):
                 return False  # an older format's entry: rebuilt without a word
-            if digest() == expected:
+            if hmac.compare_digest(digest(), expected):
                 return True
         except OSError as exc:
             warn(f"cache entry {data_p} is unreadable ({exc.strerror}); rebuilt")
             return False
-        warn(f"cache entry {data_p} does not match its content hash (changed or truncated); rebuilt")
+        if sum_p.suffix == ".hmac":
+            warn(f"cache entry {data_p} does not verify with this user's cache key (changed, truncated or "
+                 f"written by someone else); not unpickled, rebuilt")
+        else:
+            warn(f"cache entry {data_p} does not match its content hash (changed or truncated); rebuilt")
         return False
 
     def load(self, namespace: str, key: str) -> Any | None:
-        """The value stored under ``key``, or None when missing, corrupt (one warning line) or
-        disabled."""
+        """The value stored under ``key``, or None when missing, corrupt or not authentic (one
+        warning line), or disabled. Only bytes whose HMAC verifies with the user's key are
+        unpickled."""
         data_p, sum_p = self._paths(namespace, key)
         if not self.enabled:
+            return None
+        if not data_p.exists():
+            return None
+        secret = cache_key()
+        if secret is None:
             return None
         data = b""
 
         def digest():
             nonlocal data
             data = data_p.read_bytes()
-            return hashlib.sha256(data).hexdigest()
+            return self._mac(secret, namespace, key, data)
 
         if not self._verified(data_p, sum_p, digest):
             return None
@@ -203,17 +319,20 @@ class Cache:
             return None
 
     def store(self, namespace: str, key: str, value: Any) -> None:
-        """Store ``value`` under ``key`` (pickled, with its SHA-256); a write error is ignored (a
-        read-only or full cache must not fail the computation)."""
+        """Store ``value`` under ``key`` (pickled, with its HMAC under the user's key); a write
+        error is ignored (a read-only or full cache must not fail the computation)."""
         if not self.enabled:
+            return
+        secret = cache_key()
+        if secret is None:
             return
         data = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
         data_p, sum_p = self._paths(namespace, key)
         _sweep(data_p.parent)
         try:
-            _remove(sum_p)  # never a new value beside an old hash, should the next write be cut short
+            _remove(sum_p)  # never a new value beside an old check value, should the next write be cut short
             atomic_write_bytes(data_p, data)
-            atomic_write_bytes(sum_p, hashlib.sha256(data).hexdigest().encode())
+            atomic_write_bytes(sum_p, self._mac(secret, namespace, key, data).encode())
         except OSError:
             pass
 
@@ -237,7 +356,7 @@ class Cache:
         sum_p = p.with_suffix(".sha256")
         if self.enabled and self._verified(p, sum_p, lambda: file_sha256(p)):
             try:
-                return np.load(p, mmap_mode="r")
+                return np.load(p, mmap_mode="r", allow_pickle=False)
             except (ValueError, OSError) as exc:
                 warn(f"cache entry {p} cannot be read ({exc}); rebuilt")
         arr = np.ascontiguousarray(build())
@@ -251,7 +370,7 @@ class Cache:
             _remove(sum_p)
             atomic_write_bytes(p, data)
             atomic_write_bytes(sum_p, hashlib.sha256(data).hexdigest().encode())
-            return np.load(p, mmap_mode="r")
+            return np.load(p, mmap_mode="r", allow_pickle=False)
         except OSError:
             return arr
 

@@ -11,30 +11,49 @@ Reopening a finished run (``fwk apply``, ``fwk sample``, the ``edit``/``interpol
     label = choose_model(run.specs, role, label, prefer)     # by --model LABEL, else by role
     model = run.model(label)                                 # built and loaded with the run's context
 
-A model's state lives in ``<run>/models/<label>.pt`` (``torch.save(model.state_dict())``);
-checkpoints of its training under ``checkpoints/<label>/`` (the engine's). ``load_state_dict``
-always receives the run's context (``ctx``), which lends the cache to graph hierarchies.
+A model's state lives in ``<run>/models/<label>.safetensors`` (``fwk.safeio.save_state`` of
+``model.state_dict()``: tensors, arrays and plain data, never a pickle); checkpoints of its
+training under ``checkpoints/<label>/`` (the engine's, in the same format). ``load_state_dict``
+always receives the run's context (``ctx``), which lends the cache to graph hierarchies. A run
+of an earlier version (pickled ``models/<label>.pt``) is refused with the command that converts it
+(``fwk convert RUN --trust``); a damaged, swapped or malformed run file is refused in one line
+naming it.
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import yaml
 
 from .data.preprocess import Preprocessor
-from .errors import FwkError, RecipeError
+from .errors import DataError, FwkError, RecipeError
 from .protocols import FAMILIES, ChecksData, Model
 from .recipes import Spec, resolve
 from .registry import Registry
-from .runs import RunContext, require_complete
+from .runs import RunContext, check_recipe_hash, require_complete
+from .safeio import LEGACY_SUFFIX, SUFFIX, legacy_error, load_json, load_npz, load_state, save_state
 
 
 def state_path(run_dir: Path, label: str) -> Path:
-    return Path(run_dir) / "models" / f"{label}.pt"
+    """``<run_dir>/models/<label>.safetensors``: where a model's state is saved."""
+    return Path(run_dir) / "models" / f"{label}{SUFFIX}"
+
+
+def legacy_state_path(run_dir: Path, label: str) -> Path:
+    """``<run_dir>/models/<label>.pt``: where earlier versions pickled a model's state."""
+    return Path(run_dir) / "models" / f"{label}{LEGACY_SUFFIX}"
+
+
+def has_state(run_dir: Path, label: str) -> bool:
+    """Whether the run holds a saved state of ``label``; a pickled one of an earlier version
+    (and none in the safe format) is refused with the command that converts it."""
+    if state_path(run_dir, label).exists():
+        return True
+    if legacy_state_path(run_dir, label).exists():
+        raise legacy_error(legacy_state_path(run_dir, label))
+    return False
 
 
 def build_model(spec: Spec, label: str, family: str, ctx: RunContext):
@@ -67,22 +86,48 @@ def build_models(specs: dict, family: str, ctx: RunContext, data) -> dict:
     return models
 
 
-def load_model_state(model, path: Path, ctx: RunContext | None) -> None:
-    import torch  # deferred: torch costs ~1 s of import time that `fwk list` / `fwk show` need not pay
+def _model_id(model) -> str:
+    cls = type(model)
+    return f"{cls.__module__}.{cls.__qualname__}"
 
-    model.load_state_dict(torch.load(path, weights_only=False), ctx=ctx)
+
+def save_model_state(model, path: Path, label: str) -> Path:
+    """``model.state_dict()`` saved to ``path`` in the safe format (``fwk.safeio``), with the
+    model's class and label, which ``load_model_state`` checks."""
+    return save_state(path, model.state_dict(), {"model": _model_id(model), "name": model.name, "label": label})
+
+
+def load_model_state(model, path: Path, ctx: RunContext | None, label: str | None = None) -> None:
+    """Load the state saved at ``path`` into ``model``: verified (``fwk.safeio.load_state``), of
+    the model's class (a swapped file is refused) and accepted by its ``load_state_dict``; every
+    failure is a ``DataError`` naming the file."""
+    state, meta = load_state(path, with_meta=True)
+    saved = meta.get("model")
+    if saved is not None and saved != _model_id(model):
+        raise DataError(f"{path}: holds the state of another model ({meta.get('name', saved)} "
+                        f"{meta.get('label', '?')!s}), not of {model.name}{' ' + label if label else ''}")
+    if label is not None and meta.get("label") not in (None, label):
+        raise DataError(f"{path}: holds the state of model {meta.get('label')!s}, not of {label}")
+    try:
+        model.load_state_dict(state, ctx=ctx)
+    except DataError:
+        raise
+    except Exception as exc:  # a state of the same class with other shapes or keys (a changed recipe)
+        msg = " ".join(str(exc).split())
+        raise DataError(f"{path}: does not fit the model {model.name} the recipe builds "
+                        f"({type(exc).__name__}: {msg[:160]})") from None
 
 
 def fit_or_resume(model, label: str, data, ctx: RunContext) -> float:
     """Fit ``model`` on ``data`` (its checkpoints scoped to ``label``) and save it as
-    ``models/<label>.pt``; with ``ctx.resume`` and that file present, load it instead.
+    ``models/<label>.safetensors``; with ``ctx.resume`` and that file present, load it instead.
     A ``RecipeError`` the model raises while fitting (a parameter the data refutes) is prefixed
     with ``models.<label>.``. Returns the seconds spent."""
     path = state_path(ctx.run_dir, label)
     t0 = time.perf_counter()
-    if ctx.resume and path.exists():
+    if ctx.resume and has_state(ctx.run_dir, label):
         ctx.log(f"[{label}] loading the finished model from {path}")
-        load_model_state(model, path, ctx)
+        load_model_state(model, path, ctx, label)
     else:
         ctx.log(f"[{label}] fitting {model.name}")
         try:
@@ -90,7 +135,7 @@ def fit_or_resume(model, label: str, data, ctx: RunContext) -> float:
         except RecipeError as exc:  # a parameter the data refutes (too many components): name its key
             msg = str(exc)
             raise RecipeError(msg if msg.startswith("models.") else f"models.{label}.{msg}") from None
-        ctx.save_torch(f"models/{label}.pt", model.state_dict())
+        save_model_state(model, ctx.path("models", f"{label}{SUFFIX}"), label)
     return time.perf_counter() - t0
 
 
@@ -140,19 +185,24 @@ class OpenedRun:
             path = self.run_dir / "stats" / "preprocess.npz"
             if not path.exists():
                 raise FwkError(f"{path}: missing; is {self.run_dir} a finished run?")
-            with np.load(path) as z:
-                self._pre = Preprocessor.from_state({k: z[k] for k in z.files})
+            state = load_npz(path)
+            try:
+                self._pre = Preprocessor.from_state(state)
+            except Exception as exc:  # an npz of other arrays (swapped, edited)
+                raise DataError(f"{path}: not the preprocessing of a run ({type(exc).__name__}: "
+                                f"{str(exc)[:120]})") from None
         return self._pre
 
     def model(self, label: str):
-        """The trained model ``label``, built from its spec and loaded from ``models/<label>.pt``."""
+        """The trained model ``label``, built from its spec and loaded from
+        ``models/<label>.safetensors``."""
         if label not in self.specs:
             raise FwkError(f"--model {label}: not a model of {self.run_dir} (models: {', '.join(self.specs)})")
         path = state_path(self.run_dir, label)
-        if not path.exists():
+        if not has_state(self.run_dir, label):
             raise FwkError(f"{path}: missing; is {self.run_dir} a finished run?")
         m = self.specs[label].build()
-        load_model_state(m, path, self.ctx)
+        load_model_state(m, path, self.ctx, label)
         return m
 
 
@@ -166,8 +216,15 @@ def open_run(run_dir, registry: Registry | None = None, quiet: bool = True, task
     if not (run_dir / "recipe.yaml").exists():
         raise FwkError(f"{run_dir}: not a run directory (no recipe.yaml)")
     require_complete(run_dir)  # a failed, killed or running run's files are not used
+    check_recipe_hash(run_dir)  # recipe.yaml as the run was trained with, not edited since
     registry = registry or get_registry()
-    data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
+    try:
+        data = yaml.safe_load((run_dir / "recipe.yaml").read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise DataError(f"{run_dir / 'recipe.yaml'}: not a readable recipe ({' '.join(str(exc).split())[:160]})") \
+            from None
+    if not isinstance(data, dict):
+        raise DataError(f"{run_dir / 'recipe.yaml'}: not a recipe (a YAML mapping)")
     try:
         resolved = resolve(data, registry)
     except RecipeError as exc:
@@ -178,6 +235,6 @@ def open_run(run_dir, registry: Registry | None = None, quiet: bool = True, task
     ctx.source = resolved.source
     metrics = {}
     if (run_dir / "metrics.json").exists():
-        metrics = json.loads((run_dir / "metrics.json").read_text())
+        metrics = load_json(run_dir / "metrics.json")
     specs = dict(resolved.task.params.get("models") or {})
     return OpenedRun(run_dir, resolved, ctx, specs, metrics)

@@ -25,6 +25,7 @@ from __future__ import annotations
 import copy
 import datetime as _dt
 import fcntl
+import hashlib
 import io
 import json
 import os
@@ -52,6 +53,7 @@ from .paths import check_dir
 from .plugins import get_registry
 from .recipes import Spec, load_recipe, make_spec, resolve, to_plain
 from .registry import Registry
+from .seeds import run_seeds
 
 SCOPED = ("checkpoints", "tb", "curves")  # per network, under the model's label
 
@@ -400,6 +402,29 @@ def versions(registry: Registry) -> dict:
 
 CODE_KEYS = ("fwk", "git_commit", "git_dirty", "torch")
 
+#: the key of ``versions.json`` that holds the SHA-256 of ``recipe.yaml`` as the run started
+RECIPE_HASH = "recipe_sha256"
+
+
+def recipe_hash(run_dir) -> str:
+    """The SHA-256 of the run's ``recipe.yaml`` bytes."""
+    return hashlib.sha256((Path(run_dir) / "recipe.yaml").read_bytes()).hexdigest()
+
+
+def check_recipe_hash(run_dir, what: str = "") -> None:
+    """Refuse a run whose ``recipe.yaml`` was edited after the run started: its SHA-256 differs
+    from the one ``execute`` recorded in ``versions.json`` (its models and files come from the
+    recipe as it was). A run without a recorded hash (an earlier version's) is not checked."""
+    run_dir = Path(run_dir)
+    try:
+        recorded = json.loads((run_dir / "versions.json").read_text()).get(RECIPE_HASH)
+    except (OSError, ValueError, AttributeError):
+        return
+    if isinstance(recorded, str) and recorded != recipe_hash(run_dir):
+        raise FwkError(f"{what}{run_dir / 'recipe.yaml'}: edited after the run started (its SHA-256 differs "
+                       f"from the one versions.json recorded); its results come from the recipe as it was: "
+                       f"start a new run with the edited recipe")
+
 
 def record_resume(ctx: RunContext, registry: Registry) -> None:
     """Append the code a resume runs with to the run's ``versions.json`` (``resumed``: one entry
@@ -425,7 +450,12 @@ def record_resume(ctx: RunContext, registry: Registry) -> None:
 
 
 def run_task(resolved, ctx: RunContext) -> None:
-    """Build the recipe's task and run it in ``ctx``."""
+    """Build the recipe's task and run it in ``ctx``; a recipe with ``seeds`` runs it once per
+    seed, in sub-runs of ``ctx`` on one split (``fwk.seeds.run_seeds``), unless the task fans
+    seeds out itself (its class says ``fans_out_seeds = True``: the grid)."""
+    if resolved.seeds is not None and not getattr(resolved.task.cls, "fans_out_seeds", False):
+        run_seeds(resolved, ctx)
+        return
     task = resolved.task.build()
     task.run(ctx)
 
@@ -448,6 +478,7 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             raise FwkError(f"--resume {resume}: not a folder")
         if not (run_dir / "recipe.yaml").exists():
             raise FwkError(f"--resume {resume}: not a run directory (no recipe.yaml)")
+        check_recipe_hash(run_dir, "--resume: ")
         data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
         if recipe_path:
             fresh = load_recipe(recipe_path, overrides)
@@ -487,7 +518,7 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             if resolved.source:
                 plain["source"] = resolved.source  # the recipe file: relative paths resolve from it
             ctx.write_text("recipe.yaml", yaml.safe_dump(plain, sort_keys=False))
-            ctx.write_json("versions.json", versions(registry))
+            ctx.write_json("versions.json", {**versions(registry), RECIPE_HASH: recipe_hash(run_dir)})
         ctx.log(f"fwk run {resolved.name}: task {resolved.task.name}, run directory {run_dir}")
         if resume:
             for tmp in run_dir.rglob(".*.tmp"):  # writes a killed process cut short (this one holds the lock)

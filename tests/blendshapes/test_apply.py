@@ -5,6 +5,7 @@ import pytest
 import yaml
 
 from fwk.errors import DataError, FwkError, TopologyError
+from fwk.safeio import load_state
 
 W = 7  # (W+1) x (W+1) vertices, W x W quads
 
@@ -82,7 +83,7 @@ def test_apply_round_trips_quads_uvs_and_materials(run_dir, tmp_path):
     app = Applier(run_dir)
     assert np.allclose(app.predict([V])[0]["smile"], P, atol=1e-6)
     assert not np.allclose(P, V)  # something moved
-    assert isinstance(torch.load(run_dir / "models" / "dt.pt", weights_only=False), dict)
+    assert isinstance(load_state(run_dir / "models" / "dt.safetensors"), dict)
 
 
 def test_apply_a_folder(run_dir, tmp_path):

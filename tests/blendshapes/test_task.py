@@ -51,7 +51,7 @@ def test_report_has_the_thesis_tables_and_figures(run):
         assert (run / "figures" / f"methods_{e}_dame.png").exists()
     report = (run / "report.md").read_text()
     assert "layout of thesis table 5.2" in report and "Pareto-optimal k" in report and "Summary" in report
-    assert (run / "models" / "pbs.pt").exists() and (run / "stats" / "preprocess.npz").exists()
+    assert (run / "models" / "pbs.safetensors").exists() and (run / "stats" / "preprocess.npz").exists()
 
 
 def test_apply_with_the_trained_pbs(run, tmp_path):

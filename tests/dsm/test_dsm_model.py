@@ -11,6 +11,7 @@ from fwk.plugins import get_registry
 from fwk.protocols import FitData
 from fwk.recipes import make_spec
 from fwk.runs import make_test_context
+from fwk.safeio import load_state, save_state
 from fwk.testing.generative import BandModelContract
 from fwk.testing.model import ModelContract
 
@@ -176,9 +177,9 @@ def test_latent_slices_and_round_trip_of_state(trained, data, tmp_path):
     assert z.shape == (len(V), 8)
     rec = trained.reconstruct(V)
     assert rec.shape == V.shape and np.all(np.isfinite(rec))
-    torch.save(trained.state_dict(), tmp_path / "m.pt")
+    save_state(tmp_path / "m.safetensors", trained.state_dict())
     m2 = _dsm(network=NET, k=20, gamma=0.5)
-    m2.load_state_dict(torch.load(tmp_path / "m.pt", weights_only=False), ctx=make_test_context(tmp_path))
+    m2.load_state_dict(load_state(tmp_path / "m.safetensors"), ctx=make_test_context(tmp_path))
     assert np.allclose(m2.reconstruct(V), rec, atol=1e-10)
 
 

@@ -43,7 +43,7 @@ def test_inline_run_writes_pictures_meshes_and_disentanglement(run):
         assert (run / "figures" / f).stat().st_size > 1000
     objs = sorted((run / "interpolation" / "dsm").glob("*.obj"))
     assert len(objs) == 9
-    assert (run / "reconstruct" / "models" / "dsm.pt").exists()
+    assert (run / "reconstruct" / "models" / "dsm.safetensors").exists()
     assert "dsm" in m["models"] and "test" in m["models"]["dsm"]
 
 

@@ -19,6 +19,7 @@ from fwk.engine import EarlyStopping, TrainConfig, fit
 from fwk.engine.callbacks import stopping_rule
 from fwk.errors import RecipeError
 from fwk.runs import make_test_context
+from fwk.safeio import load_state
 from regression import _data, _module
 
 HERE = Path(__file__).resolve().parent
@@ -175,7 +176,7 @@ def test_the_rule_ends_training_and_the_record_says_why(tmp_path):
         tb = [s.value for s in ea.Scalars(key)]
         assert np.allclose(tb, [x[key] for x in r["epochs"]], rtol=1e-6), key
     # the last checkpoint is the last epoch trained, and it knows the rule fired
-    ck = torch.load(ctx.run_dir / "checkpoints" / "reg" / "last.ckpt", weights_only=False)
+    ck = load_state(ctx.run_dir / "checkpoints" / "reg" / "last.ckpt")
     assert ck["epoch"] == e - 1 and ck["fwk_curves"]["stop"] == {"epoch": e, "reason": "no improvement"}
 
 

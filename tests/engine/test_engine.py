@@ -6,6 +6,7 @@ import torch
 from fwk.engine import EpochSampler, TrainConfig, fit, make_optimizer, predict_batches
 from fwk.errors import RecipeError
 from fwk.runs import make_test_context
+from fwk.safeio import load_state
 from regression import _data, _module
 
 
@@ -140,7 +141,7 @@ def test_checkpoints_and_tensorboard(tmp_path):
     fit(_module(), train, val, ctx, "reg")
     names = sorted(p.name for p in (ctx.run_dir / "checkpoints" / "reg").iterdir())
     assert names == ["epoch003.ckpt", "epoch004.ckpt", "last.ckpt"]
-    ck = torch.load(ctx.run_dir / "checkpoints" / "reg" / "last.ckpt", weights_only=False)
+    ck = load_state(ctx.run_dir / "checkpoints" / "reg" / "last.ckpt")
     assert ck["epoch"] == 4 and "fwk_rng" in ck
     (d,) = {p.parent for p in (ctx.run_dir / "tb" / "reg").rglob("events.*")}
     ea = EventAccumulator(str(d))

@@ -11,6 +11,7 @@ import stat
 import pytest
 
 import fwk.paths
+from fwk.cache import Cache
 from fwk.cli import main
 from tests.faults.common import (assert_complete, assert_no_temporary_files, fwk_run, models, recipe, resume,
                                  run_dirs)
@@ -98,21 +99,19 @@ def test_full_destination_while_writing_a_model(tmp_path, env, capsys, baseline)
     is skipped (the computation goes on, nothing half-written is left to be read), the model's
     write stops the run with one line, exit 2, no temporary file, and the run directory (nothing
     in it worth resuming) is removed; with room, the same recipe gives the undisturbed numbers."""
-    import hashlib
-
     r = recipe(tmp_path)
     capsys.readouterr()
     with _limited(12_000):
         rc = main(["--quiet", "run", str(r), "--runs-dir", str(tmp_path / "runs")])
     err = capsys.readouterr().err
-    assert rc == 2 and "models/pca.pt: cannot write (File too large)" in err and err.count("\n") == 1, err
+    assert rc == 2 and "models/pca.safetensors: cannot write (File too large)" in err and err.count("\n") == 1, err
     assert run_dirs(tmp_path / "runs") == []
     assert_no_temporary_files(tmp_path / "runs")
     cache = tmp_path / "cache"
     assert_no_temporary_files(cache)
     assert not list(cache.rglob("*.npy"))  # the dataset's entry (> 12 kB) could not be written: none is there
     for entry in cache.rglob("*.bin"):  # and the small entries that could be, verify
-        assert hashlib.sha256(entry.read_bytes()).hexdigest() == entry.with_suffix(".sha256").read_text()
+        assert Cache(cache).authentic(entry), entry
     rc, d = fwk_run(r, tmp_path / "runs")
     assert rc == 0 and models(d) == baseline()
 
@@ -137,7 +136,7 @@ def test_full_destination_after_the_model_then_resume(tmp_path, env, capsys, mon
     assert rc == 2 and err.count("\n") == 1 and "No space left on device" in err
     assert f"the run so far is kept: fwk run --resume {d}" in err
     assert (d / "FAILED").read_text().startswith(f"{d / 'metrics.json'}: cannot write (No space left on device)")
-    assert (d / "models" / "pca.pt").exists() and not (d / "metrics.json").exists()
+    assert (d / "models" / "pca.safetensors").exists() and not (d / "metrics.json").exists()
     monkeypatch.setattr(fwk.runs, "atomic_write_bytes", real)
     assert resume(d) == 0
     assert_complete(d)
@@ -148,7 +147,7 @@ def test_full_destination_after_the_model_then_resume(tmp_path, env, capsys, mon
 @pytest.mark.parametrize("mask,mode", [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])
 def test_files_get_the_umask_mode(tmp_path, env, mask, mode):
     """Reproduction 4: every file of a run (recipe.yaml, metrics.json, report.md, split.json,
-    versions.json, the npz, models/*.pt, log.txt) has the mode the umask gives, not 0600."""
+    versions.json, the npz, models/*.safetensors, log.txt) has the mode the umask gives, not 0600."""
     old = os.umask(mask)
     try:
         rc, d = fwk_run(recipe(tmp_path), tmp_path / "runs")
@@ -157,7 +156,7 @@ def test_files_get_the_umask_mode(tmp_path, env, mask, mode):
     assert rc == 0
     files = [p for p in d.rglob("*") if p.is_file()]
     assert {"recipe.yaml", "metrics.json", "report.md", "split.json", "versions.json", "preprocess.npz",
-            "pca.pt", "log.txt"} <= {p.name for p in files}
+            "pca.safetensors", "log.txt"} <= {p.name for p in files}
     for p in files:
         assert stat.S_IMODE(p.stat().st_mode) == mode, (p, oct(p.stat().st_mode))
 

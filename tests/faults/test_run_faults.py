@@ -53,7 +53,7 @@ def test_crash_marks_the_run_failed_and_resume_finishes_it(tmp_path, env, monkey
     first = failed.splitlines()[0]
     assert (first == "interrupted (Ctrl-C)") if isinstance(exc, KeyboardInterrupt) else (first == "RuntimeError: a bug in a metric")
     assert f"fwk run --resume {d}" in failed and "Traceback" in failed
-    assert not (d / "RUNNING").exists() and not (d / "metrics.json").exists() and (d / "models" / "pca.pt").exists()
+    assert not (d / "RUNNING").exists() and not (d / "metrics.json").exists() and (d / "models" / "pca.safetensors").exists()
     assert_no_temporary_files(d)
     _refused_while_incomplete(d, capsys, "failed")
     monkeypatch.setattr(ev, "evaluate_summary", real)
@@ -79,7 +79,7 @@ def test_user_error_before_any_work_leaves_no_directory(tmp_path, env, monkeypat
 # ------------------------------------------------------------------ SIGKILL at each stage
 
 @pytest.mark.parametrize("point,n,left", [
-    ("evaluate", 2, "models/pca.pt"),   # evaluation: the model saved, one split evaluated
+    ("evaluate", 2, "models/pca.safetensors"),   # evaluation: the model saved, one split evaluated
     ("report", 1, "metrics.json"),      # report: metrics.json written, report.md's temporary file not renamed
 ])
 def test_killed_then_resumed(tmp_path, env, capsys, baseline, point, n, left):
@@ -100,7 +100,7 @@ def test_sigterm_marks_the_run_failed(tmp_path, env, capsys, baseline):
     gone), and --resume finishes the run to the undisturbed numbers."""
     d = killed_at("term", 2, recipe(tmp_path), tmp_path / "runs", env, status=143)
     assert (d / "FAILED").read_text().splitlines()[0] == "terminated (SIGTERM)"
-    assert not (d / "RUNNING").exists() and (d / "models" / "pca.pt").exists()
+    assert not (d / "RUNNING").exists() and (d / "models" / "pca.safetensors").exists()
     _refused_while_incomplete(d, capsys, "failed")
     assert resume(d) == 0
     assert_complete(d)
@@ -112,7 +112,7 @@ def test_killed_during_training_then_resumed(tmp_path, env, capsys, baseline):
     """Killed after the first training checkpoint of the network: resume continues from it and
     every metric equals an undisturbed run's."""
     d = killed_at("train", 1, recipe(tmp_path, TRAIN_RECIPE), tmp_path / "runs", env)
-    assert (d / "models" / "pca.pt").exists() and not (d / "models" / "mlp.pt").exists()
+    assert (d / "models" / "pca.safetensors").exists() and not (d / "models" / "mlp.safetensors").exists()
     assert any((d / "checkpoints").rglob("*.ckpt"))
     _refused_while_incomplete(d, capsys, "killed")
     assert resume(d) == 0
@@ -183,5 +183,5 @@ def test_work_of_sub_runs_is_worth_keeping(tmp_path):
     assert not _worth_keeping(d)
     (d / "reconstruct" / "models").mkdir(parents=True)
     assert not _worth_keeping(d)  # an empty folder is no work
-    (d / "reconstruct" / "models" / "vae.pt").write_bytes(b"x")
+    (d / "reconstruct" / "models" / "vae.safetensors").write_bytes(b"x")
     assert _worth_keeping(d)

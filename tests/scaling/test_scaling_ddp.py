@@ -69,7 +69,7 @@ def test_ddp_resumed_equals_one_device(tmp_path):
     recipe = (ddp / "recipe.yaml").read_text()
     assert "epochs: 2" in recipe
     (ddp / "recipe.yaml").write_text(recipe.replace("epochs: 2", "epochs: 3"))
-    for p in ("models/ae.pt", "metrics.json", "report.md"):
+    for p in ("models/ae.safetensors", "metrics.json", "report.md"):
         (ddp / p).unlink()
     out = _fwk(tmp_path, "run", "--resume", str(ddp)).stdout
     assert "ae: resuming from last.ckpt: 2 of 3 epochs done, continuing with epoch 3" in out

@@ -13,14 +13,33 @@ from pathlib import Path
 import lightning.pytorch as pl
 import numpy as np
 import torch
+from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
 
 from ..cache import atomic_write_bytes
 from ..errors import RecipeError
+from ..safeio import load_state, save_state
 from .threads import apply_threads
 
 
+class SafeCheckpointIO(CheckpointIO):
+    """How Lightning writes and reads every checkpoint of ``fit`` (``last.ckpt``, the epoch files,
+    a resume): ``fwk.safeio``'s format, tensors and plain data only, never a pickle; written
+    atomically. A pickled checkpoint of an earlier fwk is refused (``fwk convert RUN --trust``),
+    a damaged one raises ``DataError`` naming it."""
+
+    def save_checkpoint(self, checkpoint, path, storage_options=None) -> None:
+        save_state(Path(path), checkpoint)
+
+    def load_checkpoint(self, path, map_location=None, weights_only=None) -> dict:
+        # tensors come back on the CPU; Lightning moves the module's and the optimisers' states
+        return load_state(Path(path))
+
+    def remove_checkpoint(self, path) -> None:
+        Path(path).unlink(missing_ok=True)
+
+
 def _rng_state() -> dict:
-    # plain tensors and tuples only: loadable with torch.load(weights_only=True)
+    # plain tensors, tuples and numbers only: a checkpoint holds no other objects (fwk.safeio)
     kind, keys, pos, has_gauss, cached = np.random.get_state()
     return {"torch": torch.get_rng_state(), "numpy": (str(kind), torch.as_tensor(keys.astype(np.int64)), int(pos),
             int(has_gauss), float(cached)), "python": random.getstate(),

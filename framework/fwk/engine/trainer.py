@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from ..errors import DataError, FwkError
+from ..safeio import file_is_pickle, legacy_error, load_state
 from .config import TrainConfig
 from .distributed import DistEnv, RankDone, make_job, make_strategy, rank_job, wants_ddp
 from .loading import make_loader
@@ -46,10 +47,15 @@ def _quiet_lightning():
 
 
 def _loadable(path: Path):
+    """The checkpoint at ``path`` (``fwk.safeio``'s format), or None when it is damaged (a write
+    a kill cut short); a pickled checkpoint of an earlier fwk is refused, never unpickled."""
+    if file_is_pickle(path):
+        raise legacy_error(path)
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
-    except Exception:
+        ck = load_state(path)
+    except DataError:
         return None
+    return ck if isinstance(ck, dict) else None
 
 
 def _resume_point(ckdir: Path):
@@ -143,7 +149,7 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
     from lightning.pytorch.loggers import TensorBoardLogger
 
-    from .callbacks import ManualSchedulers, ProgressLines, RNGState, ThreadShare, TrainingCurves
+    from .callbacks import ManualSchedulers, ProgressLines, RNGState, SafeCheckpointIO, ThreadShare, TrainingCurves
 
     _quiet_lightning()
     config = config or ctx.train
@@ -232,13 +238,14 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
                 # bit-exact on CPU; on GPUs some scatter kernels have no deterministic variant
                 deterministic=True if on_cpu else "warn",
                 logger=TensorBoardLogger(str(tbdir), name="", version=""),
-                callbacks=callbacks,
+                callbacks=callbacks, plugins=[SafeCheckpointIO()],  # checkpoints: data only, never a pickle
                 enable_progress_bar=show_bar, enable_model_summary=False,
                 log_every_n_steps=config.log_every_n_steps, num_sanity_val_steps=0, default_root_dir=str(ckdir),
                 use_distributed_sampler=False,
             )
+            # read through SafeCheckpointIO (fwk.safeio): nothing in a checkpoint is unpickled
             trainer.fit(module, train_loader, val_loader, ckpt_path=str(ckpt_path) if ckpt_path else None,
-                        weights_only=False)
+                        weights_only=True)
     finally:
         torch.use_deterministic_algorithms(det[0], warn_only=det[1])
     if job is not None:  # a DDP rank > 0: its part is over; rank 0 writes everything

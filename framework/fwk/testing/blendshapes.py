@@ -17,7 +17,8 @@ context from ``fwk.runs.make_test_context``. The suite checks:
   member of the role (``fwk.protocols.plays``: ``fwk apply`` chooses a model from its class);
   ``expressions`` is None until set or fitted, then lists what the model was trained for;
 * ``predict`` and ``predict_all`` (with and without ``target``) agree, (b, n, 3) and finite;
-* the state round trip: ``torch.save(model.state_dict())`` into a new instance through
+* the state round trip: ``model.state_dict()`` written and read back in the run directory's safe
+  format (``fwk.safeio``: tensors, arrays and plain data only) into a new instance through
   ``load_state_dict(d, ctx=None)`` gives the same predictions;
 * determinism: a second fit with the same seed gives the same predictions;
 * where played, ``CompositeModel.parts`` (labelled (b, n, 3) predictions, the labels of
@@ -29,18 +30,16 @@ context from ``fwk.runs.make_test_context``. The suite checks:
 """
 from __future__ import annotations
 
-import io
 
 import numpy as np
 import pytest
-import torch
 
 from ..data.preprocess import Preprocessor
 from ..plugins import get_registry
 from ..protocols import (BLENDSHAPES, BlendshapeModel, CompositeModel, CutSelectingModel, FitData, Model,
                          plays)
 from ..runs import make_test_context
-from .model import same
+from .model import safe_round_trip, same
 
 #: the two expressions of the tiny data
 EXPRESSIONS = ["mouth-wide", "face-compression"]
@@ -129,11 +128,9 @@ class BlendshapeModelContract:
 
     def test_state_round_trip(self, fitted):
         m, data = fitted
-        buf = io.BytesIO()
-        torch.save(m.state_dict(), buf)  # the run directory keeps models/<label>.pt like this
-        buf.seek(0)
+        # the run directory keeps models/<label>.safetensors like this (fwk.safeio; never a pickle)
         m2 = self.component(**self.params)
-        m2.load_state_dict(torch.load(buf, weights_only=False), ctx=None)
+        m2.load_state_dict(safe_round_trip(m.state_dict()), ctx=None)
         assert list(m2.expressions) == list(m.expressions)
         a, b = self._predictions(m, data), self._predictions(m2, data)
         for e in EXPRESSIONS:

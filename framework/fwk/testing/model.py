@@ -1,5 +1,6 @@
 """ModelContract for reconstruction models (``fwk.protocols.ReconstructionModel``): the role, fit,
-reconstruct, save and reload, determinism.
+reconstruct, save and reload (through the run directory's safe format, ``fwk.safeio``: a state
+holds tensors, NumPy arrays and plain data only), determinism.
 
 Subclass it in a test module and set ``component`` (the model class) and ``params`` (its recipe
 parameters, kept small; nested components as in a recipe: ``{"network": {"name": "vae", ...}}``);
@@ -15,8 +16,6 @@ and from a second fit with the same seed (true on CPU for every built-in); set i
 """
 from __future__ import annotations
 
-import io
-
 import numpy as np
 import torch
 
@@ -25,6 +24,7 @@ from fwk.plugins import get_registry
 from fwk.protocols import RECONSTRUCT, FitData, GenerativeModel, ReconstructionModel, plays
 from fwk.recipes import validate_params
 from fwk.runs import make_test_context
+from fwk.safeio import dumps_state, loads_state
 
 
 def tiny_fit_data(n_subjects=16, n_vertices=300, seed=0, dataset: str = "synthetic-heads"):
@@ -36,6 +36,41 @@ def tiny_fit_data(n_subjects=16, n_vertices=300, seed=0, dataset: str = "synthet
     col.positions = X
     tr, va = col.select(np.arange(n_subjects - 3)), col.select(np.arange(n_subjects - 3, n_subjects))
     return FitData(col.template.with_vertices(pre.mean_neutral), tr, va, ["neutral"])
+
+
+def assert_same_state(a, b, where: str = "state") -> None:
+    """``b`` (a state read back) equals ``a`` (the state saved): the same nesting, NumPy arrays as
+    NumPy arrays and tensors as tensors of the same dtype, shape and bits, the same plain values."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and list(b) == list(a), f"{where}: keys {list(a)} != {list(b)}"
+        for k in a:
+            assert_same_state(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert type(b) is type(a) and len(b) == len(a), f"{where}: {type(a).__name__} of {len(a)}"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same_state(x, y, f"{where}[{i}]")
+    elif isinstance(a, torch.Tensor) and a.layout == torch.sparse_coo:
+        assert isinstance(b, torch.Tensor) and b.layout == a.layout and b.dtype == a.dtype and b.shape == a.shape, where
+        assert torch.equal(a.detach().cpu().coalesce().indices(), b.indices()), where
+        assert torch.equal(a.detach().cpu().coalesce().values(), b.values()), where
+    elif isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and b.layout == a.layout and b.dtype == a.dtype and b.shape == a.shape, where
+        assert torch.equal(a.detach().cpu(), b) or (a.is_floating_point() and torch.equal(a.isnan(), b.isnan())
+                                                    and torch.equal(a[~a.isnan()], b[~b.isnan()])), where
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray) and b.dtype == a.dtype and b.shape == a.shape, where
+        assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), where
+    else:
+        assert type(b) is type(a) and (b == a or (a != a and b != b)), f"{where}: {a!r} != {b!r}"
+
+
+def safe_round_trip(state):
+    """``state`` written in the run directory's safe format (``fwk.safeio``: tensors, arrays and
+    plain data, never a pickle) and read back, checked equal to the original; a state holding
+    anything else fails here (``TypeError`` naming where it sits)."""
+    back, _ = loads_state(dumps_state(state))
+    assert_same_state(state, back)
+    return back
 
 
 def same(a, b, exact: bool, atol: float) -> bool:
@@ -76,14 +111,12 @@ class ModelContract(FittedModel):
         R = m.reconstruct(P)
         assert R.shape == P.shape and np.all(np.isfinite(R))
         assert np.mean(np.abs(R - P)) < np.mean(np.abs(P)), "reconstructions unrelated to the input"
-        # the run directory keeps a model as torch.save(model.state_dict()); a reopened run loads
-        # it with its context, `fwk.lifecycle` without one where there is none
-        buf = io.BytesIO()
-        torch.save(m.state_dict(), buf)
+        # the run directory keeps a model's state_dict in fwk.safeio's format (never a pickle); a
+        # reopened run loads it with its context, `fwk.lifecycle` without one where there is none
+        state = m.state_dict()
         for ctx in (None, make_test_context(tmp_path / "reload")):
-            buf.seek(0)
             m2 = self.make()
-            m2.load_state_dict(torch.load(buf, weights_only=False), ctx=ctx)
+            m2.load_state_dict(safe_round_trip(state), ctx=ctx)
             assert same(m2.reconstruct(P), R, self.exact, self.atol)
 
     def test_deterministic_for_a_seed(self, tmp_path):

@@ -2,7 +2,7 @@
 
 Where the models come from (both tasks):
 
-* ``run: PATH`` names a finished ``reconstruct`` run (its ``models/<label>.pt``, ``split.json``
+* ``run: PATH`` names a finished ``reconstruct`` run (its ``models/<label>.safetensors``, ``split.json``
   and ``stats/preprocess.npz``; reopened with ``fwk.lifecycle.open_run``; the dataset is rebuilt
   from that run's recipe to get the topology with the user's polygons and UVs);
 * otherwise the task trains inline: the recipe's ``dataset``, ``split``, ``preprocess``,
@@ -93,7 +93,7 @@ from fwk.evaluation.render import colour_limits, render_grid
 from fwk.evaluation.report import markdown_table
 from fwk.geometry.operators import mass_matrix
 from fwk.hookspecs import hookimpl
-from fwk.lifecycle import open_run
+from fwk.lifecycle import has_state, open_run
 from fwk.protocols import RECONSTRUCT, BandModel, GenerativeModel
 from fwk.recipes import Kind, Spec, resolve
 from fwk.runs import RunContext, run_task
@@ -152,7 +152,7 @@ def load_models(run_dir, ctx=None, registry=None) -> Env:
 def train_inline(ctx, recipe: dict) -> Path:
     """Run the recipe's training keys as a reconstruct sub-run in ``<run>/reconstruct/``."""
     sub = ctx.run_dir / RECONSTRUCT  # the task of the reconstruct family trains and evaluates the models
-    if (sub / "metrics.json").exists() and all((sub / "models" / f"{k}.pt").exists() for k in recipe.get("models", {})):
+    if (sub / "metrics.json").exists() and all(has_state(sub, k) for k in recipe.get("models", {})):
         ctx.log(f"reconstruct sub-run {sub} finished before: its models are reused")
         return sub
     data = {"task": RECONSTRUCT, "name": f"{recipe.get('name', 'run')}-reconstruct", "seed": ctx.seed,

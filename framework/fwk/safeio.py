@@ -1,0 +1,302 @@
+"""Files fwk opens hold data, never code: model states and training checkpoints in one safe format.
+
+A *state* is a nested value of dicts, lists and tuples whose leaves are ``str``, ``int``,
+``float``, ``bool``, ``None``, NumPy scalars, NumPy arrays and torch tensors (dense, or sparse
+COO: stored as their indices and values) (a model's
+``state_dict()``, a Lightning checkpoint). ``save_state`` writes it as a safetensors file: every
+array and tensor a named tensor, the structure (with the type of every leaf, so that NumPy arrays
+come back as NumPy arrays and tensors as tensors) as JSON in the file's metadata, and the SHA-256
+of the tensor bytes beside it. ``load_state`` verifies all of that before it returns anything;
+nothing in the file is ever executed (safetensors parses a JSON header and raw bytes; no pickle).
+
+A value of any other type (a ``Spec``, a custom object, a function) cannot be saved: ``save_state``
+raises ``TypeError`` naming where in the state it sits; a model stores plain data instead.
+
+Files written by earlier versions of fwk were pickles (``torch.save``): unpickling runs whatever
+code the file names, so they are refused (``LegacyFormatError``, one line) with the command that
+rewrites a run the user trusts: ``fwk convert RUN --trust`` (``fwk.convert``).
+
+torch is imported when a state is written or read, never at module import (``fwk list`` loads
+this module through ``fwk.lifecycle``).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import DataError
+
+#: the format tag in every file's metadata
+FORMAT = "fwk.state/1"
+#: the suffix of a model's state file (``models/<label>.safetensors``)
+SUFFIX = ".safetensors"
+#: the suffix of the pickled model files of earlier versions (``models/<label>.pt``)
+LEGACY_SUFFIX = ".pt"
+
+_MAX_HEADER = 100_000_000  # safetensors' own bound on the JSON header
+
+
+class LegacyFormatError(DataError):
+    """A pickled file of an earlier fwk (``torch.save``): not opened; ``fwk convert`` rewrites it."""
+
+
+def run_of(path: Path) -> Path:
+    """The outermost run directory (a folder with ``recipe.yaml``) that holds ``path``."""
+    path = Path(path)
+    found = path.parent
+    for p in path.parents:
+        if (p / "recipe.yaml").is_file():
+            found = p
+    return found
+
+
+def legacy_error(path: Path) -> LegacyFormatError:
+    return LegacyFormatError(
+        f"{path}: a pickled file of an earlier fwk version, not opened (unpickling can run code); if you "
+        f"trust who made the run, rewrite it in the safe format with: fwk convert {run_of(path)} --trust")
+
+
+def is_pickle(head: bytes) -> bool:
+    """Whether a file starting with ``head`` is a ``torch.save`` pickle (zip or legacy format)."""
+    return head[:4] == b"PK\x03\x04" or head[:1] == b"\x80"
+
+
+def file_is_pickle(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return is_pickle(f.read(4))
+    except OSError:
+        return False
+
+
+# ----------------------------------------------------------------------------- encoding
+
+def _where(path: str) -> str:
+    return path or "the state"
+
+
+def _encode(obj, path: str, tensors: dict, torch) -> Any:
+    """The JSON structure of ``obj``; its arrays and tensors go to ``tensors`` (name -> tensor)."""
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, np.generic):  # before int/float: np.float64 is a float
+        if obj.dtype.kind not in "biuf":
+            raise TypeError(f"{_where(path)}: a NumPy {obj.dtype} scalar cannot be saved safely")
+        return {"s": [obj.dtype.str, obj.item()]}
+    if isinstance(obj, int):
+        return int(obj)
+    if isinstance(obj, float):
+        return float(obj)
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.kind not in "biuf" or obj.dtype.byteorder == ">":
+            raise TypeError(f"{_where(path)}: a NumPy array of dtype {obj.dtype} cannot be saved safely "
+                            "(numbers and booleans only)")
+        name = str(len(tensors))
+        tensors[name] = torch.from_numpy(np.array(obj, order="C", copy=True))
+        return {"n": name}
+    if isinstance(obj, torch.Tensor):
+        if obj.is_complex() or obj.layout not in (torch.strided, torch.sparse_coo):
+            raise TypeError(f"{_where(path)}: a {obj.dtype} {obj.layout} tensor cannot be saved safely")
+        if obj.layout == torch.sparse_coo:  # its indices and values, each a tensor
+            c = obj.detach().to("cpu").coalesce()
+            i, v = str(len(tensors)), str(len(tensors) + 1)
+            tensors[i], tensors[v] = c.indices().contiguous().clone(), c.values().contiguous().clone()
+            return {"c": [i, v, list(c.shape)]}
+        name = str(len(tensors))
+        tensors[name] = obj.detach().to("cpu").contiguous().clone()
+        return {"t": name}
+    if isinstance(obj, dict):
+        items = []
+        for k, v in obj.items():
+            if not (k is None or isinstance(k, (str, int, float, bool))):
+                raise TypeError(f"{_where(path)}: a key of type {type(k).__name__} cannot be saved safely")
+            items.append([k, _encode(v, f"{path}.{k}" if path else str(k), tensors, torch)])
+        return {"d": items}
+    if isinstance(obj, (list, tuple)):
+        return {"l" if isinstance(obj, list) else "u":
+                [_encode(v, f"{path}[{i}]", tensors, torch) for i, v in enumerate(obj)]}
+    raise TypeError(f"{_where(path)}: a {type(obj).__module__}.{type(obj).__qualname__} cannot be saved safely; "
+                    "a state holds tensors, NumPy arrays and plain data (dict, list, tuple, str, int, float, bool, None)")
+
+
+class _Malformed(Exception):
+    pass
+
+
+def _decode(node, tensors: dict, used: set, depth: int = 0):
+    if depth > 200:
+        raise _Malformed("nested too deeply")
+    if node is None or isinstance(node, (bool, str, int, float)):
+        return node
+    if not isinstance(node, dict) or len(node) != 1:
+        raise _Malformed(f"unexpected node {str(node)[:80]!r}")
+    (tag, val), = node.items()
+    if tag in ("t", "n"):
+        if not isinstance(val, str) or val not in tensors:
+            raise _Malformed(f"a tensor {str(val)[:40]!r} the file does not hold")
+        if val in used:
+            raise _Malformed(f"tensor {val} used twice")
+        used.add(val)
+        t = tensors[val]
+        return t if tag == "t" else t.numpy()
+    if tag == "c":  # a sparse COO tensor: indices, values, shape (checked by torch.sparse_coo_tensor)
+        if not (isinstance(val, list) and len(val) == 3 and isinstance(val[2], list)
+                and all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in val[2])):
+            raise _Malformed("a malformed sparse tensor")
+        import torch
+
+        i, v = (_decode({"t": n}, tensors, used, depth + 1) for n in val[:2])
+        try:
+            return torch.sparse_coo_tensor(i, v, tuple(val[2]), check_invariants=True).coalesce()
+        except (RuntimeError, ValueError, TypeError) as exc:
+            raise _Malformed(f"a sparse tensor that does not hold together ({str(exc)[:80]})") from None
+    if tag == "s":
+        if not (isinstance(val, list) and len(val) == 2 and isinstance(val[0], str)):
+            raise _Malformed("a malformed scalar")
+        dt = np.dtype(val[0])
+        if dt.kind not in "biuf":
+            raise _Malformed(f"a scalar of dtype {dt}")
+        return dt.type(val[1])
+    if tag in ("l", "u"):
+        if not isinstance(val, list):
+            raise _Malformed("a malformed sequence")
+        out = [_decode(v, tensors, used, depth + 1) for v in val]
+        return out if tag == "l" else tuple(out)
+    if tag == "d":
+        if not isinstance(val, list):
+            raise _Malformed("a malformed mapping")
+        out = {}
+        for item in val:
+            if not (isinstance(item, list) and len(item) == 2) or isinstance(item[0], (list, dict)):
+                raise _Malformed("a malformed mapping entry")
+            out[item[0]] = _decode(item[1], tensors, used, depth + 1)
+        return out
+    raise _Malformed(f"unknown tag {tag[:20]!r}")
+
+
+def _split(data: bytes) -> tuple[int, dict]:
+    """(where the tensor bytes start, the header) of safetensors bytes; ValueError if malformed."""
+    if len(data) < 8:
+        raise ValueError("shorter than a header")
+    (n,) = struct.unpack("<Q", data[:8])
+    if n > _MAX_HEADER or 8 + n > len(data):
+        raise ValueError("its header runs past the end of the file")
+    header = json.loads(data[8:8 + n])
+    if not isinstance(header, dict):
+        raise ValueError("its header is not a mapping")
+    return 8 + n, header
+
+
+def dumps_state(state, meta: dict | None = None) -> bytes:
+    """The bytes of ``state`` (see the module docstring) in the safe format; ``meta`` (JSON data)
+    is stored beside it and returned by ``loads_state``. ``TypeError`` for a value that is not
+    plain data, naming where it sits."""
+    import torch  # deferred: ~1 s of import time that `fwk list` need not pay
+    from safetensors.torch import save
+
+    tensors: dict = {}
+    structure = _encode(state, "", tensors, torch)
+    fields = {"format": FORMAT, "structure": json.dumps(structure, allow_nan=True),
+              "meta": json.dumps(meta or {}, allow_nan=True)}
+    first = save(tensors, metadata=fields)
+    start, _ = _split(first)  # the tensor bytes do not depend on the metadata: hash them, store again
+    fields["sha256"] = hashlib.sha256(first[start:]).hexdigest()
+    return save(tensors, metadata=fields)
+
+
+def loads_state(data: bytes, where: str = "the file") -> tuple[Any, dict]:
+    """(state, meta) from bytes ``dumps_state`` wrote, verified: a pickle raises
+    ``LegacyFormatError``, anything else that is not a whole, unchanged state file ``DataError``
+    naming ``where``."""
+    if is_pickle(data[:4]):
+        raise legacy_error(Path(where))
+    try:
+        start, header = _split(data)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise DataError(f"{where}: not a readable fwk state file (truncated or damaged: {exc})") from None
+    fields = header.get("__metadata__") or {}
+    if not isinstance(fields, dict) or fields.get("format") != FORMAT:
+        raise DataError(f"{where}: not an fwk state file (no {FORMAT} format tag)")
+    if hashlib.sha256(data[start:]).hexdigest() != fields.get("sha256"):
+        raise DataError(f"{where}: its tensor bytes do not match the SHA-256 recorded in it (changed or truncated)")
+    from safetensors.torch import load  # deferred: imports torch
+
+    try:
+        tensors = load(data)
+    except Exception as exc:  # safetensors' own checks of the header's offsets, dtypes and shapes
+        raise DataError(f"{where}: not a readable fwk state file ({str(exc)[:160]})") from None
+    try:
+        used: set = set()
+        state = _decode(json.loads(fields.get("structure", "")), tensors, used)
+        if used != set(tensors):
+            raise _Malformed(f"{len(set(tensors) - used)} tensors not in its structure")
+        meta = json.loads(fields.get("meta") or "{}")
+        if not isinstance(meta, dict):
+            raise _Malformed("its meta is not a mapping")
+    except (_Malformed, ValueError, TypeError, RecursionError) as exc:
+        raise DataError(f"{where}: its structure is malformed ({str(exc)[:160]})") from None
+    return state, meta
+
+
+def save_state(path, state, meta: dict | None = None) -> Path:
+    """Write ``state`` to ``path`` in the safe format, atomically (``fwk.cache.atomic_write_bytes``)."""
+    from .cache import atomic_write_bytes
+
+    path = Path(path)
+    atomic_write_bytes(path, dumps_state(state, meta))
+    return path
+
+
+def read_bytes(path: Path) -> bytes:
+    try:
+        return Path(path).read_bytes()
+    except FileNotFoundError:
+        raise DataError(f"{path}: missing") from None
+    except IsADirectoryError:
+        raise DataError(f"{path}: a folder, not a file") from None
+    except OSError as exc:
+        raise DataError(f"{path}: cannot be read ({exc.strerror})") from None
+
+
+def load_state(path, with_meta: bool = False):
+    """The state ``save_state`` wrote to ``path`` (and its meta, with ``with_meta``), verified;
+    ``DataError`` (one line naming the file) when it is missing, damaged or not in the safe
+    format, ``LegacyFormatError`` for an earlier version's pickle."""
+    path = Path(path)
+    state, meta = loads_state(read_bytes(path), str(path))
+    return (state, meta) if with_meta else state
+
+
+# ----------------------------------------------------------------------------- other run files
+
+def load_npz(path) -> dict:
+    """The arrays of an ``.npz`` file of a run (``stats/``), never unpickled: ``DataError`` naming
+    the file when it is missing, not an npz, or holds objects."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: missing")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except Exception as exc:  # zipfile, numpy's format checks, an object array (allow_pickle=False)
+        raise DataError(f"{path}: not a readable .npz file ({type(exc).__name__}: {str(exc)[:120]})") from None
+
+
+def load_json(path, kind: type | None = dict):
+    """A run's JSON file, parsed: ``DataError`` naming the file when it is missing, not UTF-8 JSON,
+    or (with ``kind``) not of that type at its top."""
+    path = Path(path)
+    text = read_bytes(path)
+    try:
+        value = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise DataError(f"{path}: not valid JSON ({str(exc)[:120]})") from None
+    if kind is not None and not isinstance(value, kind):
+        raise DataError(f"{path}: expected a JSON {'object' if kind is dict else kind.__name__} at the top, "
+                        f"found {type(value).__name__}")
+    return value
