@@ -99,19 +99,24 @@ def summarise(scores) -> dict:
             "n": int(s.size)}
 
 
-def evaluate_summary(pred, target, template, metrics, scale: float = 1.0) -> dict:
+def evaluate_summary(pred, target, template, metrics, scale: float = 1.0, scores_out: dict | None = None) -> dict:
     """Summaries per metric in the evaluation space and in input units.
 
     The evaluation space is ``scale`` x the input (preprocessing's uniform scale), so a metric
     of ``power`` p (1: l1, euclidean; 2: l2; 0: the scale-invariant DAME, FMPD) is divided by
     ``scale**p`` to give ``mean_input``, ``median_input``, ``max_input``, ``std_input``;
     ``units_input`` names them with the template's units (``cm``, ``cm^2``, ``rad``, ``1``).
+    With ``scores_out`` (a dict), each metric's per-mesh scores (evaluation space, a list in the
+    order of the meshes) are also put there under the metric's name: what a paired test over
+    subjects needs (``fwk.evaluation.seeds``).
     """
     metrics = _instances(metrics)
     res = evaluate(pred, target, template, metrics)
     in_units = (template.units if template is not None else "") or "input"
     out = {}
     for m in metrics:
+        if scores_out is not None:
+            scores_out[m.name] = [float(x) for x in res[m.name]["scores"]]
         summ = summarise(res[m.name]["scores"])
         units = m.units
         summ["units"] = units

@@ -10,23 +10,10 @@ from .curves import training_section, training_summary
 from .plots import scatter_pareto
 from .presentation import axis_unit, display, figure_metrics, format_value
 from .render import colour_limits, render_grid
+from .seeds import mean_sd, seeds_note, seeds_sections
+from .tables import markdown_table  # noqa: F401  (imported from here by tasks)
 
 SPLIT_ORDER = ("train", "val", "test")
-
-
-def markdown_table(rows: list[list], columns: list[str], units=None) -> str:
-    """A GitHub markdown table. ``units``: None, a list aligned with ``columns`` or a dict
-    column -> unit; a unit is shown in the header as ``name (unit)`` (empty units are skipped)."""
-    if units is not None:
-        if isinstance(units, dict):
-            units = [units.get(c, "") for c in columns]
-        if len(units) != len(columns):
-            raise ValueError(f"{len(units)} units for {len(columns)} columns")
-        columns = [f"{c} ({u})" if u else str(c) for c, u in zip(columns, units)]
-    head = "| " + " | ".join(str(c) for c in columns) + " |"
-    sep = "| " + " | ".join("---" for _ in columns) + " |"
-    body = ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
-    return "\n".join([head, sep, *body])
 
 
 def metric_columns(results: dict) -> list[str]:
@@ -53,11 +40,14 @@ def results_tables(results: dict, units: str = "", registry: Registry | None = N
     """One table per split: rows = models, columns = metrics (mean over meshes, divided by the
     metric's display factor in the header), then one table of the means in the dataset's units
     (rows = model and split) where the task recorded them. Display attributes come from the
-    metric classes of ``registry`` (default: the process-wide one)."""
+    metric classes of ``registry`` (default: the process-wide one). A summary over several seeds
+    (``seed_sd``: ``fwk.evaluation.seeds``) shows as mean ± sd over seeds."""
     out = []
     metrics = metric_columns(results)
     shown = {m: display(m, registry) for m in metrics}
     models = list(results.get("models", {}))
+    seeded = any(r.get(m, {}).get("seed_sd") is not None for per in results.get("models", {}).values()
+                 for r in per.values() for m in r)
     for split in _splits(results):
         cols = ["model"] + metrics
         cu = [""] + [shown[m].header_unit(_units_of(results, m)) for m in metrics]
@@ -66,8 +56,9 @@ def results_tables(results: dict, units: str = "", registry: Registry | None = N
             r = results["models"][label].get(split, {})
             if not r:
                 continue
-            rows.append([label] + [shown[m].format(r.get(m, {}).get("mean")) for m in metrics])
-        out.append(f"### {split}: mean over meshes, evaluation space\n\n" + markdown_table(rows, cols, cu))
+            rows.append([label] + [mean_sd(r.get(m), shown[m].scale) for m in metrics])
+        over = " (mean ± sd over seeds)" if seeded else ""
+        out.append(f"### {split}: mean over meshes{over}, evaluation space\n\n" + markdown_table(rows, cols, cu))
     inp = [m for m in metrics if any("mean_input" in r.get(m, {}) for l in models
                                      for r in results["models"][l].values())]
     if inp:
@@ -80,8 +71,9 @@ def results_tables(results: dict, units: str = "", registry: Registry | None = N
             for split in _splits(results):
                 r = results["models"][label].get(split)
                 if r:
-                    rows.append([label, split] + [format_value(r.get(m, {}).get("mean_input")) for m in inp])
-        out.append("### mean over meshes, in the dataset's units\n\n" + markdown_table(rows, cols, cu))
+                    rows.append([label, split] + [mean_sd(r.get(m), suffix="_input") for m in inp])
+        over = " (mean ± sd over seeds)" if seeded else ""
+        out.append(f"### mean over meshes{over}, in the dataset's units\n\n" + markdown_table(rows, cols, cu))
     return "\n\n".join(out)
 
 
@@ -104,6 +96,8 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
     ended, the best validation loss and whether it reached a plateau, and the figure of its
     validation and train losses per epoch; metrics.json holds the same under ``training``
     (``fwk.evaluation.curves``). Without curves an earlier ``training`` in ``results`` is kept.
+    Results of several seeds (``seeds`` in ``results``: ``fwk.evaluation.seeds``) add a line on
+    the seeds, the comparisons over seeds with their verdicts and the per-section tables.
 
     ``ctx`` is a run context (or anything with ``run_dir``, ``path``, ``write_json`` and
     ``write_text``); ``registry`` gives the metrics' display attributes (default: the
@@ -121,6 +115,8 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
     ds = results.get("dataset")
     if ds:
         parts.append("Dataset: " + dataset_line(ds) + "\n")
+    if results.get("seeds"):
+        parts.append(f"- {seeds_note(results)}")
     for n in notes or []:
         parts.append(f"- {n}")
     parts.append("")
@@ -136,7 +132,7 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
         parts.append("\n## Time (seconds)\n\n" + markdown_table(rows, cols))
     if results.get("training", {}).get("networks"):
         parts.append("\n## Training\n\n" + training_section(results["training"]))
-    for head, text in sections or []:
+    for head, text in [*(seeds_sections(results, registry) if results.get("seeds") else []), *(sections or [])]:
         parts.append(f"\n## {head}\n\n{text}")
     if figures:
         parts.append("\n## Figures\n")

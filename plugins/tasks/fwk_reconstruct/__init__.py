@@ -7,7 +7,8 @@ neutral, one uniform scale into [-1, 1]; thesis 3.3.8; saved under ``stats/``) -
 is reloaded (``fwk.lifecycle.build_models``, ``fit_or_resume``: ``models/<label>.pt``) ->
 ``model.reconstruct`` on every split -> metrics (default ``fwk.evaluation.default_metrics``)
 against the ground truth in the evaluation space (the thesis's space) and in the dataset's own
-units -> ``metrics.json``, ``report.md`` with tables, renders with error maps and the standard
+units -> ``metrics.json`` (and ``scores.json``: every test mesh's scores, which a run of several
+seeds tests pairwise: ``fwk.evaluation.seeds``), ``report.md`` with tables, renders with error maps and the standard
 scatters (L1 against DAME and FMPD) with their Pareto fronts.
 """
 from __future__ import annotations
@@ -77,6 +78,7 @@ class Reconstruct:
         results: dict = {"models": {}, "timing": {}, "dataset": {"name": getattr(self.dataset, "name", self.dataset), "n_vertices": template.n_vertices,
                          "units": col.units, "scale": float(pre.scale), "subjects": {k: len(v) for k, v in split.items()}}}
         predictions = {}
+        scores: dict = {"models": {}}  # per-subject test scores (fwk.evaluation.seeds' paired tests)
         for label, model in build_models(self.models, RECONSTRUCT, ctx, data).items():  # all checked first
             fit_s = fit_or_resume(model, label, data, ctx)
             results["models"][label] = {}
@@ -90,10 +92,13 @@ class Reconstruct:
                 if not np.all(np.isfinite(pred)):
                     ctx.log(f"[{label}] warning: non-finite reconstruction on {name}")
                 predictions[label][name] = pred
-                results["models"][label][name] = ev.evaluate_summary(pred, P, template, metrics, scale=pre.scale)
+                out = scores["models"].setdefault(label, {}).setdefault(name, {}) if name == "test" else None
+                results["models"][label][name] = ev.evaluate_summary(pred, P, template, metrics, scale=pre.scale,
+                                                                     scores_out=out)
             results["timing"][label] = {"fit_s": fit_s, "reconstruct_and_metrics_s": time.perf_counter() - t0}
             ctx.log(f"[{label}] test " + ", ".join(
                 f"{m}={v['mean']:.4g}" for m, v in results["models"][label].get("test", {}).items()))
+        ctx.write_json("scores.json", scores)
         if self.save_predictions:
             for label, d in predictions.items():
                 ctx.save_npz(f"predictions/{label}.npz", **d)
