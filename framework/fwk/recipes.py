@@ -43,6 +43,8 @@ from .registry import Registry, did_you_mean
 MAX_INT = 2**63 - 1
 #: the seeds ``seed:`` accepts (Lightning's seed_everything takes unsigned 32-bit seeds)
 MAX_SEED = 2**32 - 1
+#: the most seeds a recipe's ``seeds:`` may list (each trains every model once)
+MAX_SEEDS = 1000
 #: the longest run name (the run directory adds ``-yyyymmdd-HHMMSS``; a file name has 255 bytes)
 MAX_NAME = 100
 
@@ -558,12 +560,17 @@ def parse_seeds(value, path: str = "seeds") -> list[int] | None:
     if isinstance(value, int):
         if value < 1:
             raise RecipeError(f"{path}: expected at least one seed, got {value}")
+        if value > MAX_SEEDS:
+            raise RecipeError(f"{path}: {value} seeds, more than {MAX_SEEDS} (each trains every model once)")
         return list(range(value))
+    if len(value) > MAX_SEEDS:
+        raise RecipeError(f"{path}: {len(value)} seeds, more than {MAX_SEEDS} (each trains every model once)")
     seeds = [convert(v, int, f"{path}[{i}]", None) for i, v in enumerate(value)]
     if not seeds:
         raise RecipeError(f"{path}: an empty list; give at least one seed")
-    if any(s < 0 for s in seeds):
-        raise RecipeError(f"{path}: seeds must be >= 0, got {seeds}")
+    bad = [s for s in seeds if not 0 <= s <= MAX_SEED]
+    if bad:
+        raise RecipeError(f"{path}: seed {bad[0]} is out of range (0 to {MAX_SEED}, 32 bits)")
     if len(set(seeds)) != len(seeds):
         raise RecipeError(f"{path}: a seed is given twice ({seeds})")
     return seeds
