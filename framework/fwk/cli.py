@@ -106,13 +106,14 @@ def cmd_show(args) -> int:
     return 0
 
 
-def _seeds(value: str) -> list[int]:
-    """``--seeds 3`` (seeds 0, 1, 2), ``--seeds 0,4,7`` (those seeds), ``--seeds 5,`` (seed 5)."""
+def _seeds(value: str) -> str:
+    """The recipe value of ``--seeds 3`` (3: seeds 0, 1, 2), ``--seeds 0,4,7`` ([0, 4, 7]: those
+    seeds) or ``--seeds 5,`` ([5]); the recipe checks the seeds (``fwk.recipes.parse_seeds``)."""
     listed = "," in value
     parts = [p.strip() for p in value.split(",") if p.strip() or not listed]
     if not parts or not all(p.isdigit() for p in parts) or (not listed and int(parts[0]) < 1):
         raise argparse.ArgumentTypeError(f"expected a number of seeds >= 1 or a list like 0,1,2, got {value!r}")
-    return [int(p) for p in parts] if listed else list(range(int(parts[0])))
+    return f"[{', '.join(str(int(p)) for p in parts)}]" if listed else str(int(parts[0]))
 
 
 def cmd_run(args) -> int:
@@ -125,7 +126,7 @@ def cmd_run(args) -> int:
     if args.seeds is not None:  # the recipe's `seeds:` (fwk.seeds); recipe.yaml records it
         if args.resume:
             raise FwkError("--seeds: a resumed run keeps the seeds it started with (its recipe.yaml)")
-        overrides.append(f"seeds=[{', '.join(map(str, args.seeds))}]")
+        overrides.append(f"seeds={args.seeds}")
     if recipe and "=" in recipe and not os.path.exists(recipe):
         raise FwkError(f"fwk run: the first argument must be a recipe file, got {recipe!r}")
     run_dir = execute(recipe, overrides, runs_dir=args.runs_dir, resume=args.resume, quiet=args.quiet,
