@@ -1,7 +1,9 @@
 """The registry: kind -> name -> component class, filled from the plugin manager's hooks.
 
-Duplicate names within a kind raise a PluginError naming both plugins; an unknown name raises
-an UnknownComponentError that lists the registered choices (and the closest one).
+Duplicate names within a kind raise a PluginError naming both plugins and their distributions
+(a third-party component may replace a built-in one of the same kind and name only when
+``FWK_PLUGIN_OVERRIDES`` lists the name, ``fwk.plugins``); an unknown name raises an
+UnknownComponentError that lists the registered choices (and the closest one).
 """
 from __future__ import annotations
 
@@ -9,8 +11,23 @@ import difflib
 import inspect
 from dataclasses import dataclass, field
 
-from .errors import PluginError, UnknownComponentError
+from .errors import PluginError, UnknownComponentError, quote
 from .hookspecs import HOOKS, KINDS
+
+#: the distribution whose entry points are fwk's built-in plugins
+BUILTIN_DISTRIBUTION = "fwk"
+
+
+def describe_failure(exc: BaseException) -> str:
+    """``Type: message`` of a plugin's failure, in one line of at most ~200 characters."""
+    try:
+        text = str(exc)
+    except Exception:
+        text = ""
+    text = " ".join(text.split())
+    if len(text) > 200:
+        text = text[:200] + "..."
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 @dataclass(frozen=True)
@@ -23,6 +40,18 @@ class Entry:
     component: type
     plugin: str
     version: str
+    distribution: str = ""  # the installed distribution that declares the plugin ('' registered by hand)
+
+    @property
+    def builtin(self) -> bool:
+        """Whether fwk itself registers the component (one of its built-in plugins)."""
+        return self.distribution == BUILTIN_DISTRIBUTION
+
+    @property
+    def origin(self) -> str:
+        """``plugin P`` with its distribution and version where known (for error messages)."""
+        dist = f"{self.distribution} {self.version}".strip()
+        return f"plugin {self.plugin}" + (f" (distribution {dist})" if self.distribution else "")
 
     @property
     def summary(self) -> str:
@@ -41,7 +70,7 @@ class BrokenPlugin:
 
 def did_you_mean(word: str, choices) -> str:
     """``'; did you mean X?'`` for the closest of ``choices``, or an empty string."""
-    close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1, cutoff=0.6)
+    close = difflib.get_close_matches(str(word)[:200], [str(c) for c in choices], n=1, cutoff=0.6)
     return f"; did you mean {close[0]}?" if close else ""
 
 
@@ -52,19 +81,32 @@ class Registry:
     entries: dict[str, dict[str, Entry]] = field(default_factory=lambda: {k: {} for k in KINDS})
     broken: list[BrokenPlugin] = field(default_factory=list)
 
-    def add(self, kind: str, component: type, plugin: str, version: str = "") -> None:
-        """Register ``component`` under its ``name`` (a PluginError if another class has the name)."""
+    def add(self, kind: str, component: type, plugin: str, version: str = "", distribution: str = "",
+            overrides=frozenset()) -> None:
+        """Register ``component`` under its ``name``: a PluginError if another class has the name,
+        unless one is built-in, the other third-party, and ``overrides`` lists the name (then the
+        third-party one wins, whichever comes first)."""
         if kind not in self.entries:
-            raise PluginError(f"plugin {plugin} registers unknown kind {kind!r}")
+            raise PluginError(f"plugin {plugin} registers unknown kind {quote(kind)}")
         name = getattr(component, "name", None)
         if not isinstance(name, str) or not name:
-            raise PluginError(f"plugin {plugin}: {kind} class {component.__qualname__} has no `name`")
+            raise PluginError(f"plugin {plugin}: {kind} class {getattr(component, '__qualname__', quote(component))} "
+                              f"has no `name`")
+        new = Entry(kind, name, component, plugin, version, distribution)
         old = self.entries[kind].get(name)
         if old is not None and old.component is not component:
-            raise PluginError(
-                f"{kind} {name!r} is registered twice: by plugin {old.plugin} and by plugin {plugin}"
-            )
-        self.entries[kind][name] = Entry(kind, name, component, plugin, version)
+            if old.builtin != new.builtin:
+                if name in overrides:
+                    if old.builtin:
+                        self.entries[kind][name] = new
+                    return
+                third, builtin = (new, old) if old.builtin else (old, new)
+                raise PluginError(
+                    f"{kind} {quote(name)} of {third.origin} takes the name of fwk's built-in {kind} of "
+                    f"{builtin.origin}: uninstall or rename it, or let it replace the built-in with "
+                    f"FWK_PLUGIN_OVERRIDES={name}")
+            raise PluginError(f"{kind} {quote(name)} is registered twice: by {old.origin} and by {new.origin}")
+        self.entries[kind][name] = new
 
     def get(self, kind: str, name: str, key_path: str | None = None) -> type:
         """The class registered as ``name`` of ``kind`` (an UnknownComponentError listing the
@@ -81,9 +123,14 @@ class Registry:
         except (KeyError, TypeError):
             choices = sorted(self.entries[kind])
             where = f"{key_path}: " if key_path else ""
+            broken = ""
+            if self.broken:  # the component may be one of theirs
+                names = [b.plugin for b in self.broken]
+                broken = (f"; plugins that failed to load (fwk list): {', '.join(names[:3])}"
+                          f"{f' and {len(names) - 3} more' if len(names) > 3 else ''}")
             raise UnknownComponentError(
-                f"{where}unknown {kind} {name!r}{did_you_mean(name, choices)} "
-                f"(registered: {', '.join(choices) or 'none'})"
+                f"{where}unknown {kind} {quote(name)}{did_you_mean(name, choices)} "
+                f"(registered: {', '.join(choices) or 'none'}){broken}"
             ) from None
 
     def names(self, kind: str) -> list[str]:
@@ -96,20 +143,23 @@ class Registry:
                 yield self.entries[kind][name]
 
 
-def build_registry(pm) -> Registry:
+def build_registry(pm, overrides=frozenset()) -> Registry:
     """Collect the registrations of every plugin in ``pm`` (a ``fwk.plugins.make_plugin_manager``
-    manager, with the plugins' versions). A plugin whose hook raises is reported, not fatal."""
+    manager, with the plugins' versions and distributions). A plugin whose hook raises (any
+    exception, SystemExit included) is reported, not fatal; ``overrides``: the names a
+    third-party component may take from a built-in one (``Registry.add``)."""
     reg = Registry()
+    dists = getattr(pm, "fwk_dists", {})
     for kind in KINDS:
         hook = getattr(pm.hook, HOOKS[kind])
         for impl in hook.get_hookimpls():
             plugin_name = pm.get_name(impl.plugin) or repr(impl.plugin)
             try:
-                comps = impl.function() or []
-            except Exception as exc:  # a broken plugin must not take the others down
-                reg.broken.append(BrokenPlugin(plugin_name, f"{type(exc).__name__}: {exc}"))
+                comps = list(impl.function() or [])
+            except (Exception, SystemExit, KeyboardInterrupt) as exc:  # a broken plugin must not take the others down
+                reg.broken.append(BrokenPlugin(plugin_name, describe_failure(exc)))
                 continue
             version = pm.fwk_versions.get(plugin_name, "")
             for comp in comps:
-                reg.add(kind, comp, plugin_name, version)
+                reg.add(kind, comp, plugin_name, version, dists.get(plugin_name, ""), overrides)
     return reg
