@@ -144,6 +144,15 @@ def paired_test(a, b) -> dict:
     return out
 
 
+def min_pairs(alpha: float = ALPHA) -> int:
+    """The fewest paired subjects for which the two-sided exact Wilcoxon signed-rank test can
+    give p < ``alpha`` (its smallest p-value is 2 / 2^n: all differences of one sign)."""
+    n = 1
+    while 2.0 / 2 ** n >= alpha:
+        n += 1
+    return n
+
+
 def compare(a_scores: dict, b_scores: dict, a_means: dict | None = None, b_means: dict | None = None) -> dict:
     """Whether A beats B over seeds (``RULE``). ``a_scores``, ``b_scores``: {seed: per-subject
     scores}; ``a_means``, ``b_means``: {seed: the seed's mean} (default: the scores' means).
@@ -284,7 +293,10 @@ def sentence(c: dict, registry=None) -> str:
                 f"on {n} of {n} seeds: p = {ptext}; intervals apart).")
     why = []
     if c["significant"] < n:
-        why.append(f"p < {ALPHA:g} with `{win}` lower on {c['significant']} of {n} seeds (p = {ptext})")
+        pairs = min(v["n"] for v in c["per_seed"].values())
+        few = (f", and {pairs} test subjects cannot give p < {ALPHA:g} (at least {min_pairs()} needed)"
+               if pairs < min_pairs() else "")
+        why.append(f"p < {ALPHA:g} with `{win}` lower on {c['significant']} of {n} seeds (p = {ptext}){few}")
     if not c["apart"]:
         why.append("the mean ± sd intervals overlap")
     return f"- {head}{values}: `{win}` is lower on average ({pct}), not beyond the seeds' spread: " \

@@ -156,17 +156,22 @@ class Blendshapes:
                 results[CUTS][label] = {"k": dict(model.k), "sweep": model.sweep}
         # metrics
         row_labels = list(dict.fromkeys(r for e in expressions for r in preds[e]))
+        # every test subject's scores behind each mean (a run of several seeds tests them pairwise)
+        scores = {PER_EXPRESSION: {e: {} for e in expressions}, "models": {}}
         for e in expressions:
             _, N, G = gt[e]
             for r, P in preds[e].items():
                 if not np.all(np.isfinite(P)):
                     ctx.log(f"[{r}] warning: non-finite prediction for {e}")
-                results[PER_EXPRESSION][e][r] = evaluate_summary(P, G, template, metrics, scale=pre.scale)
+                results[PER_EXPRESSION][e][r] = evaluate_summary(P, G, template, metrics, scale=pre.scale,
+                                                                 scores_out=scores[PER_EXPRESSION][e].setdefault(r, {}))
         for r in row_labels:
             have = [e for e in expressions if r in preds[e]]
             P = np.concatenate([preds[e][r] for e in have])
             G = np.concatenate([gt[e][2] for e in have])
-            results["models"][r] = {"test": evaluate_summary(P, G, template, metrics, scale=pre.scale)}
+            out = scores["models"].setdefault(r, {}).setdefault("test", {})
+            results["models"][r] = {"test": evaluate_summary(P, G, template, metrics, scale=pre.scale, scores_out=out)}
+        ctx.write_json("scores.json", scores)
         # the distance metric and every perceptual one (L1, DAME, FMPD) of this run
         headline = [m for m in (dist, *perceptual) if m is not None and m in shown]
         for e in expressions:
@@ -202,6 +207,8 @@ class Blendshapes:
                           if isinstance(p, TrainingModes)})
         # the baselines the summary compares each cut-selecting model with (DT): neither cut-selecting nor a PB
         others = [lb for lb, m in fitted.items() if not isinstance(m, (CutSelectingModel, TrainingModes))]
+        # the "A beats B" statements of the summary, which a run of several seeds restates and tests
+        results["comparisons"] = self._comparisons(results, expressions, row_labels, others, headline)
         sections = self._tables(results, expressions, row_labels, [m.name for m in metrics], shown, modes,
                                 others, headline)
         notes = [f"train epochs: {ctx.train.epochs} (recipe `train.epochs`; the thesis trained 500)",
@@ -253,11 +260,33 @@ class Blendshapes:
             return "n/a"
         return "win" if v < w else ("tie" if v == w else "loss")
 
+    @staticmethod
+    def _rivals(results, e, p, rows, others) -> list:
+        """Whom a cut-selecting model ``p`` is compared with on expression ``e``: the baselines
+        ``others`` (DT), then its own parts (its single PBs)."""
+        r = results[PER_EXPRESSION][e]
+        return [x for x in rows if x in others and x in r] + [x for x in rows if x.startswith(p + ":") and x in r]
+
+    def _comparisons(self, results, expressions, rows, others, headline) -> list:
+        """The summary's comparisons as data (``fwk.evaluation.seeds``: ``a`` and ``b`` are key
+        paths of metrics.json and scores.json, ``metric`` the metric's name)."""
+        out = []
+        for e in expressions:
+            r = results[PER_EXPRESSION][e]
+            for p in [x for x in rows if x in results[CUTS] and x in r]:
+                for m in headline:
+                    for x in self._rivals(results, e, p, rows, others):
+                        if m in r[p] and m in r[x]:
+                            out.append({"about": e, "metric": m, "a": [PER_EXPRESSION, e, p],
+                                        "b": [PER_EXPRESSION, e, x], "a_name": p, "b_name": x})
+        return out
+
     def _summary(self, results, expressions, rows, shown, others, headline, n_vertices) -> str:
         """Plain sentences: does each cut-selecting model (PBS) beat the baselines ``others`` (DT)
         and its own parts (its single PBs) on the distance metric and every perceptual one? An
         exact tie is said as such, never counted as a win; k = 0 and k = n say that PBS did not
-        assemble."""
+        assemble. Each rests on this run's one seed and says so (``seeds:`` restates them over
+        seeds with a test: ``fwk.evaluation.seeds``)."""
         lines = []
         pbs = [r for r in rows if r in results[CUTS]]
         for e in expressions:
@@ -265,7 +294,7 @@ class Blendshapes:
             for p in pbs:
                 if p not in r:
                     continue
-                rivals = [x for x in rows if x in others and x in r] + [x for x in rows if x.startswith(p + ":") and x in r]
+                rivals = self._rivals(results, e, p, rows, others)
                 for m in headline:
                     if m not in r[p]:
                         continue
@@ -285,7 +314,7 @@ class Blendshapes:
                             for x in by["loss"]))
                     k = results[CUTS][p]["k"].get(e)
                     lines.append(f"- {e}, {shown[m].label}: `{p}` ({self._k_note(k, n_vertices)}) "
-                                 + "; ".join(parts) + ".")
+                                 + "; ".join(parts) + " (one seed).")
         return "\n".join(lines)
 
     def _versus(self, results, expressions, rows, shown, others, headline, n_vertices) -> str:
@@ -317,7 +346,7 @@ class Blendshapes:
                                    + (f", {wins[m]['tie']} exact ties" if wins[m]["tie"] else "")
                                    + f" of {len(expressions)}" for m in headline)
                 out.append(f"`{p}` against `{x}` on test, mean over subjects in the evaluation space, lower is "
-                           f"better; an exact tie is no win. {counts}.\n\n" + markdown_table(body, cols))
+                           f"better; an exact tie is no win; one seed. {counts}.\n\n" + markdown_table(body, cols))
         return "\n\n".join(out)
 
     def _tables(self, results, expressions, rows, metric_names, shown, modes, others, headline) -> list:

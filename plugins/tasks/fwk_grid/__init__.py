@@ -19,9 +19,16 @@ logged with its error, gets a ``FAILED`` file in its sub-run, and is listed in t
 others go on; the grid then ends with an error (exit 2, the run marked ``FAILED``), and
 ``fwk run --resume`` reruns only the members without ``metrics.json``.
 
-The grid recipe's own ``seed`` and ``train`` apply to every member, over what the member's recipe
-says: ``fwk run grid.yaml train.epochs=3`` trains every member 3 epochs (a quick timing or smoke
-run of a whole study), ``seed: 1`` in the grid reruns the study with another seed.
+The grid recipe's own ``seed``, ``seeds`` and ``train`` apply to every member, over what the
+member's recipe says: ``fwk run grid.yaml train.epochs=3`` trains every member 3 epochs (a quick
+timing or smoke run of a whole study), ``seed: 1`` in the grid reruns the study with another seed.
+
+**Seeds.** A member with ``seeds: [0, 1, 2]`` (its own, or the grid's: ``fwk run grid.yaml
+--seeds 3``) fans out like members: each seed is a job of its own on the executor (``local`` or
+``ray``), in ``<run>/<member>/seed-<s>/``, on the member's one split (``fwk.seeds``); when all
+its seeds have finished, ``<run>/<member>/metrics.json`` and ``report.md`` combine them (mean ±
+sd over seeds, ``fwk.evaluation.seeds``) and the grid's table shows mean ± sd. A seed whose
+sub-run holds ``metrics.json`` is not run again.
 
 ``sweep: models.dsm.k`` (a dotted key of the members' recipes, numeric in each) names the value a
 study varies: the report then also plots every metric against it, one line per split (the k
@@ -39,12 +46,14 @@ from fwk.cache import atomic_write_bytes
 from fwk.errors import FwkError, RecipeError
 from fwk.evaluation import display, markdown_table, standard_scatters, write_report
 from fwk.evaluation.plots import line_plot
+from fwk.evaluation.seeds import SEED_DIR, mean_sd
 from fwk.hookspecs import hookimpl
 from fwk.recipes import Kind, Spec, deep_merge, load_recipe, resolve
+from fwk.seeds import member_seeds, plain_recipe, seed_finished, split_seed, write_seeds_report
 
 from .executors import FAILED, Executor, member_job, run_local, run_ray
 
-SHARED = ("seed", "train")  # keys of the grid recipe that apply to every member
+SHARED = ("seed", "seeds", "train")  # keys of the grid recipe that apply to every member
 
 
 class Grid:
@@ -55,6 +64,7 @@ class Grid:
     ``{name, address, cpus, gpus, num_cpus, num_gpus}`` (``fwk_grid.executors.Executor``)."""
 
     name = "grid"
+    fans_out_seeds = True  # a grid's `seeds:` go to its members, each seed a job (fwk.runs.run_task)
 
     def __init__(self, recipes: list[str] | None = None, base: str | None = None,
                  configs: dict[str, dict] | None = None, splits: list[str] | None = None,
@@ -114,7 +124,7 @@ class Grid:
                 resolved[name] = resolve(data, ctx.registry)
             except RecipeError as exc:
                 raise RecipeError(f"grid member {name}: {exc}") from None
-        jobs = []
+        jobs, seeded = [], {}
         for name, r in resolved.items():
             sub = ctx.run_dir / name
             if (sub / "metrics.json").exists():
@@ -123,14 +133,37 @@ class Grid:
             sub.mkdir(parents=True, exist_ok=True)
             plain = {k: v for k, v in r.data.items() if k != "_source"}
             atomic_write_bytes(sub / "recipe.yaml", yaml.safe_dump(plain, sort_keys=False).encode())
-            jobs.append(member_job(name, sub, r, ctx))
+            if r.seeds is None:
+                jobs.append(member_job(name, sub, r, ctx))
+                continue
+            seeded[name] = r
+            for s, data in member_seeds(r).items():  # each seed a job, like a member (fwk.seeds)
+                ssub = sub / SEED_DIR.format(s)
+                if seed_finished(ssub):
+                    ctx.log(f"{name} seed {s}: finished before, not run again")
+                    continue
+                ssub.mkdir(parents=True, exist_ok=True)
+                atomic_write_bytes(ssub / "recipe.yaml", yaml.safe_dump(plain_recipe(data), sort_keys=False).encode())
+                jobs.append(member_job(f"{name}/{ssub.name}", ssub, resolve(data, ctx.registry), ctx))
         if jobs and self.executor.name == "ray":
             outcomes = run_ray(jobs, self.executor, ctx.log)
         elif jobs:
             outcomes = run_local(jobs, ctx.log, ctx.registry)
         else:
             outcomes = {}
-        failed = {n: o["error"] for n, o in outcomes.items() if not o["ok"]}
+        failed = {}
+        for n, o in outcomes.items():  # a seed's failure is its member's (the first one named)
+            if not o["ok"]:
+                member, _, seed = n.partition("/")
+                failed.setdefault(member, (f"{seed}: " if seed else "") + o["error"])
+        for name, r in seeded.items():  # a member's seeds combined once every one has finished
+            if name not in failed:
+                try:
+                    write_seeds_report(ctx.child(name), r.seeds, split_seed(r.data),
+                                       title=f"{name}: {len(r.seeds)} seed{'s' if len(r.seeds) != 1 else ''}",
+                                       registry=ctx.registry)
+                except FwkError as exc:
+                    failed[name] = str(exc)
         for name in resolved:  # a member that failed without a word (a killed worker) is failed too
             if name not in failed and not (ctx.run_dir / name / "metrics.json").exists():
                 failed[name] = "wrote no metrics.json" + (
@@ -149,7 +182,7 @@ class Grid:
             results.setdefault("dataset", m.get("dataset", {}))
         shown = {m: display(m, ctx.registry) for m in self.columns}
         cols = ["configuration"] + [f"{m}{shown[m].suffix} {s}" for s in self.splits for m in self.columns]
-        rows = [[key] + [shown[m].format(per.get(s, {}).get(m, {}).get("mean")) for s in self.splits for m in self.columns]
+        rows = [[key] + [mean_sd(per.get(s, {}).get(m), shown[m].scale) for s in self.splits for m in self.columns]
                 for key, per in results["models"].items()]
         figures = standard_scatters(ctx, results, "test", registry=ctx.registry) if results["models"] else {}
         if xs:
