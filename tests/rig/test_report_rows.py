@@ -42,7 +42,9 @@ def test_versus_table_and_summary():
     assert "L1: `pbs` wins 1, `dt` wins 0, 1 exact ties of 2" in table
     assert "FMPD: `pbs` wins 0, `dt` wins 2 of 2" in table
     summary = t._summary(res, ["smile", "frown"], ["dt", "pbs"], SHOWN, ["dt"], heads, 100)
-    assert "- smile, DAME: `pbs` (k = 0 (the dr network alone: no assembly)) ties with dt (equal values)." in summary
+    assert ("- smile, DAME: `pbs` (k = 0 (the dr network alone: no assembly)) ties with dt (equal values) "
+            "(one seed).") in summary
+    assert all(ln.endswith(" (one seed).") for ln in summary.splitlines())  # a run of one seed says so
     assert "frown, L1: `pbs` (k = n = 100 (the euclidean network alone: no assembly)) ties with dt" in summary
     assert "smile, FMPD" in summary and "beats dt (50% lower)" in summary
     assert not any("tie" in ln and "beats" in ln for ln in summary.splitlines() if "L1" in ln and "frown" in ln)
