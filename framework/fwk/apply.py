@@ -22,6 +22,18 @@ vertices and first polygons are the run's n vertices and polygons (the full mesh
 as ICT-FaceKit's face-head was cut from, 11,248 of 26,719 vertices) is accepted: the region is
 predicted, the rest of the mesh is left as it is, and the full mesh is written back.
 
+Every neutral is also checked against the training neutrals' size (``check_scale``): the
+median distance of its vertices from its median point, over the same of the run's mean training
+neutral, must lie within ``MAX_SCALE_RATIO`` (2x) either way, no vertex may lie farther from the
+head's centre than ``MAX_STRAY`` (4) times the mean neutral's farthest vertex (scaled to this
+head's size), and no coordinate beyond ``MAX_COORDINATE`` (10^4) times that farthest distance
+from the origin. A head in other units than the run's (a metre head given to a millimetre
+run: 0.001x) is refused with the measured ratio and a hint: ``--units`` names the neutral's units
+(``mm``, ``cm``, ``m``, ``in``, ...; the run's must be stated, ``dataset.units``) or gives a
+factor (``--units 0.1``: one of the neutral's units is 0.1 of the run's). The neutral is then
+scaled into the run's units, the checks apply to the scaled head, and every output is written
+back in the neutral's own units (the rig files record the units named, else none).
+
 Every input is read and checked before anything is written, and ``--out`` is checked before the
 run is loaded (a file in the way, a folder that cannot be created or written: one line, exit 2);
 results are written into a temporary folder beside ``--out`` and moved into place at the end, so
@@ -40,8 +52,9 @@ import numpy as np
 
 from .cache import file_mode
 from .data import Template
-from .data.io import ObjWriter, check_topology, read_obj
-from .errors import DataError, FwkError, TopologyError
+from .data.io import ObjWriter, check_topology, line_number, read_obj
+from .data.template import UNITS
+from .errors import DataError, FwkError, TopologyError, quote
 from .lifecycle import choose_model, open_run
 from .paths import check_dir
 from .protocols import BlendshapeModel, CutSelectingModel
@@ -53,6 +66,15 @@ MESH_SUFFIXES = (".obj",)
 #: --format values -> the file suffix written (``obj``: one OBJ per expression)
 FORMATS = {"obj": ".obj", "gltf": ".glb", "glb": ".glb", "usd": ".usdc", "usdc": ".usdc", "usda": ".usda"}
 TEMPLATE_OBJ = "template.obj"  # the run directory's topology with UVs (written by the blendshapes task)
+#: the most a neutral's size may differ from the training neutrals' (either way), in the run's units
+MAX_SCALE_RATIO = 2.0
+#: how much farther than the mean training neutral's farthest vertex (scaled to the neutral's size)
+#: a vertex may lie from the neutral's centre
+MAX_STRAY = 4.0
+#: how far from the origin a coordinate may lie, in the mean training neutral's largest extents
+MAX_COORDINATE = 1e4
+#: metres per unit of each unit ``--units`` may name (fwk.data.template.UNITS but ``unit``)
+METRES = {"m": 1.0, "cm": 0.01, "mm": 0.001, "um": 1e-6, "in": 0.0254, "ft": 0.3048}
 
 
 def add_apply_parser(subparsers):
@@ -70,6 +92,9 @@ def add_apply_parser(subparsers):
                    "one morph target per expression), usd (.usdc UsdSkel rig; usda for text); default obj")
     p.add_argument("--naming", default="source", choices=NAMINGS, help="shape names: the run's (source) or Apple "
                    "ARKit's for ICT-FaceKit's shapes (arkit; table in docs/rig-quickstart.md)")
+    p.add_argument("--units", default=None, help="the neutral's units when they are not the run's: a unit (mm, cm, "
+                   "m, um, in, ft; the run's must be stated) or a factor (0.1: one of the neutral's units is 0.1 of "
+                   "the run's); the neutral is scaled into the run's units and the outputs written back in its own")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -97,6 +122,65 @@ class Applier:
         self.units = str((run.metrics.get("dataset") or {}).get("units") or "unit")
         obj = run.run_dir / TEMPLATE_OBJ
         self.template_obj = obj if obj.exists() else tpl  # runs from before template.obj: the npz
+        ref = np.asarray(self.pre.mean_centred, dtype=np.float64)  # the mean training neutral, run's units
+        if ref.shape != self.template.vertices.shape or not np.all(np.isfinite(ref)):
+            raise FwkError(f"{run.run_dir / 'stats' / 'preprocess.npz'}: the mean training neutral has shape "
+                           f"{ref.shape} or non-finite values, the model's topology {self.template.vertices.shape}")
+        self.ref_size, self.ref_extent = _size(ref)
+
+    def factor(self, units: str | float | None) -> float:
+        """``--units`` as the factor that takes a neutral into the run's units (1 when None)."""
+        if units is None:
+            return 1.0
+        if isinstance(units, str) and units.strip() in METRES:
+            if self.units not in METRES:
+                raise FwkError(f"--units {units.strip()}: the run's units are not stated (its dataset.units is "
+                               f"{self.units}); give a factor instead, e.g. --units 0.1")
+            return METRES[units.strip()] / METRES[self.units]
+        try:
+            f = float(units)
+        except (TypeError, ValueError):
+            raise FwkError(f"--units {quote(units)}: expected a unit ({', '.join(METRES)}) or a factor "
+                           f"(a positive number)") from None
+        if not (np.isfinite(f) and 1e-9 <= f <= 1e9):
+            raise FwkError(f"--units {quote(units)}: a factor must be a finite number from 1e-9 to 1e9")
+        return f
+
+    def check_scale(self, path, V: np.ndarray, units=None) -> None:
+        """Refuse a neutral V (n, 3), already in the run's units, whose coordinates lie beyond
+        ``MAX_COORDINATE``, whose size differs from the training neutrals' by more than
+        ``MAX_SCALE_RATIO``, or with a vertex farther than ``MAX_STRAY`` allows (see the module
+        docstring); the errors name the file, the measured ratio or the vertex (and its line)."""
+        bound = MAX_COORDINATE * self.ref_extent
+        far = np.abs(V).max(axis=1)
+        if far.max() > bound:
+            k = int(np.argmax(far))
+            raise DataError(f"{_vertex(path, k)} lies at {_xyz(V[k])}, beyond ±{bound:.3g} {self.units} "
+                            f"({MAX_COORDINATE:g} times the training heads' extent): a stray vertex, or other units?")
+        size, extent = _size(V)
+        ratio = size / self.ref_size if self.ref_size > 0 else 1.0
+        if not 1 / MAX_SCALE_RATIO <= ratio <= MAX_SCALE_RATIO:
+            given = f" after --units {units}" if units is not None else ""
+            raise DataError(f"{path}: {ratio:.4g} times the size of the run's training neutrals{given} (at most "
+                            f"{MAX_SCALE_RATIO:g}x either way): {self._hint(ratio)}")
+        d = np.linalg.norm(V - np.median(V, axis=0), axis=1)
+        limit = MAX_STRAY * ratio * self.ref_extent
+        if d.max() > limit:
+            k = int(np.argmax(d))
+            raise DataError(f"{_vertex(path, k)} lies {d[k]:.4g} {self.units} from the head's centre, "
+                            f"{d[k] / (ratio * self.ref_extent):.3g} times the training heads' farthest vertex "
+                            f"(at most {MAX_STRAY:g}): a stray vertex?")
+
+    def _hint(self, ratio: float) -> str:
+        """The ``--units`` that would fit, or how to give one."""
+        need = 1.0 / ratio
+        if self.units in METRES:
+            close = [u for u in METRES if abs(np.log(METRES[u] / METRES[self.units] / need)) < np.log(1.3)]
+            if close:
+                return f"in {close[0]} rather than the run's {self.units}? give --units {close[0]}"
+            return (f"give its units with --units (the run's are {self.units}; {', '.join(METRES)}) "
+                    f"or a factor, e.g. --units {need:.3g}")
+        return f"in other units than the run's? give a factor, e.g. --units {need:.3g}"
 
     def check(self, path, tpl: Template) -> slice | None:
         """None when ``tpl`` (a neutral's topology) is the model's; ``slice(0, n)`` when it is a
@@ -131,6 +215,26 @@ class Applier:
                 for i in range(len(V)):
                     out[s + i][e] = P[i]
         return out
+
+
+def _size(V: np.ndarray) -> tuple[float, float]:
+    """(median, largest) distance of V's vertices from their median point: a size that a few
+    stray vertices do not move, and the extent."""
+    d = np.linalg.norm(V - np.median(V, axis=0), axis=1)
+    return float(np.median(d)), float(d.max())
+
+
+def _xyz(v) -> str:
+    return "(" + ", ".join(f"{x:.4g}" for x in v) + ")"
+
+
+def _vertex(path, k: int) -> str:
+    """``path, line N: vertex k+1`` (the line found only now, on the way to an error)."""
+    try:
+        line = line_number(Path(path).read_bytes(), lambda s: s.startswith((b"v ", b"v\t")), k)
+    except OSError:
+        line = None
+    return f"{path}, line {line}: vertex {k + 1}" if line else f"{path}: vertex {k + 1}"
 
 
 def _inputs(path: Path) -> list[Path]:
@@ -170,10 +274,11 @@ def parse_formats(text) -> list[str]:
 
 
 def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str] | None = None,
-          log=print, registry=None, formats="obj", naming: str = "source") -> list[Path]:
+          log=print, registry=None, formats="obj", naming: str = "source", units: str | float | None = None) -> list[Path]:
     """Write the blendshapes of one neutral (``out/<expression>.obj``, ``out/<neutral>.glb``,
     ``out/<neutral>.usdc`` as ``formats`` asks) or of a folder of neutrals (the same in
-    ``out/<stem>/``); returns the written files."""
+    ``out/<stem>/``); returns the written files. ``units``: the neutrals' units or a factor into
+    the run's (``--units``; the outputs are written back in the neutrals' units)."""
     t0 = time.perf_counter()
     fmts = parse_formats(formats)
     if naming not in NAMINGS:
@@ -181,6 +286,10 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     neutral, out = Path(neutral), Path(out)
     check_dir(out, "--out", min_free_mb=0)  # before any work (fwk.paths)
     app = Applier(run_dir, model, registry)
+    k = app.factor(units)
+    out_units = units.strip() if isinstance(units, str) and units.strip() in METRES else (
+        app.units if units is None else next((u for u in METRES if app.units in METRES and
+                                              np.isclose(METRES[u], k * METRES[app.units])), "unit"))
     t_load = time.perf_counter() - t0
     files = _inputs(neutral)
     meshes = []
@@ -189,12 +298,14 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
         region = app.check(f, tpl)
         if not np.all(np.isfinite(V)):
             raise DataError(f"{f}: vertex positions contain NaN or infinite values")
+        app.check_scale(f, k * (V if region is None else V[region]), units)
         meshes.append((f, V, tpl, region))
     t1 = time.perf_counter()
-    preds = app.predict([V if r is None else V[r] for _, V, _, r in meshes], expressions)
+    preds = app.predict([k * (V if r is None else V[r]) for _, V, _, r in meshes], expressions)
     t2 = time.perf_counter()
     for (f, V, _, region), P in zip(meshes, preds):
         for e in list(P):
+            P[e] = P[e] / k  # back into the neutral's units
             if not np.all(np.isfinite(P[e])):
                 raise FwkError(f"{f}: the model produced non-finite positions for {e}")
             if region is not None:  # the full mesh back: the region predicted, the rest unchanged
@@ -218,9 +329,9 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
                     for e, X in shapes.items():
                         writer.write(sub / f"{e}.obj", X)
                 elif FORMATS[fmt] == ".glb":
-                    write_glb(sub / f"{f.stem}.glb", V, tpl, shapes, units=app.units, name=f.stem)
+                    write_glb(sub / f"{f.stem}.glb", V, tpl, shapes, units=out_units, name=f.stem)
                 else:
-                    write_usd(sub / f"{f.stem}{FORMATS[fmt]}", V, tpl, shapes, units=app.units, name=f.stem)
+                    write_usd(sub / f"{f.stem}{FORMATS[fmt]}", V, tpl, shapes, units=out_units, name=f.stem)
         out.mkdir(parents=True, exist_ok=True)
         for p in sorted(q for q in tmp.rglob("*") if q.is_file()):
             os.chmod(p, mode)  # the umask's mode, not the 0600 of a temporary file
@@ -244,5 +355,5 @@ def run_apply(args) -> int:
     quiet = getattr(args, "quiet", False)
     apply(args.run_dir, args.neutral, args.out, getattr(args, "model", None), getattr(args, "expressions", None),
           log=(lambda *_: None) if quiet else print, formats=getattr(args, "format", "obj"),
-          naming=getattr(args, "naming", "source"))
+          naming=getattr(args, "naming", "source"), units=getattr(args, "units", None))
     return 0

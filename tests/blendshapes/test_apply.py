@@ -66,7 +66,7 @@ def test_apply_round_trips_quads_uvs_and_materials(run_dir, tmp_path):
     from fwk.data.io import read_obj
 
     rng = np.random.default_rng(7)
-    V = _neutral(rng) * 3.0 + np.array([10.0, -2.0, 5.0])  # other units and placement than the training set
+    V = _neutral(rng) * 1.5 + np.array([10.0, -2.0, 5.0])  # another size (within fwk.apply.MAX_SCALE_RATIO) and placement
     src = tmp_path / "me.obj"
     src.write_text(_grid_obj(V))
     out = tmp_path / "out"

@@ -12,7 +12,9 @@ Face lines are parsed once per topology: a file whose face block is byte-identic
 seen before reuses the parsed Template (the ~158 ICT files share one).
 
 Errors name the file and the line: ``head.obj, line 812: a vertex line with 2 numbers, expected
-3 (the file may be cut short)``. Line numbers are found only when something is wrong, so that
+3 (the file may be cut short)``. A face's every ``v``, ``vt`` and ``vn`` index must name an
+existing line (``head.obj, line 9040: a face refers to texture coordinate (vt) 9, but the file
+has 3``): a ``vt`` index past the end used to be copied through into the outputs. Line numbers are found only when something is wrong, so that
 reading a good file pays nothing for them.
 """
 from __future__ import annotations
@@ -24,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cache import atomic_write_bytes, default_cache, memo
-from ..errors import DataError, TopologyError
+from ..errors import DataError, TopologyError, quote
 from .template import Template
 
 _V_LINE = re.compile(rb"(?m)^[ \t]*v[ \t]+([^\r\n]*)")
@@ -106,7 +108,8 @@ class _LineError(Exception):
 def _parse_topology(face_block, n_vertices: int, path) -> Template:
     uvs, uv_lines, poly_v, poly_t, offsets, extra = [], [], [], [], [0], []
     raws = []  # the face line of every polygon, to name the one that is wrong
-    n_vt = 0
+    n_vt = n_vn = 0
+    poly_n = []  # every corner's normal index (-1: none): checked, not kept (normals are recomputed)
     for raw in face_block:
         line = raw.decode("utf-8", "replace").strip()
         tag, _, rest = line.partition(" ")
@@ -119,26 +122,30 @@ def _parse_topology(face_block, n_vertices: int, path) -> Template:
             elif tag == "f":
                 corners = rest.split()
                 if len(corners) < 3:
-                    raise _LineError(raw, f"a face with fewer than 3 corners: {line!r} (is the file cut short?)")
+                    raise _LineError(raw, f"a face with fewer than 3 corners: {quote(line)} (is the file cut short?)")
                 for c in corners:
                     bits = c.split("/")
                     vi = int(bits[0])
+                    if not -_MAX_INDEX < vi < _MAX_INDEX:  # past int64: numpy could not hold it
+                        raise _LineError(raw, f"a face refers to vertex {quote(bits[0])[1:-1]}, but the file has "
+                                              f"{n_vertices} vertices")
+                    if vi == 0:
+                        raise _LineError(raw, "a face refers to vertex 0, but OBJ indices start at 1")
                     vi = vi - 1 if vi > 0 else n_vertices + vi
                     poly_v.append(vi)
-                    if len(bits) > 1 and bits[1]:
-                        ti = int(bits[1])
-                        poly_t.append(ti - 1 if ti > 0 else n_vt + ti)
-                    else:
-                        poly_t.append(-1)
+                    poly_t.append(_corner_index(bits, 1, n_vt, raw))
+                    poly_n.append(_corner_index(bits, 2, n_vn, raw))
                 offsets.append(len(poly_v))
                 raws.append(raw)
-            elif tag in ("vn", "vp", "l", "p"):
-                continue  # normals are recomputed; lines and points are not surfaces
+            elif tag == "vn":
+                n_vn += 1  # normals are recomputed; counted for the faces' references
+            elif tag in ("vp", "l", "p"):
+                continue  # lines and points are not surfaces
             else:
                 extra.append((len(offsets) - 1, line))
         except (ValueError, IndexError):
             what = "texture" if tag == "vt" else "face"
-            raise _LineError(raw, f"unreadable {what} line {line!r}") from None
+            raise _LineError(raw, f"unreadable {what} line {quote(line)}") from None
     if len(offsets) == 1:
         raise DataError(f"{path}: no faces (no `f` lines)")
     poly_v = np.asarray(poly_v, dtype=np.int64)
@@ -150,6 +157,14 @@ def _parse_topology(face_block, n_vertices: int, path) -> Template:
                                   f"{n_vertices} vertices (is the file cut short?)")
     triangles = fan_triangulate(poly_v, offsets)
     poly_t = np.asarray(poly_t, dtype=np.int64)
+    for idx, count, what in ((poly_t, n_vt, "texture coordinate (vt)"),
+                             (np.asarray(poly_n, dtype=np.int64), n_vn, "normal (vn)")):
+        bad = np.flatnonzero(idx >= count)  # a corner without one is -1; relative ones were checked as read
+        if len(bad):
+            p = int(np.searchsorted(offsets, bad[0], side="right") - 1)
+            i = int(idx[bad[0]])
+            shown = i + 1 if i < _MAX_INDEX else "beyond 2^62"
+            raise _LineError(raws[p], f"a face refers to {what} {shown}, but the file has {count}")
     has_uv = bool(uvs) and (poly_t >= 0).any()
     return Template(
         vertices=np.zeros((n_vertices, 3)),
@@ -162,6 +177,27 @@ def _parse_topology(face_block, n_vertices: int, path) -> Template:
         name=Path(path).stem,
         uv_lines=uv_lines if has_uv else None,
     )
+
+
+_MAX_INDEX = 2**62
+_CORNER_PART = {1: "texture coordinate (vt)", 2: "normal (vn)"}
+
+
+def _corner_index(bits, k: int, seen: int, raw: bytes) -> int:
+    """The 0-based index of part ``k`` of a face corner ``v/vt/vn`` split at ``/`` (-1: not
+    given). A relative index (-1 is the last line read so far) must name a line before this one,
+    and 0 names none; a positive one is checked against the file's count afterwards."""
+    if len(bits) <= k or not bits[k]:
+        return -1
+    i = int(bits[k])
+    if i >= _MAX_INDEX:
+        return _MAX_INDEX  # refused with the file's count afterwards
+    if i > 0:
+        return i - 1
+    if i == 0 or seen + i < 0:
+        raise _LineError(raw, f"a face refers to {_CORNER_PART[k]} {i}, but "
+                              f"{'OBJ indices start at 1' if i == 0 else f'only {seen} precede it'}")
+    return seen + i
 
 
 def fan_triangulate(poly_v: np.ndarray, offsets: np.ndarray) -> np.ndarray:
@@ -194,7 +230,7 @@ def read_obj(path, units: str = "unit") -> tuple[np.ndarray, Template]:
 
     # parsed once per topology: in memory, and on disk in the content-hash cache (files whose
     # face block is byte-identical share it)
-    topo = memo("obj-topology", key, lambda: default_cache().get_or_build("obj-topology", (key, "v1"), build)
+    topo = memo("obj-topology", key, lambda: default_cache().get_or_build("obj-topology", (key, "v2"), build)
                 if len(face_block) > 2000 else build())
     t = topo.with_vertices(V)
     t.units = units
