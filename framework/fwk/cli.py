@@ -14,6 +14,7 @@ import sys
 import textwrap
 
 from .apply import add_apply_parser, run_apply
+from .convert import add_convert_parser, run_convert
 from .engine.threads import ENV_THREADS, register
 from .errors import FwkError, Terminated
 from .evaluation.cli_eval import add_eval_parser, run_eval
@@ -32,6 +33,7 @@ EXTRA_COMMANDS = {
     "sample": (add_sample_parser, run_sample),
     "apply": (add_apply_parser, run_apply),
     "view": (add_view_parser, run_view),
+    "convert": (add_convert_parser, run_convert),
 }
 
 

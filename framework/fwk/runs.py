@@ -53,6 +53,7 @@ from .paths import check_dir
 from .plugins import get_registry
 from .recipes import Spec, load_recipe, make_spec, resolve, to_plain
 from .registry import Registry
+from .safeio import refuse_pickled
 from .seeds import run_seeds
 
 SCOPED = ("checkpoints", "tb", "curves")  # per network, under the model's label
@@ -479,6 +480,7 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
         if not (run_dir / "recipe.yaml").exists():
             raise FwkError(f"--resume {resume}: not a run directory (no recipe.yaml)")
         check_recipe_hash(run_dir, "--resume: ")
+        refuse_pickled(run_dir)  # an earlier version's pickles: `fwk convert`, before anything is written
         data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
         if recipe_path:
             fresh = load_recipe(recipe_path, overrides)

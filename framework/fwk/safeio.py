@@ -74,6 +74,25 @@ def file_is_pickle(path: Path) -> bool:
         return False
 
 
+def pickled_files(run_dir) -> list[Path]:
+    """Every pickled model file (``models/*.pt``, or a pickle under the new name) and checkpoint
+    (``*.ckpt``) of ``run_dir`` and its sub-runs: what ``fwk convert`` rewrites."""
+    run_dir = Path(run_dir)
+    found = [p for p in run_dir.rglob(f"*{LEGACY_SUFFIX}") if p.parent.name == "models" and p.is_file()]
+    found += [p for p in run_dir.rglob(f"*{SUFFIX}") if p.parent.name == "models" and p.is_file()
+              and file_is_pickle(p)]
+    found += [p for p in run_dir.rglob("*.ckpt") if p.is_file() and file_is_pickle(p)]
+    return sorted(set(found))
+
+
+def refuse_pickled(run_dir) -> None:
+    """``LegacyFormatError`` naming the first pickled file of ``run_dir`` (``pickled_files``),
+    before anything of the run is opened or written."""
+    found = pickled_files(run_dir)
+    if found:
+        raise legacy_error(found[0])
+
+
 # ----------------------------------------------------------------------------- encoding
 
 def _where(path: str) -> str:
