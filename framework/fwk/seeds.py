@@ -62,8 +62,7 @@ def split_seed(data: dict) -> int:
 
 def takes_split(task_cls) -> bool:
     """Whether a task's recipe has a ``split`` key."""
-    # justified: the constructor is the recipe schema (fwk.hookspecs)
-    return "split" in inspect.signature(task_cls.__init__).parameters
+    return "split" in inspect.signature(task_cls.__init__).parameters  # justified: the constructor is the recipe schema
 
 
 def member_recipe(data: dict, seed: int, with_split: bool = True) -> dict:
