@@ -161,7 +161,7 @@ class Applier:
         ratio = size / self.ref_size if self.ref_size > 0 else 1.0
         if not 1 / MAX_SCALE_RATIO <= ratio <= MAX_SCALE_RATIO:
             given = f" after --units {units}" if units is not None else ""
-            raise DataError(f"{path}: {ratio:.4g} times the size of the run's training neutrals{given} (at most "
+            raise DataError(f"{path}: {ratio:.3g} times the size of the run's training neutrals{given} (at most "
                             f"{MAX_SCALE_RATIO:g}x either way): {self._hint(ratio)}")
         d = np.linalg.norm(V - np.median(V, axis=0), axis=1)
         limit = MAX_STRAY * ratio * self.ref_extent
