@@ -104,8 +104,8 @@ def load_model_state(model, path: Path, ctx: RunContext | None, label: str | Non
     state, meta = load_state(path, with_meta=True)
     saved = meta.get("model")
     if saved is not None and saved != _model_id(model):
-        raise DataError(f"{path}: holds the state of another model ({meta.get('name', saved)} "
-                        f"{meta.get('label', '?')!s}), not of {model.name}{' ' + label if label else ''}")
+        raise DataError(f"{path}: holds the state of another model ({meta.get('label', '?')!s}: "
+                        f"{meta.get('name', saved)}), not of {label or 'this model'} ({model.name})")
     if label is not None and meta.get("label") not in (None, label):
         raise DataError(f"{path}: holds the state of model {meta.get('label')!s}, not of {label}")
     try:

@@ -481,7 +481,13 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             raise FwkError(f"--resume {resume}: not a run directory (no recipe.yaml)")
         check_recipe_hash(run_dir, "--resume: ")
         refuse_pickled(run_dir)  # an earlier version's pickles: `fwk convert`, before anything is written
-        data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
+        try:
+            data = yaml.safe_load((run_dir / "recipe.yaml").read_bytes().decode("utf-8"))
+        except (UnicodeDecodeError, yaml.YAMLError) as exc:
+            raise FwkError(f"--resume: {run_dir / 'recipe.yaml'}: not a readable recipe "
+                           f"({' '.join(str(exc).split())[:160]})") from None
+        if not isinstance(data, dict):
+            raise FwkError(f"--resume: {run_dir / 'recipe.yaml'}: not a recipe (a YAML mapping)")
         if recipe_path:
             fresh = load_recipe(recipe_path, overrides)
             fresh["source"] = fresh.pop("_source", None)

@@ -299,6 +299,9 @@ def load_npz(path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: missing")
+    with open(path, "rb") as f:
+        if f.read(4) != b"PK\x03\x04":  # not a zip archive at all (np.load would try it as a pickle)
+            raise DataError(f"{path}: not an .npz file (damaged or replaced)")
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}

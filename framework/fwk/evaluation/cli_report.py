@@ -30,9 +30,25 @@ def _load(run: Path) -> dict:
     if not p.exists():
         raise FwkError(f"{run}: no metrics.json (not a finished run directory)")
     try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise FwkError(f"{p}: unreadable ({exc})") from None
+        m = json.loads(p.read_bytes())
+    except (ValueError, RecursionError) as exc:  # not JSON, not UTF-8
+        raise FwkError(f"{p}: unreadable ({str(exc)[:160]})") from None
+    if not isinstance(m, dict):
+        raise FwkError(f"{p}: not the metrics of a run (a JSON {type(m).__name__}, not an object)")
+    for key, kind in (("models", dict), ("figures", dict), ("notes", list), ("dataset", dict)):
+        if key in m and not isinstance(m[key], kind):
+            raise FwkError(f"{p}: not the metrics of a run ({key} is a {type(m[key]).__name__})")
+    bad = [k for k, v in m.get("models", {}).items() if not isinstance(v, dict)]
+    if bad:
+        raise FwkError(f"{p}: not the metrics of a run (models.{bad[0]} is a {type(m['models'][bad[0]]).__name__})")
+    return m
+
+
+def _malformed(runs: list[Path], exc: Exception) -> FwkError:
+    """What a report built from a metrics.json of the right outline but wrong contents (edited,
+    another program's) says: one line naming the file(s)."""
+    files = ", ".join(str(r / "metrics.json") for r in runs)
+    return FwkError(f"{files}: not the metrics of a finished run ({type(exc).__name__}: {str(exc)[:120]})")
 
 
 class _Dir:
@@ -177,9 +193,15 @@ def run_report(args) -> int:
     if len(runs) == 1 and not args.out:
         m = _load(runs[0])
         figs = m.get("figures", {})
-        write_report(_Dir(runs[0]), f"Report: {runs[0].name}", {k: v for k, v in m.items() if k not in ("figures", "notes")},
-                     {k: v for k, v in figs.items()}, notes=m.get("notes", []))
+        try:
+            write_report(_Dir(runs[0]), f"Report: {runs[0].name}", {k: v for k, v in m.items() if k not in ("figures", "notes")},
+                         {k: v for k, v in figs.items()}, notes=m.get("notes", []))
+        except (KeyError, TypeError, AttributeError, ValueError, IndexError) as exc:  # contents tampered with
+            raise _malformed(runs, exc) from exc
         print(runs[0] / "report.md")
         return 0
-    print(combine(runs, out, mix=args.mix))
+    try:
+        print(combine(runs, out, mix=args.mix))
+    except (KeyError, TypeError, AttributeError, ValueError, IndexError) as exc:
+        raise _malformed(runs, exc) from exc
     return 0

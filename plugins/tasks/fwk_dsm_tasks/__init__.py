@@ -76,7 +76,6 @@ settings are the other task's study settings (``InterpolateSettings``, ``EditSet
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -97,6 +96,7 @@ from fwk.lifecycle import has_state, open_run
 from fwk.protocols import RECONSTRUCT, BandModel, GenerativeModel
 from fwk.recipes import Kind, Spec, resolve
 from fwk.runs import RunContext, run_task
+from fwk.safeio import load_json
 
 INLINE_KEYS = ("dataset", "split", "preprocess", "shapes", "models", "metrics", "renders")
 # the recipe key that lists the band models' labels, and the metrics.json key of their results
@@ -135,11 +135,14 @@ def load_models(run_dir, ctx=None, registry=None) -> Env:
     pre = run.preprocessor
     cache = ctx.cache if ctx is not None else run.ctx.cache
     col = run.params["dataset"].build().load(cache)
-    split = json.loads((run_dir / "split.json").read_text())
+    split = load_json(run_dir / "split.json")  # one line naming the file when it is not JSON
     index = {s: i for i, s in enumerate(col.subjects)}
     j = col.shape_index("neutral")
     splits = {}
     for name, subs in split.items():
+        if not isinstance(subs, list) or not all(isinstance(s, str) and s in index for s in subs):
+            raise DataError(f"{run_dir / 'split.json'}: split {str(name)[:40]!r} is not a list of the dataset's "
+                            f"subjects (edited, or another run's)")
         idx = np.array([index[s] for s in subs], dtype=np.int64)
         if len(idx) == 0:
             splits[name] = np.zeros((0, col.template.n_vertices, 3))
