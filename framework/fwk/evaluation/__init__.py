@@ -35,6 +35,15 @@ metrics.json schema (every evaluating task writes it; ``fwk report`` reads it)::
      "training": {network: {"epochs", "ended_by", "best_val", "best_epoch", "plateau", ...}}}
                                                     # from curves/ (fwk.evaluation.curves); tasks may
                                                     # add more top-level keys
+     "comparisons": [{"a": key path, "b": key path, "metric", "about", "a_name", "b_name"}]}
+                                                    # optional: the report's "A beats B" statements
+
+A run of several seeds (``seeds:``; ``fwk.seeds``, ``fwk.evaluation.seeds``) combines its seeds'
+metrics.json: each summary also has ``seed_sd``, ``seed_means`` ({seed: mean}), ``n_seeds`` (and
+``seed_sd_input``, ``seed_means_input``), ``mean`` being the mean over seeds; top-level ``seeds``,
+``split_seed``, ``seed_runs`` and ``seed_comparisons`` (each comparison with its per-seed
+Wilcoxon p-values and verdict). Tasks write the per-subject test scores behind each mean to
+``scores.json``, at the summary's key path (``evaluate_summary(..., scores_out=)``).
 
 The evaluation space is the registered data scaled by s into [-1, 1] (the thesis's space);
 input-unit values divide l1 and euclidean by s and l2 by s^2; DAME and FMPD are

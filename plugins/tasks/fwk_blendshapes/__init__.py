@@ -12,7 +12,9 @@ every expression of the test subjects from their neutrals (``predict_all``) -> t
 
 Report: one row per expression of each cut-selecting model (PBS) against each baseline (DT) on
 the distance metric and every perceptual one (L1, DAME, FMPD), with the winner (an exact tie is
-no win) and PBS's k (k = 0 and k = n say that one network ran alone, without assembly); the
+no win; each verdict rests on the run's one seed and says so: a recipe with ``seeds:`` restates
+them over seeds with a paired test, from ``comparisons`` in metrics.json and the per-subject
+scores in ``scores.json``; ``fwk.evaluation.seeds``) and PBS's k (k = 0 and k = n say that one network ran alone, without assembly); the
 per-expression table in the layout of thesis table 5.2 (rows expression x metric,
 a column per method), the end-to-end vs two-step table of table 5.1 where both modes ran,
 PBS's k sweep on validation with the Pareto fronts and the chosen k (figure 5.8: L1 against

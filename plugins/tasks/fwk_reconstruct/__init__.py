@@ -8,8 +8,8 @@ is reloaded (``fwk.lifecycle.build_models``, ``fit_or_resume``: ``models/<label>
 ``model.reconstruct`` on every split -> metrics (default ``fwk.evaluation.default_metrics``)
 against the ground truth in the evaluation space (the thesis's space) and in the dataset's own
 units -> ``metrics.json`` (and ``scores.json``: every test mesh's scores, which a run of several
-seeds tests pairwise: ``fwk.evaluation.seeds``), ``report.md`` with tables, renders with error maps and the standard
-scatters (L1 against DAME and FMPD) with their Pareto fronts.
+seeds tests pairwise: ``fwk.evaluation.seeds``), ``report.md`` with tables, renders with error
+maps and the standard scatters (L1 against DAME and FMPD) with their Pareto fronts.
 """
 from __future__ import annotations
 
