@@ -3,7 +3,7 @@ personalised blendshapes for your own head, as OBJs and as a rig.
 
 A finished ``blendshapes`` run holds everything a new neutral needs: the fitted preprocessing
 (``stats/preprocess.npz``: the mean training neutral and the dataset scale), the topology
-(``stats/template.npz``) and the trained model (``models/<label>.pt``, reopened by
+(``stats/template.npz``) and the trained model (``models/<label>.safetensors``, reopened by
 ``fwk.lifecycle``: ``--model LABEL``, else the run's ``apply_model``, else chosen by role). For
 each neutral: read it (its own polygons, UVs and material lines kept), check its topology
 against the run's, centre it, register it rigidly to the mean neutral and scale it (thesis
@@ -56,6 +56,7 @@ from .data.io import ObjWriter, check_topology, line_number, read_obj
 from .data.template import UNITS
 from .errors import DataError, FwkError, TopologyError, quote
 from .lifecycle import choose_model, open_run
+from .safeio import load_npz
 from .paths import check_dir
 from .protocols import BlendshapeModel, CutSelectingModel
 from .rig.arkit import NAMINGS, rename
@@ -116,8 +117,12 @@ class Applier:
             raise FwkError(f"{tpl}: missing; is {run.run_dir} a finished blendshapes run?")
         self.model = run.model(self.label)
         self.pre = run.preprocessor
-        with np.load(tpl) as z:
+        z = load_npz(tpl)  # arrays only, never unpickled; one line naming the file when damaged
+        try:
             self.template = Template(z["mean_neutral"], z["triangles"])
+        except (KeyError, ValueError, TypeError, IndexError) as exc:  # another npz (swapped, edited)
+            raise FwkError(f"{tpl}: not the template of a blendshapes run ({type(exc).__name__}: "
+                           f"{str(exc)[:120]})") from None
         self.expressions = list(self.model.expressions or [])
         self.units = str((run.metrics.get("dataset") or {}).get("units") or "unit")
         obj = run.run_dir / TEMPLATE_OBJ
