@@ -144,7 +144,7 @@ class Applier:
             return METRES[units.strip()] / METRES[self.units]
         try:
             f = float(units)
-        except (TypeError, ValueError):
+        except ValueError:
             raise FwkError(f"--units {quote(units)}: expected a unit ({', '.join(METRES)}) or a factor "
                            f"(a positive number)") from None
         if not (np.isfinite(f) and 1e-9 <= f <= 1e9):

@@ -27,6 +27,7 @@ import os
 import stat
 import types
 import typing
+from collections.abc import Hashable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, get_args, get_origin
@@ -119,10 +120,9 @@ class RecipeLoader(yaml.SafeLoader):
                     continue
                 key = self.construct_object(key_node, deep=True)
                 line = key_node.start_mark.line + 1
-                try:
-                    first = seen.get(key)
-                except TypeError:
-                    continue  # an unhashable key: PyYAML's own error follows
+                if not isinstance(key, Hashable):
+                    continue  # a list or mapping as a key: PyYAML's own error follows
+                first = seen.get(key)
                 if first is not None:
                     raise RecipeError(f"{self.source}, line {line}: key {quote(key)} given twice "
                                       f"(first on line {first})")
