@@ -285,7 +285,7 @@ def sentence(c: dict, registry=None) -> str:
     win, lose = (a, b) if c["lower"] == "a" else (b, a)
     pct = _pct(c["mean_a"], c["mean_b"]) if c["lower"] == "a" else _pct(c["mean_b"], c["mean_a"])
     if c["one_seed"]:
-        return (f"- {head}{values}: `{win}` beats `{lose}` ({pct}; Wilcoxon p = {ptext} over "
+        return (f"- {head}{values}: `{win}` beats `{lose}` on the means ({pct}; Wilcoxon p = {ptext} over "
                 f"{next(iter(c['per_seed'].values()))['n']} test subjects) (one seed).")
     n = c["n_seeds"]
     if c["verdict"]:
@@ -321,7 +321,7 @@ def per_section_tables(results: dict, registry=None) -> list[tuple[str, str]]:
                 shown = display(m, registry)
                 body.append([key, f"{shown.label}{shown.suffix}",
                              *(mean_sd(v.get(r, {}).get(m), shown.scale) for r in rows)])
-        out.append((f"Per {name} entry over seeds",
+        out.append((f"{name}: mean ± sd over seeds (test)",
                     "Mean over seeds of each seed's mean over test subjects ± the sample sd over seeds, "
                     "evaluation space; lower is better.\n\n" + markdown_table(body, [name, "metric", *rows])))
     return out
