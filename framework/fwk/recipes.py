@@ -226,6 +226,13 @@ def read_recipe_text(path: Path, what: str = "recipe file") -> str:
                           f"save it as UTF-8") from None
 
 
+def read_recipe_file(path: Path, what: str = "recipe file") -> dict:
+    """A recipe file's mapping, read with every check of ``read_recipe_text`` and ``yaml_load``
+    (``extends`` not resolved): for any code that reads a recipe, ``recipe.yaml`` of a run
+    included."""
+    return _read_yaml(Path(path), what)
+
+
 def _read_yaml(path: Path, what: str = "recipe file") -> dict:
     data = yaml_load(read_recipe_text(path, what), str(path))
     if data is None:

@@ -124,6 +124,19 @@ def test_recursive_alias(tmp_path, env):
     _refused(tmp_path, PCA_RECIPE + "description: &d [1, *d]\n", "refers to a node that contains it")
 
 
+def test_nesting_is_bounded(tmp_path, env):
+    _refused(tmp_path, PCA_RECIPE + "description: " + "[" * 5000 + "]" * 5000 + "\n", "r.yaml: nested too deeply")
+
+
+def test_a_run_directorys_recipe_is_read_with_the_same_checks(tmp_path):
+    from fwk.recipes import read_recipe_file
+
+    p = tmp_path / "recipe.yaml"
+    p.write_text("task: reconstruct\nseed: 1\nseed: 2\n")
+    with pytest.raises(RecipeError, match="line 3: key 'seed' given twice"):
+        read_recipe_file(p)
+
+
 def test_file_size_is_bounded(tmp_path, env):
     _refused(tmp_path, PCA_RECIPE + "# " + "x" * (2 << 20) + "\n", "more than a recipe may have (1,048,576)")
 
