@@ -70,7 +70,7 @@ def convert_run(run_dir, trust: bool, say=print) -> list[Path]:
                        f"({names}), which runs any code they hold; add --trust if you trust who made the run")
     import torch  # deferred: ~1 s of import time
 
-    from .safeio import LEGACY_SUFFIX, SUFFIX, dumps_state
+    from .safeio import SUFFIX, dumps_state
     from .cache import atomic_write_bytes
 
     if files:
