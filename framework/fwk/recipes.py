@@ -132,28 +132,28 @@ class RecipeLoader(yaml.SafeLoader):
     def get_single_node(self):
         node = super().get_single_node()
         if node is not None:
-            n = _expanded_size(node, {}, set())
+            n = _expanded_size(node, {}, set(), self.source)
             if n > MAX_RECIPE_NODES:
                 raise RecipeError(f"{self.source}: more than {MAX_RECIPE_NODES:,} values once its aliases (*name) "
                                   f"are expanded; a recipe repeats a part with extends: or an override instead")
         return node
 
 
-def _expanded_size(node, memo: dict, active: set) -> int:
+def _expanded_size(node, memo: dict, active: set, source: str = "recipe") -> int:
     """How many nodes ``node`` holds with every alias expanded (counted once per node: O(nodes));
     stops counting past the limit, and refuses an alias of a node inside itself."""
     key = id(node)
     if key in memo:
         return memo[key]
     if key in active:
-        raise RecipeError("recipe: an alias (*name) refers to a node that contains it (a recursive structure)")
+        raise RecipeError(f"{source}: an alias (*name) refers to a node that contains it (a recursive structure)")
     if isinstance(node, yaml.ScalarNode):
         return 1
     active.add(key)
     total = 1
     for item in node.value:
         for child in (item if isinstance(item, tuple) else (item,)):
-            total += _expanded_size(child, memo, active)
+            total += _expanded_size(child, memo, active, source)
             if total > MAX_RECIPE_NODES:
                 break
         if total > MAX_RECIPE_NODES:

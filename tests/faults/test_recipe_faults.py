@@ -121,7 +121,7 @@ def test_alias_expansion_is_bounded(tmp_path, env):
 
 
 def test_recursive_alias(tmp_path, env):
-    _refused(tmp_path, PCA_RECIPE + "description: &d [1, *d]\n", "refers to a node that contains it")
+    _refused(tmp_path, PCA_RECIPE + "description: &d [1, *d]\n", "r.yaml: an alias (*name) refers to a node that contains it")
 
 
 def test_nesting_is_bounded(tmp_path, env):
