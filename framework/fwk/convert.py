@@ -70,7 +70,7 @@ def convert_run(run_dir, trust: bool, say=print) -> list[Path]:
                        f"({names}), which runs any code they hold; add --trust if you trust who made the run")
     import torch  # deferred: ~1 s of import time
 
-    from .safeio import SUFFIX, dumps_state
+    from .safeio import SUFFIX, UnsafeStateError, dumps_state
     from .cache import atomic_write_bytes
 
     if files:
@@ -97,7 +97,7 @@ def convert_run(run_dir, trust: bool, say=print) -> list[Path]:
             target = p
         try:
             plan.append((p, target, dumps_state(state, meta)))
-        except TypeError as exc:
+        except UnsafeStateError as exc:
             raise FwkError(f"{p}: holds what the safe format cannot store ({exc}); nothing converted") from None
     for old, new, data in plan:
         atomic_write_bytes(new, data)

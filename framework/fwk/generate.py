@@ -1,7 +1,7 @@
 """``fwk sample RUN_DIR --n N --out DIR [--seed S] [--model LABEL]``: new heads from a trained model.
 
 A finished ``reconstruct`` run (or an ``interpolate``/``edit`` run that trained inline: its
-``reconstruct/`` sub-run is used) holds the trained models (``models/<label>.pt``) and the
+``reconstruct/`` sub-run is used) holds the trained models (``models/<label>.safetensors``) and the
 fitted preprocessing (``stats/preprocess.npz``); it is reopened with ``fwk.lifecycle.open_run``.
 The model is chosen by role: ``--model LABEL``, else the first model playing
 ``fwk.protocols.BandModel``, else the first playing ``GenerativeModel``. It draws Z ~ N(0, I)

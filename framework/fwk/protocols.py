@@ -268,7 +268,7 @@ class Model(Protocol):
 
     ``task_family`` is ``"reconstruct"`` or ``"blendshapes"``. ``state_dict()`` /
     ``load_state_dict(d, ctx=None)`` save and restore everything inference needs (fwk stores it
-    as ``models/<label>.pt``); ``ctx`` lends the run's cache to graph hierarchies and the like.
+    as ``models/<label>.safetensors``); ``ctx`` lends the run's cache to graph hierarchies and the like.
     """
 
     name: str

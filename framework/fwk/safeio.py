@@ -10,7 +10,7 @@ of the tensor bytes beside it. ``load_state`` verifies all of that before it ret
 nothing in the file is ever executed (safetensors parses a JSON header and raw bytes; no pickle).
 
 A value of any other type (a ``Spec``, a custom object, a function) cannot be saved: ``save_state``
-raises ``TypeError`` naming where in the state it sits; a model stores plain data instead.
+raises ``UnsafeStateError`` (a ``TypeError``) naming where in the state it sits; a model stores plain data instead.
 
 Files written by earlier versions of fwk were pickles (``torch.save``): unpickling runs whatever
 code the file names, so they are refused (``LegacyFormatError``, one line) with the command that
@@ -39,6 +39,11 @@ SUFFIX = ".safetensors"
 LEGACY_SUFFIX = ".pt"
 
 _MAX_HEADER = 100_000_000  # safetensors' own bound on the JSON header
+
+
+class UnsafeStateError(TypeError):
+    """A state holds a value the safe format does not store (an object, a function): the message
+    says where it sits. A bug of the model that made it (its contract suite fails on it)."""
 
 
 class LegacyFormatError(DataError):
@@ -105,7 +110,7 @@ def _encode(obj, path: str, tensors: dict, torch) -> Any:
         return obj
     if isinstance(obj, np.generic):  # before int/float: np.float64 is a float
         if obj.dtype.kind not in "biuf":
-            raise TypeError(f"{_where(path)}: a NumPy {obj.dtype} scalar cannot be saved safely")
+            raise UnsafeStateError(f"{_where(path)}: a NumPy {obj.dtype} scalar cannot be saved safely")
         return {"s": [obj.dtype.str, obj.item()]}
     if isinstance(obj, int):
         return int(obj)
@@ -113,14 +118,14 @@ def _encode(obj, path: str, tensors: dict, torch) -> Any:
         return float(obj)
     if isinstance(obj, np.ndarray):
         if obj.dtype.kind not in "biuf" or obj.dtype.byteorder == ">":
-            raise TypeError(f"{_where(path)}: a NumPy array of dtype {obj.dtype} cannot be saved safely "
+            raise UnsafeStateError(f"{_where(path)}: a NumPy array of dtype {obj.dtype} cannot be saved safely "
                             "(numbers and booleans only)")
         name = str(len(tensors))
         tensors[name] = torch.from_numpy(np.array(obj, order="C", copy=True))
         return {"n": name}
     if isinstance(obj, torch.Tensor):
         if obj.is_complex() or obj.layout not in (torch.strided, torch.sparse_coo):
-            raise TypeError(f"{_where(path)}: a {obj.dtype} {obj.layout} tensor cannot be saved safely")
+            raise UnsafeStateError(f"{_where(path)}: a {obj.dtype} {obj.layout} tensor cannot be saved safely")
         if obj.layout == torch.sparse_coo:  # its indices and values, each a tensor
             c = obj.detach().to("cpu").coalesce()
             i, v = str(len(tensors)), str(len(tensors) + 1)
@@ -133,13 +138,13 @@ def _encode(obj, path: str, tensors: dict, torch) -> Any:
         items = []
         for k, v in obj.items():
             if not (k is None or isinstance(k, (str, int, float, bool))):
-                raise TypeError(f"{_where(path)}: a key of type {type(k).__name__} cannot be saved safely")
+                raise UnsafeStateError(f"{_where(path)}: a key of type {type(k).__name__} cannot be saved safely")
             items.append([k, _encode(v, f"{path}.{k}" if path else str(k), tensors, torch)])
         return {"d": items}
     if isinstance(obj, (list, tuple)):
         return {"l" if isinstance(obj, list) else "u":
                 [_encode(v, f"{path}[{i}]", tensors, torch) for i, v in enumerate(obj)]}
-    raise TypeError(f"{_where(path)}: a {type(obj).__module__}.{type(obj).__qualname__} cannot be saved safely; "
+    raise UnsafeStateError(f"{_where(path)}: a {type(obj).__module__}.{type(obj).__qualname__} cannot be saved safely; "
                     "a state holds tensors, NumPy arrays and plain data (dict, list, tuple, str, int, float, bool, None)")
 
 
@@ -213,7 +218,7 @@ def _split(data: bytes) -> tuple[int, dict]:
 
 def dumps_state(state, meta: dict | None = None) -> bytes:
     """The bytes of ``state`` (see the module docstring) in the safe format; ``meta`` (JSON data)
-    is stored beside it and returned by ``loads_state``. ``TypeError`` for a value that is not
+    is stored beside it and returned by ``loads_state``. ``UnsafeStateError`` (a ``TypeError``) for a value that is not
     plain data, naming where it sits."""
     import torch  # deferred: ~1 s of import time that `fwk list` need not pay
     from safetensors.torch import save

@@ -33,7 +33,7 @@ def test_eval_folders_and_maps(tmp_path, capsys):
     assert "only_here.obj" in cap.err and "skipped" in cap.err
     maps = sorted((tmp_path / "maps").glob("*.npz"))
     assert [p.name for p in maps] == ["two.obj.npz", "x__one.obj.npz"]
-    z = np.load(maps[0])
+    z = np.load(maps[0], allow_pickle=False)
     assert set(z.files) == {"l1", "l2", "euclidean", "dame", "fmpd"} and z["l1"].shape == (len(V),)
     assert np.allclose(z["l1"], 0.02)
 

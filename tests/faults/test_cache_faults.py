@@ -31,7 +31,7 @@ def test_damaged_array_entry_is_rebuilt_with_one_warning(tmp_path, capsys, damag
     npy = _array_entry(tmp_path)
     raw = npy.read_bytes()
     if damage == "scaled":  # same dtype and shape, values 5 % off in one row: what the old check missed
-        a = np.load(npy)
+        a = np.load(npy, allow_pickle=False)
         a[3] *= 1.05
         np.save(npy, a)
     elif damage == "garbage-head":
@@ -107,7 +107,7 @@ def test_corrupt_dataset_cache_in_a_run_is_rebuilt(tmp_path, env, capsys, baseli
     rc, first = fwk_run(r, tmp_path / "runs")
     assert rc == 0
     (npy,) = (tmp_path / "cache" / "synthetic-heads").glob("*.npy")
-    a = np.load(npy)
+    a = np.load(npy, allow_pickle=False)
     a[1] *= 1.05
     np.save(npy, a)
     capsys.readouterr()

@@ -6,7 +6,7 @@ to the mean neutral, one scale into [-1, 1]; a subject's expressions move with i
 thesis 5.2.1; saved as ``stats/preprocess.npz`` with the topology in ``stats/template.npz``)
 -> each model (``pb``, ``pbs``, ``dt``, any model playing ``fwk.protocols.BlendshapeModel``)
 fits on the training subjects (``pbs`` also chooses its k per expression on the validation
-subjects) and is saved as ``models/<label>.pt`` (``fwk.lifecycle``) -> every model predicts
+subjects) and is saved as ``models/<label>.safetensors`` (``fwk.lifecycle``) -> every model predicts
 every expression of the test subjects from their neutrals (``predict_all``) -> the metrics
 (default: l1, l2, euclidean, DAME, FMPD) against the ground truth.
 

@@ -4,7 +4,7 @@ The data flow of DESIGN.md: dataset -> split by subject (saved as ``split.json``
 preprocessing fitted on the training neutrals (centring, rigid registration to the mean
 neutral, one uniform scale into [-1, 1]; thesis 3.3.8; saved under ``stats/``) -> each model
 (a ``fwk.protocols.ReconstructionModel``) learns from the training shapes, or with ``--resume``
-is reloaded (``fwk.lifecycle.build_models``, ``fit_or_resume``: ``models/<label>.pt``) ->
+is reloaded (``fwk.lifecycle.build_models``, ``fit_or_resume``: ``models/<label>.safetensors``) ->
 ``model.reconstruct`` on every split -> metrics (default ``fwk.evaluation.default_metrics``)
 against the ground truth in the evaluation space (the thesis's space) and in the dataset's own
 units -> ``metrics.json`` (and ``scores.json``: every test mesh's scores, which a run of several
