@@ -24,6 +24,10 @@ from .errors import FwkError
 from .lifecycle import choose_model, open_run
 from .paths import check_dir
 from .protocols import RECONSTRUCT, BandModel, GenerativeModel
+from .recipes import MAX_SEED
+
+#: the most meshes one ``fwk sample`` writes (10,000 heads of 11,248 vertices: 2.7 GB in memory)
+MAX_SAMPLES = 10_000
 
 
 def add_sample_parser(subparsers):
@@ -34,9 +38,10 @@ def add_sample_parser(subparsers):
                     "write OBJ files in the dataset's units with its own polygons and UVs.")
     p.add_argument("run_dir", help="a finished `fwk run` directory with trained models (reconstruct, or "
                                    "interpolate/edit with a reconstruct/ sub-run)")
-    p.add_argument("--n", type=int, default=8, help="how many meshes (default 8)")
+    p.add_argument("--n", type=int, default=8, help=f"how many meshes (default 8, at most {MAX_SAMPLES:,})")
     p.add_argument("--out", required=True, help="output folder (created; files of the same name are replaced)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (the same seed gives the same meshes)")
+    p.add_argument("--seed", type=int, default=0, help=f"random seed, 0 to {MAX_SEED} (the same seed gives the same "
+                                                        "meshes)")
     p.add_argument("--model", default=None, help="model label of the run (default: the first band model, e.g. dsm, "
                                                  "else the first generative model)")
     return p
@@ -54,8 +59,10 @@ def _run_with_models(run_dir: Path) -> Path:
 
 def sample_meshes(run_dir, n: int, seed: int = 0, model: str | None = None, registry=None):
     """(label, meshes (n, v, 3) in the dataset's units, template with the user's polygons)."""
-    if n < 1:
-        raise FwkError(f"--n {n}: at least 1")
+    if not 1 <= n <= MAX_SAMPLES:
+        raise FwkError(f"--n {n}: from 1 to {MAX_SAMPLES:,}")
+    if not 0 <= seed <= MAX_SEED:
+        raise FwkError(f"--seed {seed}: out of range (0 to {MAX_SEED})")
     run = open_run(_run_with_models(Path(run_dir)), registry)
     label = choose_model(run.specs, GenerativeModel, model, prefer=BandModel, source=str(run.run_dir))
     m = run.model(label)

@@ -176,3 +176,13 @@ def test_extends_a_fifo_and_a_fifo_recipe(tmp_path, env):
     runs = _runs(tmp_path)
     refused(["run", str(fifo), "--runs-dir", str(runs)], tmp_path, f"recipe file {fifo} is not a regular file",
             runs=runs, subprocess=True, env=env)
+
+
+@pytest.mark.parametrize("args,expect", [
+    (["--seed", "-1"], "--seed -1: out of range (0 to 4294967295)"),
+    (["--seed", str(2**70)], f"--seed {2**70}: out of range"),
+    (["--n", "0"], "--n 0: from 1 to 10,000"),
+    (["--n", "100000000"], "--n 100000000: from 1 to 10,000"),
+])
+def test_sample_values_checked_before_the_run_is_opened(tmp_path, env, args, expect):
+    refused(["sample", str(tmp_path / "no-run"), "--out", str(tmp_path / "out"), *args], tmp_path, expect)
