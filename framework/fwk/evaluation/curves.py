@@ -18,6 +18,8 @@ import math
 import os
 from pathlib import Path
 
+from .tables import markdown_table
+
 PLATEAU_THRESHOLD = 0.01
 PLATEAU_MIN_WINDOW = 5
 PLATEAU_WINDOW_FRACTION = 0.1
@@ -184,7 +186,6 @@ def _ended(s: dict) -> str:
 def training_section(training: dict) -> str:
     """The report's "Training" section: the table, the plateau rule, the figures."""
     from ..engine.callbacks import duration  # deferred: the engine imports Lightning
-    from .report import markdown_table
 
     rows = []
     for name, s in training["networks"].items():
