@@ -105,10 +105,27 @@ class ManualSchedulers(pl.Callback):
                 c.scheduler.step()
 
 
+#: log -> the thread counts reported through it (``report_threads``)
+_threads_reported: dict = {}
+
+
+def report_threads(log, n: int, why: str) -> bool:
+    """Say ``threads: n (why)`` through ``log`` unless this count was said through it before:
+    a count that flips between two values as other fwk processes start and end (every epoch of
+    a long run beside a short one) is said once per value, not at every flip. Returns whether
+    it was said. ``log`` is a run context's ``log`` (bound methods of one context compare equal)."""
+    said = _threads_reported.setdefault(log, set())
+    if n in said:
+        return False
+    said.add(n)
+    log(f"threads: {n} ({why})")
+    return True
+
+
 class ThreadShare(pl.Callback):
     """At the start of every epoch, size torch's threads by ``fwk.engine.threads``' rule (the
     cores shared among the live fwk processes, or the explicit ``FWK_THREADS`` /
-    ``OMP_NUM_THREADS``); a change is reported through ``log``."""
+    ``OMP_NUM_THREADS``); a count not said before is reported through ``log`` (``report_threads``)."""
 
     def __init__(self, log=None):
         # not ``self.log``: Lightning sets a callback's ``log`` to the module's (callback_connector)
@@ -117,7 +134,7 @@ class ThreadShare(pl.Callback):
     def on_train_epoch_start(self, trainer, module):
         n, why, changed = apply_threads()
         if changed and self.report is not None:
-            self.report(f"threads: {n} ({why})")
+            report_threads(self.report, n, why)
 
 
 def stopping_rule(values, patience: int, min_delta: float, relative: bool = False) -> dict:

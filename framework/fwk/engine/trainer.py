@@ -149,7 +149,8 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
     from lightning.pytorch.loggers import TensorBoardLogger
 
-    from .callbacks import ManualSchedulers, ProgressLines, RNGState, SafeCheckpointIO, ThreadShare, TrainingCurves
+    from .callbacks import (ManualSchedulers, ProgressLines, RNGState, SafeCheckpointIO, ThreadShare, TrainingCurves,
+                            report_threads)
 
     _quiet_lightning()
     config = config or ctx.train
@@ -192,9 +193,8 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
         raise FwkError(f"train.strategy ddp: this rank would train {network} before the training it joins "
                        f"({job['ckdir']}); the run's finished trainings differ from rank 0's")
     register()  # this process counts among those that share the cores (fwk.engine.threads)
-    n, why, changed = apply_threads()
-    if changed:
-        ctx.log(f"threads: {n} ({why})")
+    n, why, _ = apply_threads()
+    report_threads(ctx.log, n, why)  # once per run and count: not again at every flip
     seed_everything(ctx.seed)
     train_loader = make_loader(train, config.batch_size, ctx.seed, True, config.num_workers)
     if train_loader is None:
