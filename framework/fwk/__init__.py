@@ -1,5 +1,9 @@
 """fwk: deep 3D morphable models of registered face meshes."""
-from importlib.metadata import PackageNotFoundError, version
+from . import _waiting
+
+_waiting.apply()  # first: idle OpenMP/BLAS threads sleep, set before torch or NumPy load (fwk._waiting)
+
+from importlib.metadata import PackageNotFoundError, version  # noqa: E402
 
 try:
     __version__ = version("fwk")

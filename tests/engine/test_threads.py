@@ -1,4 +1,6 @@
-"""fwk.engine.threads: the live fwk processes share the cores (no timing assertions)."""
+"""fwk.engine.threads: the live fwk processes share the cores left free by other work (no timing
+assertions). The machine's own load is faked here (``no_outside_load``); the load tests below
+build a fake ``/proc``."""
 import json
 import os
 import subprocess
@@ -12,6 +14,13 @@ from fwk.engine.threads import apply_threads, live_processes, register, runtime_
 from fwk.errors import FwkError
 
 NOENV = {}  # neither FWK_THREADS nor OMP_NUM_THREADS
+
+
+@pytest.fixture(autouse=True)
+def no_outside_load(request, monkeypatch):
+    """The tests of the fwk-process rule run as on an idle machine (the real one is shared)."""
+    if "real_load" not in request.fixturenames:
+        monkeypatch.setattr(threads, "outside_load", lambda *a, **k: (0.0, 1024))  # none busy, cores the limit
 
 
 @pytest.fixture
@@ -227,3 +236,262 @@ def test_thread_share_reports_inside_a_real_trainer(monkeypatch, tmp_path):
                          enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(tmp_path))
     trainer.fit(Tiny(), data)
     assert said == ["threads: 1 (2 fwk processes on 2 cores)"]
+
+
+# ---- the machine's load: the rule and its measurement, against naive reference computations ----
+
+def _naive_share(cores, live, outside, cpus):
+    """The documented rule, written out the slow way."""
+    from decimal import ROUND_HALF_UP, Decimal
+
+    taken = int(Decimal(repr(outside)).quantize(Decimal(1), rounding=ROUND_HALF_UP))
+    free = cpus - taken
+    if free > cores:
+        free = cores
+    n = 0
+    while (n + 1) * live <= free:
+        n += 1
+    return n if n >= 1 else 1
+
+
+def test_the_rule_against_a_naive_reference():
+    import random
+
+    rnd = random.Random(0)
+    cases = [(2, 1, 2.0, 2), (2, 1, 0.0, 2), (2, 1, 0.49, 2), (2, 1, 0.5, 2), (2, 1, 1.5, 2),
+             (16, 2, 2.0, 16), (4, 1, 0.0, 64), (4, 1, 62.0, 64), (8, 3, 8.0, 8), (1, 5, 0.0, 1)]
+    cases += [(c, rnd.randint(1, 6), round(rnd.uniform(0, cpu), rnd.choice([0, 1, 2, 3])), cpu)
+              for c, cpu in ((rnd.randint(1, 64), rnd.randint(1, 64)) for _ in range(2000))]
+    for cores, live, outside, cpus in cases:
+        assert threads.share(cores, live, outside, cpus) == _naive_share(cores, live, outside, cpus), \
+            (cores, live, outside, cpus)
+    assert threads.share(2, 1, 2.0) == 1  # beside a 2-thread job on 2 cores: one thread
+    assert threads.share(16, 1, 0.0) == 16 and threads.share(16, 2, 0.3) == 8  # no load: cores // live
+
+
+def test_thread_budget_with_a_faked_load():
+    # beside a 2-thread job on 2 cores a training computes with one thread, and says why
+    assert thread_budget(NOENV, cores=2, live=1, outside=2.0, cpus=2) == (
+        1, "1 fwk process on 2 cores, 2.0 of 2 CPUs busy with other work")
+    assert thread_budget(NOENV, cores=16, live=2, outside=3.6, cpus=16) == (
+        6, "2 fwk processes on 16 cores, 3.6 of 16 CPUs busy with other work")
+    # a cgroup quota of 4 cores on a 64-CPU host half busy: the quota is the limit
+    assert thread_budget(NOENV, cores=4, live=1, outside=32.0, cpus=64)[0] == 4
+    assert thread_budget(NOENV, cores=4, live=1, outside=0.2, cpus=4) == (4, "1 fwk process on 4 cores")
+    # explicit counts still win over the load
+    assert thread_budget({"FWK_THREADS": "2"}, cores=2, live=1, outside=2.0) == (2, "FWK_THREADS=2")
+    assert thread_budget({"OMP_NUM_THREADS": "2"}, cores=2, live=1, outside=2.0)[0] == 2
+    assert thread_budget({"FWK_ALLOCATED_CPUS": "2"}, cores=2, live=1, outside=2.0)[0] == 2
+
+
+def test_apply_threads_follows_the_measured_load(procs, monkeypatch, torch_threads):
+    from fwk.engine import ThreadShare
+
+    monkeypatch.setattr(threads, "available_cores", lambda: 2)
+    monkeypatch.delenv("FWK_THREADS", raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    load = [2.0]
+    monkeypatch.setattr(threads, "outside_load", lambda *a, **k: (load[0], 2))
+    torch.set_num_threads(2)
+    assert apply_threads() == (1, "1 fwk process on 2 cores, 2.0 of 2 CPUs busy with other work", True)
+    said = []
+    share = ThreadShare(said.append)
+    load[0] = 0.1  # the other job ended: the next epoch takes the cores back
+    share.on_train_epoch_start(None, None)
+    assert torch.get_num_threads() == 2 and said == ["threads: 2 (1 fwk process on 2 cores)"]
+    monkeypatch.setenv("FWK_THREADS", "2")
+    load[0] = 2.0
+    share.on_train_epoch_start(None, None)
+    assert torch.get_num_threads() == 2
+
+
+def _stat_line(pid, comm, ppid, start, ticks):
+    """A /proc/<pid>/stat line: ticks = (utime, stime, cutime, cstime)."""
+    f = ["S", str(ppid)] + ["0"] * 9 + [str(t) for t in ticks] + ["20", "0", "1", "0", str(start)] + ["0"] * 30
+    return f"{pid} ({comm}) " + " ".join(f) + "\n"
+
+
+def _fake_proc(root, cpu_rows, procs):
+    """A fake /proc: ``cpu_rows`` {n: 8 counters}, ``procs`` {pid: (comm, ppid, start, 4 ticks)}."""
+    root.mkdir(parents=True)
+    total = [sum(r[i] for r in cpu_rows.values()) for i in range(8)]
+    lines = ["cpu  " + " ".join(map(str, total + [0, 0]))]
+    lines += [f"cpu{n} " + " ".join(map(str, row + [0, 0])) for n, row in sorted(cpu_rows.items())]
+    lines += ["intr 12345 0 0", "ctxt 999", "procs_running 3"]
+    (root / "stat").write_text("\n".join(lines) + "\n")
+    for pid, (comm, ppid, start, ticks) in procs.items():
+        (root / str(pid)).mkdir()
+        (root / str(pid) / "stat").write_text(_stat_line(pid, comm, ppid, start, ticks))
+    (root / "self").mkdir()  # not a pid: ignored
+    return root
+
+
+def _naive_outside(a_cpu, b_cpu, a_procs, b_procs, cpus, fwk_pids):
+    """Busy ticks of ``cpus`` between the two states, less the fwk processes' and their
+    descendants', per tick of wall time; clamped to [0, len(cpus)]."""
+    def busy(rows):
+        return sum(r[0] + r[1] + r[2] + r[5] + r[6] + r[7] for n, r in rows.items() if n in cpus)
+
+    def total(rows):
+        return sum(sum(r) for n, r in rows.items() if n in cpus)
+
+    def family(ps):
+        fam = {p for p in fwk_pids if p in ps}
+        grew = True
+        while grew:
+            new = {p for p, v in ps.items() if v[1] in fam} - fam
+            fam |= new
+            grew = bool(new)
+        return {(p, ps[p][2]): sum(ps[p][3]) for p in fam}
+
+    fa, fb = family(a_procs), family(b_procs)
+    fwk = sum(t - fa.get(k, 0) for k, t in fb.items())
+    elapsed = (total(b_cpu) - total(a_cpu)) / len(cpus)
+    return min(len(cpus), max(0.0, (busy(b_cpu) - busy(a_cpu) - fwk) / elapsed))
+
+
+def test_the_measured_outside_load_against_a_naive_reference(tmp_path):
+    import random
+
+    rnd = random.Random(1)
+    seen = []
+    for case in range(60):
+        ncpu = rnd.randint(1, 6)
+        cpus = set(rnd.sample(range(ncpu), rnd.randint(1, ncpu)))
+        a_cpu = {n: [rnd.randint(0, 10**6) for _ in range(8)] for n in range(ncpu)}
+        wall = rnd.randint(20, 500)  # ticks per CPU between the states
+        b_cpu = {}
+        for n, row in a_cpu.items():
+            busy = rnd.randint(0, wall)
+            split = [rnd.random() for _ in range(8)]
+            split[3] = split[4] = 0  # busy time goes to the busy fields only
+            s = sum(split)
+            add = [int(busy * x / s) for x in split]
+            add[3] = wall - sum(add)  # the rest idle
+            b_cpu[n] = [v + d for v, d in zip(row, add)]
+        me, other, child, grandchild, stranger = 100, 200, 300, 400, 500
+        a_procs = {me: ("python", 1, 50, (10, 5, 0, 0)), other: ("fwk (a) b", 1, 60, (20, 5, 1, 1)),
+                   child: ("pt_data_worker", me, 70, (3, 1, 0, 0)), stranger: ("make", 1, 80, (9, 9, 9, 9))}
+        grow = lambda t: tuple(v + rnd.randint(0, wall // 8) for v in t)  # noqa: E731
+        b_procs = {p: (c, pp, st, grow(t)) for p, (c, pp, st, t) in a_procs.items()}
+        if case % 3 == 0:
+            b_procs[grandchild] = ("worker", child, 90, (rnd.randint(0, 20), 0, 0, 0))  # appeared in the window
+        if case % 4 == 0:
+            del b_procs[other]  # an fwk process that ended
+        fwk = {me, other}
+        a = threads.snapshot(fwk, cpus, proc=_fake_proc(tmp_path / f"a{case}", a_cpu, a_procs))
+        b = threads.snapshot(fwk, cpus, proc=_fake_proc(tmp_path / f"b{case}", b_cpu, b_procs))
+        assert a.cpus == tuple(sorted(cpus))
+        got = threads.outside_between(a, b)
+        want = _naive_outside(a_cpu, b_cpu, a_procs, b_procs, cpus, fwk)
+        assert got == pytest.approx(want, abs=1e-9), case
+        seen.append(got)
+    assert min(seen) < 0.5 * max(seen) and 0 < max(seen)  # the cases span a range of loads
+
+
+@pytest.fixture
+def real_load():
+    """This test measures (a fake /proc, or the machine): ``no_outside_load`` stays out."""
+
+
+def test_outside_load_measures_from_the_previous_call(real_load, tmp_path, monkeypatch):
+    monkeypatch.setattr(threads, "MIN_WINDOW", 0.0)
+    monkeypatch.setattr(threads, "_affinity", lambda: {0, 1})
+    monkeypatch.setattr(threads._LOAD, "last", None)
+    idle = [0, 0, 0, 1000, 0, 0, 0, 0]
+    busy = [300, 0, 90, 1010, 0, 0, 0, 10]  # cpu0: 400 ticks busy of 410
+    half = [100, 0, 0, 1310, 0, 0, 0, 0]  # cpu1: 100 ticks busy of 410
+    p0 = _fake_proc(tmp_path / "t0", {0: idle, 1: idle}, {os.getpid(): ("python", 1, 5, (0, 0, 0, 0))})
+    p1 = _fake_proc(tmp_path / "t1", {0: busy, 1: half}, {os.getpid(): ("python", 1, 5, (41, 0, 0, 0))})
+    assert threads.outside_load({os.getpid()}, proc=p0) == (0.0, 2)  # the first window: no time passed
+    out, cpus = threads.outside_load({os.getpid()}, proc=p1)  # (500 busy - 41 this process's) / 410
+    assert cpus == 2 and out == pytest.approx(459 / 410)
+    assert threads.outside_load({os.getpid()}, proc=tmp_path / "missing") == (0.0, 2)  # unreadable: no load
+
+
+def test_outside_load_on_this_machine_is_a_number_of_cpus(real_load):
+    out, cpus = threads.outside_load()
+    assert cpus >= 1 and 0.0 <= out <= cpus
+
+
+# ---- idle threads wait passively (fwk._waiting) ----------------------------------------------------
+
+WAIT_VARS = ("OMP_WAIT_POLICY", "OPENBLAS_THREAD_TIMEOUT", "GOTO_THREAD_TIMEOUT", "GOMP_SPINCOUNT")
+
+
+def _child_env(**set_):
+    env = {k: v for k, v in os.environ.items() if k not in WAIT_VARS}
+    env.update(set_)
+    return env
+
+
+def _env_after(code, **set_):
+    out = subprocess.run([sys.executable, "-c", code + "; import os, json; print(json.dumps("
+                          "{k: os.environ.get(k) for k in %r}))" % (WAIT_VARS,)],
+                         env=_child_env(**set_), capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("entry", ["import fwk", "from fwk.cli import main",  # the console script's import
+                                   "import fwk.engine.distributed"])
+def test_every_entry_point_sets_the_wait_policy(entry):
+    got = _env_after(entry)
+    assert got["OMP_WAIT_POLICY"] == "PASSIVE" and got["OPENBLAS_THREAD_TIMEOUT"] == "4"
+
+
+def test_the_users_own_settings_win():
+    assert _env_after("import fwk", OMP_WAIT_POLICY="active") == {
+        "OMP_WAIT_POLICY": "active", "OPENBLAS_THREAD_TIMEOUT": None, "GOTO_THREAD_TIMEOUT": None,
+        "GOMP_SPINCOUNT": None}  # the user chose how threads wait: fwk adds nothing
+    got = _env_after("import fwk", OPENBLAS_THREAD_TIMEOUT="28")
+    assert got["OPENBLAS_THREAD_TIMEOUT"] == "28" and got["OMP_WAIT_POLICY"] == "PASSIVE"
+    got = _env_after("import fwk", GOTO_THREAD_TIMEOUT="20")
+    assert got["OPENBLAS_THREAD_TIMEOUT"] is None and got["OMP_WAIT_POLICY"] == "PASSIVE"
+    got = _env_after("import fwk", OMP_WAIT_POLICY="PASSIVE", GOMP_SPINCOUNT="1000")
+    assert got["GOMP_SPINCOUNT"] == "1000" and got["OPENBLAS_THREAD_TIMEOUT"] == "4"
+
+
+def test_apply_records_what_it_set_and_what_was_loaded_before():
+    from fwk import _waiting
+
+    env = {"OPENBLAS_THREAD_TIMEOUT": "10"}
+    assert _waiting.apply(env, {}) == {"OMP_WAIT_POLICY": "PASSIVE"}
+    assert env == {"OPENBLAS_THREAD_TIMEOUT": "10", "OMP_WAIT_POLICY": "PASSIVE"}
+    assert _waiting.apply(env, {}) == {}  # idempotent
+    code = ("import numpy, fwk; from fwk import _waiting; "
+            "print(sorted(_waiting.added), _waiting.loaded_before)")
+    out = subprocess.run([sys.executable, "-c", code], env=_child_env(), capture_output=True, text=True, check=True)
+    assert out.stdout.split("\n")[0] == "['OMP_WAIT_POLICY', 'OPENBLAS_THREAD_TIMEOUT'] ['numpy']"
+
+
+IDLE_CPU = """
+import fwk, sys, time
+if sys.argv[1] == "torch":
+    import torch
+    torch.set_num_threads(2)
+    a = torch.randn(256, 256)
+    work, gap = (lambda: torch.mm(a, a)), 0.002
+else:
+    import numpy as np
+    a = np.random.rand(512, 512)
+    work, gap = (lambda: a @ a), 0.02
+work()
+cpu = wall = 0.0
+for _ in range(40):
+    work()
+    c0, w0 = time.process_time(), time.perf_counter()
+    time.sleep(gap)
+    cpu += time.process_time() - c0
+    wall += time.perf_counter() - w0
+print(cpu / wall)
+"""
+
+
+@pytest.mark.parametrize("lib", ["torch", "numpy"])
+def test_idle_pools_do_not_spin(lib):
+    """The policy takes effect: a process whose pools (torch's OpenMP, NumPy's OpenBLAS; 2 threads)
+    sit idle between products burns almost no CPU while it sleeps. Spinning threads burn 0.4-0.7
+    of a core here; a loaded machine can only lower the figure, never raise it."""
+    env = _child_env(OMP_NUM_THREADS="2", OPENBLAS_NUM_THREADS="2")
+    out = subprocess.run([sys.executable, "-c", IDLE_CPU, lib], env=env, capture_output=True, text=True, check=True)
+    assert float(out.stdout.strip()) < 0.15

@@ -1,22 +1,38 @@
-"""How many threads a fwk process computes with: the cores shared by the live fwk processes.
+"""How many threads a fwk process computes with: the cores left free by other work, shared by
+the live fwk processes.
 
 Two trainings that each run one OpenMP thread per core on the same cores oversubscribe them:
 the threads of one process spin at barriers while the other's hold the core, and both slow
 down far beyond the 2x that sharing costs (PBS's fit of ``recipes/pbs_face_compression.yaml
-train.epochs=4`` on 2 cores: 41 s alone, 115-117 s each for two at once). So every fwk
-process that computes registers itself, and uses
+train.epochs=4`` on 2 cores: 41 s alone, 115-117 s each for two at once). The same holds beside
+any other compute job. So every fwk process that computes registers itself, and uses
 
-    threads = max(1, cores // live fwk processes)
+    threads = max(1, free // live)
+    free    = min(cores, cpus - round(outside))
 
 where ``cores`` are the cores this process may run on (its CPU affinity, capped by a cgroup
-CPU quota) and the live processes are those registered (this one included). ``fit`` applies
-the rule when it starts and again at the start of every epoch, so a training that started
-alone gives up threads when a second one starts, and takes them back when it ends.
+CPU quota), ``cpus`` the CPUs of its affinity, ``outside`` how many of those CPUs were busy with
+work other than fwk's (below), rounded to the nearest whole CPU (half up), and ``live`` the
+registered fwk processes (this one included). With nothing else running this is
+``max(1, cores // live)``; beside a 2-thread compute job on 2 cores, 1 thread.
+
+``outside`` (``outside_load``) is measured from ``/proc/stat``: the busy time (user, nice,
+system, irq, softirq, steal) of the CPUs of this process's affinity over a window, less the CPU
+time the live registered fwk processes and their descendants (data-loader workers) used in the
+same window, divided by the window's length; clamped to [0, cpus]. The window runs from the
+previous measurement (the first is taken when the process registers) to now, and is at least
+``MIN_WINDOW`` (0.2 s; a call sooner than that sleeps the rest). An fwk process that appeared
+during the window counts as fwk for its whole life (so ``outside`` errs low: towards the rule
+without load). Where ``/proc`` cannot be read, ``outside`` is 0.
+
+``fit`` applies the rule when it starts and again at the start of every epoch (the window then
+being the epoch just run), so a training that started alone gives up threads when a second one
+or another job starts, and takes them back when it ends.
 
 An explicit count wins: ``FWK_THREADS=n`` (``fwk --threads n``); then an allocation an executor
 made for this process, ``FWK_ALLOCATED_CPUS=n`` (a grid member running as a Ray task sets it to
 the CPUs Ray reserved for it; the ranks of a DDP training launched by fwk split it among
-themselves), which replaces the count of live processes: the executor already shares the cores;
+themselves), which replaces the rule: the executor already shares the cores;
 then ``OMP_NUM_THREADS`` (Ray sets it in its workers as well, which is why the allocation comes
 first).
 
@@ -29,11 +45,13 @@ The intra-op pool is sized (``torch.set_num_threads``), and so are the BLAS pool
 and SciPy use (OpenBLAS, MKL; through ``threadpoolctl``), whose matrix products in the metrics,
 the spectral assembly and the dr solves would otherwise still take every core. Eager-mode
 training does not use torch's inter-op pool, which torch creates lazily and lets a process
-size only once.
+size only once. How idle threads wait (passively: they sleep instead of spinning) is set on
+``import fwk``, before torch and NumPy load (``fwk._waiting``).
 
 Thread counts change the order of some floating-point reductions: a run is bit-for-bit
 reproducible (and resumable to the same weights) for a fixed count, so pin it with
-``FWK_THREADS`` where that matters. This module imports neither torch nor Lightning.
+``FWK_THREADS`` where that matters (the count now also follows the machine's load). This module
+imports neither torch nor Lightning.
 """
 from __future__ import annotations
 
@@ -41,6 +59,8 @@ import atexit
 import math
 import os
 import tempfile
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from threadpoolctl import threadpool_limits
@@ -50,6 +70,10 @@ from ..errors import FwkError
 ENV_THREADS = "FWK_THREADS"
 ENV_ALLOCATED = "FWK_ALLOCATED_CPUS"
 ENV_RUNTIME_DIR = "FWK_RUNTIME_DIR"
+
+#: the shortest window over which ``outside_load`` measures (seconds)
+MIN_WINDOW = 0.2
+PROC = Path("/proc")
 
 _registered: dict[Path, str] = {}  # registration file -> its content, for this process
 
@@ -129,6 +153,8 @@ def register(directory: Path | None = None) -> Path | None:
     if not _registered:
         atexit.register(unregister)
     _registered[path] = content
+    if _LOAD.last is None:
+        _LOAD.last = snapshot(live_processes(directory))  # the first window of outside_load starts here
     return path
 
 
@@ -185,6 +211,150 @@ def available_cores() -> int:
     return max(1, n)
 
 
+# ---- the load of the machine -------------------------------------------------------------------
+
+#: /proc/stat fields (after "cpuN") that count as busy: user nice system idle iowait irq softirq
+#: steal (guest time is included in user); idle and iowait are not busy
+_BUSY = (0, 1, 2, 5, 6, 7)
+
+
+@dataclass(frozen=True)
+class LoadSnapshot:
+    """The CPU counters at one moment: ``busy`` and ``total`` clock ticks summed over the CPUs
+    ``cpus``, and ``fwk`` the CPU ticks (own and reaped children's) of each fwk process and live
+    descendant, keyed by (pid, start time)."""
+    cpus: tuple[int, ...]
+    busy: int
+    total: int
+    fwk: dict = field(default_factory=dict)
+    at: float = 0.0  # time.monotonic() when taken
+
+
+def _cpu_ticks(cpus, proc: Path) -> tuple[tuple[int, ...], int, int] | None:
+    """(CPUs found, busy ticks, total ticks) of the ``cpuN`` lines of ``proc/stat`` for N in ``cpus``."""
+    try:
+        text = (proc / "stat").read_text()
+    except OSError:
+        return None
+    found, busy, total = [], 0, 0
+    for line in text.splitlines():
+        name, _, rest = line.partition(" ")
+        if not name.startswith("cpu") or name == "cpu":
+            continue
+        try:
+            n = int(name[3:])
+            values = [int(v) for v in rest.split()[:8]]
+        except ValueError:
+            continue
+        if n in cpus and len(values) >= 4:
+            values += [0] * (8 - len(values))
+            found.append(n)
+            busy += sum(values[i] for i in _BUSY)
+            total += sum(values)
+    return (tuple(found), busy, total) if found else None
+
+
+def _proc_stat(path: Path) -> tuple[int, int, int, int] | None:
+    """(pid, ppid, start, CPU ticks: utime + stime + cutime + cstime) from a ``/proc/<pid>/stat``."""
+    try:
+        text = path.read_text()
+        f = text[text.rindex(")") + 2:].split()
+        return int(text.split(" ", 1)[0]), int(f[1]), int(f[19]), sum(int(v) for v in f[11:15])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _fwk_ticks(pids, proc: Path) -> dict:
+    """CPU ticks of the processes ``pids`` and of their live descendants, by (pid, start)."""
+    if not pids:
+        return {}
+    stats = {}
+    try:
+        entries = [p for p in proc.iterdir() if p.name.isdigit()]
+    except OSError:
+        entries = [proc / str(p) for p in pids]
+    for d in entries:
+        st = _proc_stat(d / "stat")
+        if st is not None:
+            stats[st[0]] = st
+    children: dict[int, list[int]] = {}
+    for pid, ppid, _, _ in stats.values():
+        children.setdefault(ppid, []).append(pid)
+    out, todo, seen = {}, [p for p in pids if p in stats], set()
+    while todo:
+        pid = todo.pop()
+        if pid in seen:
+            continue
+        seen.add(pid)
+        _, _, start, ticks = stats[pid]
+        out[(pid, start)] = ticks
+        todo.extend(children.get(pid, ()))
+    return out
+
+
+def _affinity() -> set[int]:
+    try:
+        return set(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return set(range(os.cpu_count() or 1))
+
+
+def snapshot(fwk_pids=(), cpus=None, proc: Path | None = None) -> LoadSnapshot | None:
+    """The CPU counters now (None where ``proc/stat`` cannot be read): the CPUs ``cpus``
+    (default: this process's affinity), and the fwk processes ``fwk_pids`` with their descendants."""
+    proc = PROC if proc is None else Path(proc)
+    cpu = _cpu_ticks(_affinity() if cpus is None else set(cpus), proc)
+    if cpu is None:
+        return None
+    return LoadSnapshot(cpu[0], cpu[1], cpu[2], _fwk_ticks(set(fwk_pids), proc), time.monotonic())
+
+
+def outside_between(a: LoadSnapshot | None, b: LoadSnapshot | None) -> float | None:
+    """How many CPUs of ``b.cpus`` were busy, on average from ``a`` to ``b``, with work other than
+    the fwk processes' of ``b`` (a process of ``b`` not in ``a`` counts with all its ticks);
+    clamped to [0, len(cpus)]. None where the snapshots do not compare (missing, other CPUs,
+    no time between them)."""
+    if a is None or b is None or a.cpus != b.cpus or b.total <= a.total:
+        return None
+    elapsed = (b.total - a.total) / len(b.cpus)  # ticks of wall time
+    fwk = sum(t - a.fwk.get(k, 0) for k, t in b.fwk.items())
+    return min(float(len(b.cpus)), max(0.0, (b.busy - a.busy - fwk) / elapsed))
+
+
+class _LoadState:
+    last: LoadSnapshot | None = None
+
+
+_LOAD = _LoadState()
+
+
+def outside_load(pids=None, directory: Path | None = None, proc: Path | None = None) -> tuple[float, int]:
+    """(outside, cpus): the CPUs of this process's affinity busy with work other than fwk's since
+    the previous call (or registration), over at least ``MIN_WINDOW`` seconds, and how many
+    CPUs that counts; (0.0, cpus) where it cannot be measured. ``pids``: the fwk processes
+    (default: the live registered ones and this one). See the module docstring."""
+    if pids is None:
+        pids = set(live_processes(directory)) | {os.getpid()}
+    last = _LOAD.last if _LOAD.last is not None else snapshot(pids, proc=proc)
+    if last is not None:
+        wait = MIN_WINDOW - (time.monotonic() - last.at)
+        if wait > 0:
+            time.sleep(wait)
+    now = snapshot(pids, proc=proc)
+    if now is not None:
+        _LOAD.last = now
+    outside = outside_between(last, now)
+    cpus = len(now.cpus) if now is not None else len(_affinity())
+    return (outside if outside is not None else 0.0), cpus
+
+
+def share(cores: int, live: int, outside: float = 0.0, cpus: int | None = None) -> int:
+    """The rule: ``max(1, min(cores, cpus - round(outside)) // live)``, ``outside`` rounded half up."""
+    cpus = cores if cpus is None else cpus
+    free = min(cores, cpus - math.floor(outside + 0.5))
+    return max(1, free // max(1, live))
+
+
 def _explicit(env, key: str, strict: bool) -> int | None:
     value = (env.get(key) or "").strip()
     if not value or value == "auto":
@@ -201,10 +371,13 @@ def _explicit(env, key: str, strict: bool) -> int | None:
 
 
 def thread_budget(env=None, cores: int | None = None, live: int | None = None,
-                  directory: Path | None = None) -> tuple[int, str]:
+                  directory: Path | None = None, outside: float | None = None,
+                  cpus: int | None = None) -> tuple[int, str]:
     """(threads, why): ``FWK_THREADS``, else ``FWK_ALLOCATED_CPUS`` (an executor's allocation),
-    else ``OMP_NUM_THREADS`` (where set), else ``max(1, cores // live)`` with ``live`` the live
-    registered fwk processes, this one counted whether registered or not."""
+    else ``OMP_NUM_THREADS`` (where set), else ``share(cores, live, outside, cpus)``: ``live`` the
+    live registered fwk processes, this one counted whether registered or not; ``outside`` the
+    CPUs busy with other work and ``cpus`` the CPUs that counts (``outside_load()`` where not
+    given; ``cpus`` defaults to ``cores`` when ``outside`` is given)."""
     env = os.environ if env is None else env
     for key, strict in ((ENV_THREADS, True), (ENV_ALLOCATED, True), ("OMP_NUM_THREADS", False)):
         n = _explicit(env, key, strict)
@@ -213,10 +386,21 @@ def thread_budget(env=None, cores: int | None = None, live: int | None = None,
                 return n, f"{n} CPU{'s' if n > 1 else ''} allocated to this process"
             return n, f"{key}={n}"
     cores = cores if cores is not None else available_cores()
+    pids = None
     if live is None:
-        live = len(set(live_processes(directory)) | {os.getpid()})
+        pids = set(live_processes(directory)) | {os.getpid()}
+        live = len(pids)
     live = max(1, live)
-    return max(1, cores // live), f"{live} fwk process{'es' if live > 1 else ''} on {cores} core{'s' if cores > 1 else ''}"
+    if outside is None:
+        outside, measured = outside_load(pids, directory)
+        cpus = measured if cpus is None else cpus
+    cpus = cores if cpus is None else cpus
+    n = share(cores, live, outside, cpus)
+    why = f"{live} fwk process{'es' if live > 1 else ''} on {cores} core{'s' if cores > 1 else ''}"
+    taken = math.floor(outside + 0.5)
+    if taken > 0:
+        why += f", {outside:.1f} of {cpus} CPU{'s' if cpus > 1 else ''} busy with other work"
+    return n, why
 
 
 def apply_threads(env=None, directory: Path | None = None) -> tuple[int, str, bool]:
