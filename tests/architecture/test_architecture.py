@@ -128,3 +128,152 @@ def test_layout_shows_the_kinds(kind):
         plugin_entries = [e for e in reg if e.component.__module__.split(".")[0] == pkg.name]
         assert plugin_entries, f"{pkg} registers nothing"
         assert any(e.kind == hook_kind for e in plugin_entries), f"{pkg} registers no {hook_kind}"
+
+
+# ----------------------------------------------------------------------------- import layers
+
+FWK = REPO / "framework" / "fwk"
+ARCHITECTURE = REPO / "docs" / "architecture.md"
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(FWK.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _type_checking_nodes(tree) -> set[int]:
+    """ids of the import statements under ``if TYPE_CHECKING:`` (annotations only: never run)."""
+    out: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            for stmt in node.body:
+                out |= {id(sub) for sub in ast.walk(stmt)}
+    return out
+
+
+def import_graph() -> dict[str, dict[str, int]]:
+    """module -> {fwk module it imports: line}, every import statement of framework/fwk counted
+    wherever it stands (a deferred import inside a function is still a dependency), except those
+    under ``if TYPE_CHECKING:``. ``from .x import name`` counts as an import of ``x.name`` where that
+    is a module, else of ``x``."""
+    files = {_module_name(p): p for p in FWK.rglob("*.py")}
+    graph: dict[str, dict[str, int]] = {}
+    for mod, path in files.items():
+        tree = ast.parse(path.read_text())
+        skip = _type_checking_nodes(tree)
+        package = mod.split(".") if path.name == "__init__.py" else mod.split(".")[:-1]
+        out: dict[str, int] = {}
+        for node in ast.walk(tree):
+            if id(node) in skip:
+                continue
+            targets = []
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package[:len(package) - (node.level - 1)]
+                    base = ".".join([*up, *([node.module] if node.module else [])])
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in files else base for a in node.names]
+            for t in targets:
+                while t and t not in files:  # `import fwk.engine.config` names a module; a name inside one
+                    t = t.rpartition(".")[0]
+                if t and t != mod and t.split(".")[0] == "fwk":
+                    out.setdefault(t, node.lineno)
+        graph[mod] = out
+    return graph
+
+
+def declared_layers() -> list[tuple[str, list[str]]]:
+    """The import layers, bottom up, as docs/architecture.md declares them (its "Import layers"
+    block: one line per layer, ``N. name: module module ...``)."""
+    text = ARCHITECTURE.read_text()
+    block = text.split("<!-- import layers -->", 2)
+    assert len(block) == 3, "docs/architecture.md lost its <!-- import layers --> block"
+    layers = []
+    for line in block[1].splitlines():
+        m = re.match(r"\s*\d+\.\s+([^:]+):\s+(.+)", line)
+        if m:
+            layers.append((m.group(1).strip(), m.group(2).split()))
+    return layers
+
+
+def _layer_of(mod: str, layers) -> int | None:
+    """The layer of the longest declared prefix of ``mod`` (``fwk`` itself names only the package)."""
+    best, best_len = None, -1
+    for i, (_, prefixes) in enumerate(layers):
+        for p in prefixes:
+            if (mod == p or (p != "fwk" and mod.startswith(p + "."))) and len(p) > best_len:
+                best, best_len = i, len(p)
+    return best
+
+
+def _cycles(graph: dict[str, dict[str, int]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, {}):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_core_has_no_import_cycle():
+    graph = import_graph()
+    assert {"fwk.runs", "fwk.engine.distributed", "fwk.evaluation.curves"} <= set(graph)
+    cycles = _cycles(graph)
+    detail = [" <-> ".join(c) + ":\n" + "\n".join(f"    {a} imports {b} (line {graph[a][b]})"
+                                                  for a in c for b in graph[a] if b in c) for c in cycles]
+    assert not cycles, "import cycles in framework/fwk:\n" + "\n".join(detail)
+
+
+def test_every_import_goes_down_the_declared_layers():
+    """docs/architecture.md's import layers: every module of framework/fwk has one, and imports
+    only from its own layer or those below it."""
+    layers = declared_layers()
+    assert len(layers) >= 5, layers
+    graph = import_graph()
+    unplaced = sorted(m for m in graph if _layer_of(m, layers) is None)
+    assert not unplaced, f"modules without a layer in docs/architecture.md's import layers: {unplaced}"
+    upward = []
+    for mod, targets in sorted(graph.items()):
+        own = _layer_of(mod, layers)
+        for t, line in sorted(targets.items()):
+            if _layer_of(t, layers) > own:
+                upward.append(f"{mod} (layer {own + 1}, {layers[own][0]}) imports {t} (layer "
+                              f"{_layer_of(t, layers) + 1}, {layers[_layer_of(t, layers)][0]}) on line {line}")
+    assert not upward, "upward imports:\n" + "\n".join(upward)
+
+
+def test_the_import_checks_see_a_loop_and_an_upward_import():
+    """The checks themselves: a cycle and an upward import are found (fixtures, not fwk's code)."""
+    assert _cycles({"a": {"b": 1}, "b": {"a": 2}, "c": {"a": 3}}) == [["a", "b"]]
+    layers = [("low", ["fwk", "fwk.errors", "fwk.engine"]), ("high", ["fwk.runs", "fwk.engine.cli"])]
+    assert _layer_of("fwk.engine.trainer", layers) == 0
+    assert _layer_of("fwk.engine.cli", layers) == 1
+    assert _layer_of("fwk.seeds", layers) is None  # `fwk` names the package only

@@ -2,7 +2,7 @@
 
 Lightning's own ``ddp`` starts ranks 1..N-1 by running the script's command line again, which
 for ``fwk run`` would mean a second run directory, a second report and a second log. fwk's
-launcher starts each extra rank as ``python -m fwk.engine.distributed JOB`` instead: the rank
+launcher starts each extra rank as ``python -m fwk.rank JOB`` instead: the rank
 reopens the run directory rank 0 is writing (its ``recipe.yaml``), reruns the task in resume
 mode with its output silenced (data from the cache, finished models and trainings loaded,
 nothing retrained), joins rank 0 in the one training that is running, and exits when it ends.
@@ -37,7 +37,6 @@ import signal
 import subprocess
 import sys
 import threading
-import traceback
 from pathlib import Path
 
 from ..errors import FwkError
@@ -57,6 +56,12 @@ class RankDone(BaseException):
 def rank_job() -> dict | None:
     """In a rank > 0 process, the training it is to join ({run_dir, ckdir, ckpt, ...}); else None."""
     return _JOB
+
+
+def join(job: dict) -> None:
+    """In a rank > 0 process (``fwk.rank``), before it reruns the task: the training to join."""
+    global _JOB
+    _JOB = job
 
 
 def wants_ddp(config) -> bool:
@@ -122,7 +127,7 @@ def sparse_state(module) -> list[str]:
 
 def make_strategy(job: dict, devices, world: int):
     """The Lightning strategy of fwk's DDP: ``DDPStrategy`` on this machine whose launcher
-    starts ranks 1..world-1 as ``python -m fwk.engine.distributed JOB``."""
+    starts ranks 1..world-1 as ``python -m fwk.rank JOB``."""
     # deferred like every Lightning import of the engine (see fwk.engine.trainer.fit)
     from lightning.fabric.plugins.environments import LightningEnvironment
     from lightning.pytorch.strategies import DDPStrategy
@@ -154,13 +159,13 @@ def make_strategy(job: dict, devices, world: int):
             os.environ["LOCAL_RANK"] = "0"
             os.environ["WORLD_SIZE"] = str(self.num_processes)
             self.procs = []
-            cmd = [sys.executable, "-m", "fwk.engine.distributed", json.dumps(job)]
+            cmd = [sys.executable, "-m", "fwk.rank", json.dumps(job)]
             for rank in range(1, self.num_processes):
                 self.procs.append(subprocess.Popen(cmd, env={**os.environ, "LOCAL_RANK": str(rank)},
                                                    preexec_fn=_die_with_parent))
 
     class FwkDDP(DDPStrategy):
-        """DDP on this machine's processes, ranks started by fwk (``fwk.engine.distributed``)."""
+        """DDP on this machine's processes, ranks started by fwk (``python -m fwk.rank``)."""
 
         def _configure_launcher(self):
             self._launcher = Launcher(self.cluster_environment, self.num_processes, self.num_nodes)
@@ -200,46 +205,3 @@ class DistEnv:
             else:
                 os.environ[k] = v
         return False
-
-
-def _rank_main(argv: list[str]) -> int:
-    """A rank > 0 process: rebuild the run in resume mode, join the training, exit."""
-    global _JOB
-    # deferred: the process exists to run this, and fwk.runs imports the registry machinery
-    from ..cache import Cache
-    import yaml
-
-    from ..plugins import get_registry
-    from ..recipes import resolve
-    from ..runs import RunContext, run_task
-
-    job = json.loads(argv[0])
-    rank = os.environ.get("LOCAL_RANK", "?")
-    _JOB = job
-    try:
-        run_dir = Path(job["run_dir"])
-        data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
-        if job.get("source") and not data.get("source"):
-            data["_source"] = job["source"]
-        registry = get_registry()
-        resolved = resolve(data, registry)
-        ctx = RunContext(run_dir, registry, Cache(job["cache"], enabled=job["cache_enabled"]), resolved.seed,
-                         recipe=resolved.data, train=resolved.train, device=job["device"], quiet=True,
-                         resume=True, log_file=Path(os.devnull))
-        ctx.source = resolved.source
-        run_task(resolved, ctx)
-    except RankDone:
-        return 0
-    except Exception:
-        print(f"fwk DDP rank {rank}: {traceback.format_exc()}", file=sys.stderr, flush=True)
-        return 1
-    print(f"fwk DDP rank {rank}: the run ended without reaching the training of {job['ckdir']}",
-          file=sys.stderr, flush=True)
-    return 1
-
-
-if __name__ == "__main__":
-    # run as a module this file is ``__main__``: the trainer reads the job from the package's module
-    from fwk.engine import distributed
-
-    sys.exit(distributed._rank_main(sys.argv[1:]))
