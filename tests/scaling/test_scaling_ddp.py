@@ -15,6 +15,7 @@ differed by up to 20 % and is left out.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -69,6 +70,10 @@ def test_ddp_resumed_equals_one_device(tmp_path):
     recipe = (ddp / "recipe.yaml").read_text()
     assert "epochs: 2" in recipe
     (ddp / "recipe.yaml").write_text(recipe.replace("epochs: 2", "epochs: 3"))
+    # (as if it had started so: --resume refuses a recipe edited since the start, by its recorded hash)
+    versions = json.loads((ddp / "versions.json").read_text())
+    versions["recipe_sha256"] = hashlib.sha256((ddp / "recipe.yaml").read_bytes()).hexdigest()
+    (ddp / "versions.json").write_text(json.dumps(versions))
     for p in ("models/ae.safetensors", "metrics.json", "report.md"):
         (ddp / p).unlink()
     out = _fwk(tmp_path, "run", "--resume", str(ddp)).stdout
