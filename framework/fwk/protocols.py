@@ -26,7 +26,8 @@ model           :class:`Model`, and one family: :class:`ReconstructionModel` or
                 :class:`BandModel` (latent split by frequency band), :class:`NetworkFactory`
                 (lends its encoder / decoder to other models), :class:`CutSelectingModel`
                 (chooses a spectral cut on validation), :class:`CompositeModel` (reports
-                its parts alone), :class:`TrainingModes` (end-to-end or two-step)
+                its parts alone), :class:`TrainingModes` (end-to-end or two-step);
+                any component: :class:`Described` (one line for a report's legend)
 metric          :class:`Metric` (carries its display scale, unit and label)
 assembler       :class:`Assembler`
 task            :class:`Task`
@@ -396,6 +397,17 @@ class CutSelectingModel(Protocol):
 
     k: dict
     sweep: dict
+
+
+@runtime_checkable
+class Described(Protocol):
+    """Optional role of any component: ``describe()`` says in one line what this instance is,
+    with its parameters (dt with ``sources: 0``: "Deformation Transfer from training subject 0
+    as the source"). Reports put it in their legend of model labels
+    (``fwk.evaluation.legend``); a component without it is described by its class docstring's
+    first line and its recipe parameters."""
+
+    def describe(self) -> str: ...
 
 
 @dataclass

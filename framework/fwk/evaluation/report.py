@@ -7,11 +7,13 @@ from pathlib import Path
 from ..registry import Registry
 from .core import evaluate
 from .curves import training_section, training_summary
+from .legend import legend_table
 from .plots import scatter_pareto
 from .presentation import axis_unit, display, figure_metrics, format_value
 from .render import colour_limits, render_grid
 from .seeds import mean_sd, seeds_note, seeds_sections
 from .tables import markdown_table  # noqa: F401  (imported from here by tasks)
+from .verdict import verdict_lines
 
 SPLIT_ORDER = ("train", "val", "test")
 
@@ -88,8 +90,16 @@ def _splits(results: dict) -> list[str]:
 
 
 def write_report(ctx, title: str, results: dict, figures: dict | None = None, notes: list[str] | None = None,
-                 sections: list[tuple[str, str]] | None = None, registry: Registry | None = None) -> Path:
+                 sections: list[tuple[str, str]] | None = None, registry: Registry | None = None,
+                 lead_sections: list[tuple[str, str]] | None = None, results_title: str = "Results") -> Path:
     """Write ``metrics.json`` (``results`` plus figure paths and notes) and ``report.md``.
+
+    ``report.md`` opens with the verdict (``fwk.evaluation.verdict``: which model has the lowest
+    mean on which metric and by how much, per key of ``results["verdict"]``'s section, else on
+    the test split), then the dataset and notes, the legend of model labels (``results["legend"]``:
+    {label: one line}, ``fwk.evaluation.legend``), ``lead_sections`` (a task's per-key tables,
+    which come before any pooled one), the results per split under ``results_title``, times,
+    training, ``sections`` and the figures.
 
     Every network the run trained (``curves/`` of the run and its sub-runs, written by
     ``fwk.engine.fit``) gets a row in the "Training" section, with epochs run, why training
@@ -112,6 +122,9 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
     ctx.write_json("metrics.json", results)
     units = results.get("dataset", {}).get("units", "")
     parts = [f"# {title}", ""]
+    verdict = verdict_lines(results, registry)
+    if verdict:
+        parts += [*verdict, ""]
     ds = results.get("dataset")
     if ds:
         parts.append("Dataset: " + dataset_line(ds) + "\n")
@@ -123,8 +136,12 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
     parts.append("Metrics: l1 and l2 are the thesis's L1 and L2 norms (mean absolute / squared coordinate error), "
                  "euclidean the mean per-vertex distance; DAME and FMPD are perceptual (lower is better). "
                  "Columns show the mean divided by the factor in the header (×1e-3 means the number is in thousandths).\n")
+    if results.get("legend"):
+        parts.append("## Models\n\n" + legend_table(results["legend"]) + "\n")
+    for head, text in lead_sections or []:
+        parts.append(f"## {head}\n\n{text}\n")
     if results.get("models"):
-        parts.append("## Results\n")
+        parts.append(f"## {results_title}\n")
         parts.append(results_tables(results, units, registry))
     if results.get("timing"):
         rows = [[k, *(f"{v:.3g}" for v in t.values())] for k, t in results["timing"].items()]

@@ -99,6 +99,14 @@ class DeformationTransfer:
         self.F = None
         self.src = {}  # expression -> (neutral (s, n, 3), expression (s, n, 3))
 
+    def describe(self) -> str:
+        """A report's legend line (``fwk.protocols.Described``): the source subject(s)."""
+        if len(self.sources) == 1:
+            return (f"Deformation Transfer (Sumner & Popović 2004) from training subject {self.sources[0]} "
+                    "as the source: no training")
+        return (f"Deformation Transfer (Sumner & Popović 2004) from training subjects "
+                f"{', '.join(map(str, self.sources))} as the sources (their per-triangle maps averaged): no training")
+
     def fit(self, data, ctx=None) -> None:
         """Keep the source subjects' neutral and expressions (of ``expressions`` when set, else
         every expression of the training split); afterwards ``expressions`` lists those with a
