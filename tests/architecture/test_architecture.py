@@ -277,3 +277,24 @@ def test_the_import_checks_see_a_loop_and_an_upward_import():
     assert _layer_of("fwk.engine.trainer", layers) == 0
     assert _layer_of("fwk.engine.cli", layers) == 1
     assert _layer_of("fwk.seeds", layers) is None  # `fwk` names the package only
+
+
+def test_no_class_scoped_fixture_is_an_instance_method():
+    """pytest 9.1 deprecates a class-scoped fixture defined as an instance method
+    (PytestRemovedIn10Warning; pytest 10 refuses it): such fixtures are classmethods."""
+    bad = []
+    paths = sorted([*SOURCES, *(REPO / "tests").rglob("*.py"), *(REPO / "examples").rglob("*.py")])
+    for path in paths:
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.ClassDef):
+                continue
+            for fn in node.body:
+                if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    continue
+                decos = [ast.unparse(d) for d in fn.decorator_list]
+                class_scoped = any("fixture" in d and re.search(r"scope\s*=\s*['\"]class['\"]", d) for d in decos)
+                if class_scoped and not any(d in ("classmethod", "staticmethod") for d in decos):
+                    bad.append(f"{path.relative_to(REPO)}:{fn.lineno}: {node.name}.{fn.name}")
+    assert not bad, "class-scoped fixtures defined as instance methods (add @classmethod under the fixture):\n" + \
+        "\n".join(bad)

@@ -9,8 +9,18 @@ Subclass a suite in your own tests::
 from __future__ import annotations
 
 import os
+import pkgutil
 import subprocess
 from pathlib import Path
+
+import pytest
+
+# The suites' asserts show actual against expected (pytest rewrites a test module's asserts, not
+# an installed package's): every submodule is marked before it is imported, whoever imports it
+# first (a test module's `from fwk.testing.conv import ConvContract` imports this package first).
+# The package itself is in sys.modules already while this runs, so it is not marked (pytest would
+# warn that it cannot be rewritten); it holds no assert.
+pytest.register_assert_rewrite(*(f"{__name__}.{m.name}" for m in pkgutil.iter_modules(__path__)))
 
 ICT_ENV = "FWK_ICT_PATH"
 

@@ -86,9 +86,10 @@ class BlendshapeModelContract:
         return {e: m.predict(self._val(data, e)[0], e) for e in EXPRESSIONS}
 
     @pytest.fixture(scope="class")
-    def fitted(self, tmp_path_factory):
-        """One fit (seed 0) shared by the tests of a class."""
-        return self._fit(tmp_path_factory.mktemp(f"{self.component.name}-fit"))
+    @classmethod
+    def fitted(cls, tmp_path_factory):
+        """One fit (seed 0) shared by the tests of a class (a classmethod: see GenerativeModelContract)."""
+        return cls()._fit(tmp_path_factory.mktemp(f"{cls.component.name}-fit"))
 
     # ------------------------------------------------------------------ roles
     def test_declares_the_blendshape_role(self):

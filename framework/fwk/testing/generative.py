@@ -38,9 +38,11 @@ class GenerativeModelContract(FittedModel):
     batch_atol: float = 1e-5  # decoding a batch against its codes one at a time (float32 networks)
 
     @pytest.fixture(scope="class")
-    def fitted(self, tmp_path_factory):
-        """(model, data): one fit per test class."""
-        return self._fit(tmp_path_factory.mktemp("fit"))
+    @classmethod
+    def fitted(cls, tmp_path_factory):
+        """(model, data): one fit per test class (a class-scoped fixture is a classmethod: pytest 10
+        refuses one that is an instance method, whose instance no test would share)."""
+        return cls()._fit(tmp_path_factory.mktemp("fit"))
 
     def test_plays_the_generative_role(self, fitted):
         m, _ = fitted

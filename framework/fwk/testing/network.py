@@ -34,7 +34,8 @@ class NetworkFactoryContract:
         return self.component(**validate_params(self.component, dict(self.params), "params", get_registry()))
 
     @pytest.fixture(scope="class")
-    def template(self):
+    @classmethod
+    def template(cls):
         return tiny_fit_data(n_subjects=4).template
 
     def test_plays_the_network_factory_role(self):
