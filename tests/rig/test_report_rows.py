@@ -39,8 +39,8 @@ def test_versus_table_and_summary():
     assert cells[:2] == ["smile", "0 (dr alone)"] and cells[4] == "pbs" and cells[7] == "tie" and cells[10] == "dt"
     cells = [c.strip() for c in rows[1].strip("|").split("|")]
     assert cells[1] == "n (euclidean alone)" and cells[4] == "tie" and cells[7] == "pbs" and cells[10] == "dt"
-    assert "L1: `pbs` wins 1, `dt` wins 0, 1 exact ties of 2" in table
-    assert "FMPD: `pbs` wins 0, `dt` wins 2 of 2" in table
+    assert "L1: `pbs` beats `dt` on 1 of 2 (1 exact ties)" in table
+    assert "FMPD: `pbs` beats `dt` on 0 of 2" in table
     summary = t._summary(res, ["smile", "frown"], ["dt", "pbs"], SHOWN, ["dt"], heads, 100)
     assert ("- smile, DAME: `pbs` (k = 0 (the dr network alone: no assembly)) ties with dt (equal values) "
             "(one seed).") in summary
@@ -48,6 +48,23 @@ def test_versus_table_and_summary():
     assert "frown, L1: `pbs` (k = n = 100 (the euclidean network alone: no assembly)) ties with dt" in summary
     assert "smile, FMPD" in summary and "beats dt (50% lower)" in summary
     assert not any("tie" in ln and "beats" in ln for ln in summary.splitlines() if "L1" in ln and "frown" in ln)
+
+
+def test_one_versus_table_for_every_baseline():
+    """Several baselines (dt-0, dt-1) share one table: PBS's value, each baseline's and the winner
+    among them per metric; the wins counted against each baseline."""
+    t = Task(models={"x": "dt"})
+    res = _results({"smile": {"pbs": (1.0, 2.0, 3.0), "dt-0": (2.0, 2.0, 1.0), "dt-1": (3.0, 2.0, 0.5)}},
+                   {"smile": 40})
+    table = t._versus(res, ["smile"], ["dt-0", "dt-1", "pbs"], SHOWN, ["dt-0", "dt-1"], ["l1", "dame", "fmpd"], 100)
+    assert table.count("| expression |") == 1 and "`pbs` against `dt-0`, `dt-1`" in table
+    head = [c.strip() for c in table.splitlines()[2].strip("|").split("|")]
+    assert head[2:6] == ["L1 ×1 pbs", "L1 ×1 dt-0", "L1 ×1 dt-1", "L1 winner"]
+    cells = [c.strip() for c in table.splitlines()[4].strip("|").split("|")]
+    assert cells[:2] == ["smile", "40"] and cells[5] == "pbs" and cells[9] == "tie" and cells[13] == "dt-1"
+    assert "L1: `pbs` beats `dt-0` on 1 of 1, `dt-1` on 1 of 1" in table
+    assert "DAME: `pbs` beats `dt-0` on 0 of 1 (1 exact ties), `dt-1` on 0 of 1 (1 exact ties)" in table
+    assert Task._winner({"a": 1.0, "b": 1.0, "c": 2.0}) == "tie: a, b" and Task._winner({"a": None}) == "n/a"
 
 
 def test_bold_marks_every_equal_best():

@@ -32,29 +32,29 @@ def first_line(cls) -> str:
     return line.rstrip(".") if line else cls.__name__
 
 
-def _value(v) -> str:
-    """A recipe value in a few words: a nested component by its name (and its own parameters),
-    lists as ``[a, b]``; long values shortened."""
+def _value(v, depth: int = 0) -> str:
+    """A recipe value in a few words: a nested component by its name (a nested model with its own
+    scalar parameters: an ``anchor: {name: dt, sources: 0}`` reads ``dt (sources: 0)``), lists as
+    ``[a, b]``; long values shortened."""
     if isinstance(v, Spec):
-        inner = params_note(v)
+        inner = params_note(v, depth + 1) if v.kind == "model" and depth == 0 else ""
         text = f"{v.name} ({inner})" if inner else v.name
     elif isinstance(v, dict):
-        if "name" in v:
-            rest = {k: x for k, x in v.items() if k != "name"}
-            inner = ", ".join(f"{k}: {_value(x)}" for k, x in rest.items())
-            text = f"{v['name']} ({inner})" if inner else str(v["name"])
-        else:
-            text = "{" + ", ".join(f"{k}: {_value(x)}" for k, x in v.items()) + "}"
+        text = str(v["name"]) if "name" in v else "{...}"
     elif isinstance(v, (list, tuple)):
-        text = "[" + ", ".join(_value(x) for x in v) + "]"
+        text = "[" + ", ".join(_value(x, depth + 1) for x in v) + "]"
     else:
         text = str(v)
     return text if len(text) <= MAX_VALUE else text[:MAX_VALUE - 3] + "..."
 
 
-def params_note(spec: Spec) -> str:
-    """The parameters a recipe gave ``spec``, as ``key: value`` pairs (``sources: 0``)."""
-    return ", ".join(f"{k}: {_value(v)}" for k, v in (spec.params or {}).items())
+def params_note(spec: Spec, depth: int = 0) -> str:
+    """The parameters a recipe gave ``spec``, as ``key: value`` pairs (``sources: 0``); below the
+    top level only plain values (a nested component's own components are left out)."""
+    items = (spec.params or {}).items()
+    if depth:
+        items = [(k, v) for k, v in items if not isinstance(v, (Spec, dict))]
+    return ", ".join(f"{k}: {_value(v, depth)}" for k, v in items)
 
 
 def describe_spec(spec: Spec) -> str:
@@ -62,7 +62,7 @@ def describe_spec(spec: Spec) -> str:
     parameters the recipe gave it."""
     head = first_line(spec.cls) if spec.cls is not None else spec.name
     note = params_note(spec)
-    return f"{head} (`{spec.name}`; {note})" if note else f"{head} (`{spec.name}`)"
+    return f"{head} (recipe: `{spec.name}`, {note})" if note else f"{head} (recipe: `{spec.name}`)"
 
 
 def describe(obj, spec: Spec | None = None) -> str:

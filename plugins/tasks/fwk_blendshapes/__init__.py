@@ -48,6 +48,7 @@ from fwk.data.split import SplitConfig
 from fwk.errors import DataError, RecipeError
 from fwk.evaluation import (default_metrics, display, evaluate, evaluate_summary, figure_metrics, format_value,
                             markdown_table, write_report)
+from fwk.evaluation.legend import describe, model_legend
 from fwk.evaluation.plots import scatter_pareto
 from fwk.evaluation.render import colour_limits, render_grid
 from fwk.hookspecs import hookimpl
@@ -211,8 +212,12 @@ class Blendshapes:
         others = [lb for lb, m in fitted.items() if not isinstance(m, (CutSelectingModel, TrainingModes))]
         # the "A beats B" statements of the summary, which a run of several seeds restates and tests
         results["comparisons"] = self._comparisons(results, expressions, row_labels, others, headline)
-        sections = self._tables(results, expressions, row_labels, [m.name for m in metrics], shown, modes,
-                                others, headline)
+        # the report's opening: the verdict per expression (fwk.evaluation.verdict) and the legend
+        results["verdict"] = {"section": PER_EXPRESSION, "split": "test", "noun": "expression", "metrics": headline,
+                              "highlight": [apply_label], "counted": "subjects"}
+        results["legend"] = self._legend(fitted, row_labels)
+        lead, sections = self._tables(results, expressions, row_labels, [m.name for m in metrics], shown, modes,
+                                      others, headline)
         notes = [f"train epochs: {ctx.train.epochs} (recipe `train.epochs`; the thesis trained 500)",
                  f"evaluation space: registered and scaled into [-1, 1] (scale {pre.scale:.6g} per {col.units}); "
                  "numbers are means over test subjects",
@@ -220,7 +225,22 @@ class Blendshapes:
                  "(the thesis's protocol, 3.3.10); PBS and DT use no ground truth",
                  f"`fwk apply {ctx.run_dir} NEUTRAL.obj --out DIR` uses model `{apply_label}`"]
         write_report(ctx, f"Personalised blendshapes: {ctx.recipe.get('name', 'run')}", results, figures, notes,
-                     sections)
+                     sections, lead_sections=lead, results_title="Results pooled over the expressions")
+
+    def _legend(self, fitted, rows) -> dict:
+        """{row label: what it is}: each model as it describes itself (``fwk.evaluation.legend``:
+        its ``describe()``, else its class docstring and recipe parameters), a composite's parts
+        as that part alone, and which model ``fwk apply`` uses."""
+        legend = model_legend({lb: self.models[lb] for lb in fitted}, fitted)
+        for lb, m in fitted.items():
+            if self.pbs_ends and isinstance(m, CompositeModel):
+                for name, p in m.part_models().items():
+                    how = ""
+                    if isinstance(p, TrainingModes):
+                        how = f", {p.mode}" + ("; rigidly registered onto the ground truth before scoring, as the "
+                                               "thesis scores dr outputs" if p.places_rigidly else "")
+                    legend[f"{lb}:{name}"] = f"`{lb}`'s {name} network alone, without assembly{how}: {describe(p)}"
+        return {r: legend[r] for r in rows if r in legend}
 
     def _predict(self, model, label, expressions, gt) -> dict:
         """{row label: {expression: (b, n, 3)}}: the model's ``predict_all`` on the test subjects
@@ -320,46 +340,59 @@ class Blendshapes:
         return "\n".join(lines)
 
     def _versus(self, results, expressions, rows, shown, others, headline, n_vertices) -> str:
-        """One row per expression: each cut-selecting model (PBS) against each baseline (DT) on the
-        distance metric and every perceptual one (L1, DAME, FMPD), the values side by side and who
-        wins (``tie`` for exactly equal values), then the counts over the expressions."""
+        """One table per cut-selecting model (PBS) against every baseline (DT) at once: a row per
+        expression with PBS's k and, on the distance metric and every perceptual one (L1, DAME,
+        FMPD), PBS's value, each baseline's and the winner among them (``tie`` where all share the
+        lowest value, ``tie: a, b`` where some do); then the wins counted against each baseline."""
         out = []
         for p in [r for r in rows if r in results[CUTS]]:
-            for x in [r for r in rows if r in others]:
-                cols, body = ["expression", "k"], []
+            xs = [r for r in rows if r in others]
+            if not xs:
+                continue
+            cols, body = ["expression", "k"], []
+            for m in headline:
+                lab = f"{shown[m].label} ×{shown[m].scale:g}"
+                cols += [f"{lab} {y}" for y in (p, *xs)] + [f"{shown[m].label} winner"]
+            wins = {(m, x): {"win": 0, "tie": 0, "loss": 0, "n/a": 0} for m in headline for x in xs}
+            for e in expressions:
+                r = results[PER_EXPRESSION][e]
+                k = results[CUTS][p]["k"].get(e)
+                kk = "n/a" if k is None else ("0 (dr alone)" if int(k) <= 0 else
+                                              ("n (euclidean alone)" if int(k) >= n_vertices else str(int(k))))
+                row = [e, kk]
                 for m in headline:
-                    lab = f"{shown[m].label} ×{shown[m].scale:g}"
-                    cols += [f"{lab} {p}", f"{lab} {x}", f"{shown[m].label} winner"]
-                wins = {m: {"win": 0, "tie": 0, "loss": 0, "n/a": 0} for m in headline}
-                for e in expressions:
-                    r = results[PER_EXPRESSION][e]
-                    k = results[CUTS][p]["k"].get(e)
-                    kk = "n/a" if k is None else ("0 (dr alone)" if int(k) <= 0 else
-                                                  ("n (euclidean alone)" if int(k) >= n_vertices else str(int(k))))
-                    row = [e, kk]
-                    for m in headline:
-                        v, w = (r.get(y, {}).get(m, {}).get("mean") for y in (p, x))
-                        verdict = self._verdict(v, w)
-                        wins[m][verdict] += 1
-                        row += [format_value(v, shown[m].scale), format_value(w, shown[m].scale),
-                                {"win": p, "loss": x, "tie": "tie", "n/a": "n/a"}[verdict]]
-                    body.append(row)
-                counts = "; ".join(f"{shown[m].label}: `{p}` wins {wins[m]['win']}, `{x}` wins {wins[m]['loss']}"
-                                   + (f", {wins[m]['tie']} exact ties" if wins[m]["tie"] else "")
-                                   + f" of {len(expressions)}" for m in headline)
-                out.append(f"`{p}` against `{x}` on test, mean over subjects in the evaluation space, lower is "
-                           f"better; an exact tie is no win; one seed. {counts}.\n\n" + markdown_table(body, cols))
+                    vals = {y: r.get(y, {}).get(m, {}).get("mean") for y in (p, *xs)}
+                    for x in xs:
+                        wins[(m, x)][self._verdict(vals[p], vals[x])] += 1
+                    row += [format_value(vals[y], shown[m].scale) for y in (p, *xs)] + [self._winner(vals)]
+                body.append(row)
+            counts = "; ".join(
+                f"{shown[m].label}: `{p}` beats " + ", ".join(
+                    f"`{x}` on {wins[(m, x)]['win']} of {len(expressions)}"
+                    + (f" ({wins[(m, x)]['tie']} exact ties)" if wins[(m, x)]["tie"] else "") for x in xs)
+                for m in headline)
+            out.append(f"`{p}` against {', '.join(f'`{x}`' for x in xs)} on test, mean over subjects in the evaluation "
+                       f"space, lower is better; an exact tie is no win; one seed. {counts}.\n\n"
+                       + markdown_table(body, cols))
         return "\n\n".join(out)
 
-    def _tables(self, results, expressions, rows, metric_names, shown, modes, others, headline) -> list:
-        sections = []
+    @staticmethod
+    def _winner(vals: dict) -> str:
+        """The label with the lowest value; ``tie`` when every value is that lowest, ``tie: a, b``
+        when some are; ``n/a`` without a finite value."""
+        ok = {y: v for y, v in vals.items() if v is not None and np.isfinite(v)}
+        if not ok:
+            return "n/a"
+        best = min(ok.values())
+        tied = [y for y, v in ok.items() if v == best]
+        if len(tied) == 1:
+            return tied[0]
+        return "tie" if len(tied) == len(vals) else "tie: " + ", ".join(tied)
+
+    def _tables(self, results, expressions, rows, metric_names, shown, modes, others, headline) -> tuple:
+        """(the per-expression sections, which come before the pooled results; the others)."""
+        lead, sections = [], []
         n_vertices = results["dataset"]["n_vertices"]
-        versus = self._versus(results, expressions, rows, shown, others, headline, n_vertices)
-        if versus:
-            sections.append(("Per expression: PBS against DT (test)", versus))
-        summary = self._summary(results, expressions, rows, shown, others, headline, n_vertices)
-        if summary:
-            sections.append(("Summary: PBS against DT and the single PBs (test)", summary))
         cols = ["expression", "metric", *rows]
         body = []
         for e in expressions:
@@ -367,9 +400,15 @@ class Blendshapes:
                 r = results[PER_EXPRESSION][e]
                 body.append([e, f"{shown[m].label} ×{shown[m].scale:g}",
                              *(format_value(r.get(x, {}).get(m, {}).get("mean"), shown[m].scale) for x in rows)])
-        sections.append(("Per expression (layout of thesis table 5.2)",
-                         "Mean over test subjects in the evaluation space; lower is better; "
-                         "the best value of each row is in bold.\n\n" + markdown_table(self._bold(body), cols)))
+        lead.append(("Per expression (layout of thesis table 5.2)",
+                     "Mean over test subjects in the evaluation space; lower is better; "
+                     "the best value of each row is in bold.\n\n" + markdown_table(self._bold(body), cols)))
+        versus = self._versus(results, expressions, rows, shown, others, headline, n_vertices)
+        if versus:
+            lead.append(("Per expression: PBS against DT (test)", versus))
+        summary = self._summary(results, expressions, rows, shown, others, headline, n_vertices)
+        if summary:
+            lead.append(("Summary: PBS against DT and the single PBs (test)", summary))
         # table 5.1: end-to-end vs two-step, where a recipe has both modes for one kind of representation
         pairs = []
         for a in rows:
@@ -407,7 +446,7 @@ class Blendshapes:
                              "k = 0 is the dr network alone, k = n the euclidean network alone. The knee: both "
                              "objectives normalised to [0, 1] over the front, the front point farthest below the "
                              "chord joining its two ends.\n\n" + "\n".join(lines)))
-        return sections
+        return lead, sections
 
     @staticmethod
     def _bold(body):
