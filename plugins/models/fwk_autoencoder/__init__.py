@@ -65,6 +65,7 @@ from fwk.protocols import RECONSTRUCT, Conv, FusedPoolingConv, plays
 from fwk.recipes import Kind, Spec
 from fwk.registry import did_you_mean
 
+from .checked import build_conv
 from .latent import LatentConvDecoder, LatentConvEncoder, with_latent_level
 from .strided import strided_conv
 
@@ -106,7 +107,8 @@ class Encoder(nn.Module):
     def __init__(self, conv, hierarchy, channels, latent, variational, act):
         super().__init__()
         L = len(channels) - 1
-        self.convs = nn.ModuleList(conv.build(channels[i], channels[i + 1], hierarchy, i) for i in range(L))
+        self.convs = nn.ModuleList(build_conv(conv, channels[i], channels[i + 1], hierarchy, i, f"encoder block {i}")
+                                   for i in range(L))
         self.pools = nn.ModuleList(_Sparse(hierarchy.down[i]) for i in range(L))
         self.kept = []  # per level: the name of a buffer of the rows the pooling keeps, or None
         for i, c in enumerate(self.convs):
@@ -140,9 +142,9 @@ class Decoder(nn.Module):
         self.unpools = nn.ModuleList(_Sparse(hierarchy.up[i]) for i in reversed(range(L)))
         # mirror of the encoder as in the reference implementations: after up-sampling to level i the
         # conv maps c_{i+2} -> c_{i+1} (c_L -> c_L at the coarsest level), then a last conv to the output
-        self.convs = nn.ModuleList(conv.build(channels[min(i + 2, L)], channels[i + 1], hierarchy, i)
-                                   for i in reversed(range(L)))
-        self.out = conv.build(channels[1], out_channels, hierarchy, 0)
+        self.convs = nn.ModuleList(build_conv(conv, channels[min(i + 2, L)], channels[i + 1], hierarchy, i,
+                                              f"decoder block {i}") for i in reversed(range(L)))
+        self.out = build_conv(conv, channels[1], out_channels, hierarchy, 0, "decoder output")
         self.act = act()
         self.fused = [_fuses(c) for c in self.convs]
 

@@ -23,6 +23,8 @@ from torch import nn
 from fwk.errors import RecipeError
 from fwk.graph import sparse_apply, torch_sparse
 
+from .checked import build_conv
+
 MODES = ("down", "up")
 
 
@@ -72,7 +74,10 @@ class PooledConv(nn.Module):
             raise RecipeError(f"residual_rate: expected a number in [0, 1], got {residual_rate}")
         pool = hierarchy.down[level] if mode == "down" else hierarchy.up[level]
         self.register_buffer("pool", torch_sparse(pool))
-        self.conv = conv.build(in_channels, out_channels, hierarchy, level + 1 if mode == "down" else level)
+        at = level + 1 if mode == "down" else level
+        self.conv = build_conv(conv, in_channels, out_channels, hierarchy, at,
+                               f"the {'strided' if mode == 'down' else 'transposed'} block from level "
+                               f"{level if mode == 'down' else level + 1} (after the sampler's pooling)")
         self.r = residual_rate
         self.act = activation
         self.res_lin = (nn.Linear(in_channels, out_channels, bias=False)
@@ -102,6 +107,7 @@ def strided_conv(conv, in_channels: int, out_channels: int, hierarchy, level: in
     strided role (``conv.cls.strided``; built with ``mode``, ``residual_rate`` and
     ``activation``), else a :class:`PooledConv`."""
     if conv.cls.strided:
-        return conv.build(in_channels, out_channels, hierarchy, level, mode=mode, residual_rate=residual_rate,
-                          activation=activation)
+        return build_conv(conv, in_channels, out_channels, hierarchy, level,
+                          f"the {'strided' if mode == 'down' else 'transposed'} block", mode=mode,
+                          residual_rate=residual_rate, activation=activation)
     return PooledConv(conv, in_channels, out_channels, hierarchy, level, mode, residual_rate, activation)
