@@ -230,11 +230,14 @@ def test_convert_old_run(trained_run, tmp_path, env, capsys):
     """A run as an earlier fwk wrote it (pickled models and checkpoints, no recipe hash) is
     refused until ``fwk convert RUN --trust``; after it the run opens with identical metrics.
     Without --trust nothing is unpickled."""
+    from fwk.lifecycle import open_run
+
     d = copy_run(trained_run[0], tmp_path)
-    for m in (d / "models").glob("*.safetensors"):
-        torch.save(load_state(m), m.with_suffix(".pt"))
-        m.unlink()
-    for ck in (d / "checkpoints").rglob("*.ckpt"):
+    run = open_run(d)
+    for label in run.specs:  # as earlier versions saved them: torch.save(model.state_dict())
+        torch.save(run.model(label).state_dict(), d / "models" / f"{label}.pt")
+        (d / "models" / f"{label}.safetensors").unlink()
+    for ck in (d / "checkpoints").rglob("*.ckpt"):  # and as Lightning's TorchCheckpointIO did
         torch.save(load_state(ck), ck)
     v = json.loads((d / "versions.json").read_text())
     v.pop("recipe_sha256")
