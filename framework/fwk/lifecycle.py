@@ -93,19 +93,20 @@ def _model_id(model) -> str:
 
 def save_model_state(model, path: Path, label: str) -> Path:
     """``model.state_dict()`` saved to ``path`` in the safe format (``fwk.safeio``), with the
-    model's class and label, which ``load_model_state`` checks."""
+    model's registered name and label, which ``load_model_state`` checks (and its class, for
+    whoever reads the file)."""
     return save_state(path, model.state_dict(), {"model": _model_id(model), "name": model.name, "label": label})
 
 
 def load_model_state(model, path: Path, ctx: RunContext | None, label: str | None = None) -> None:
     """Load the state saved at ``path`` into ``model``: verified (``fwk.safeio.load_state``), of
-    the model's class (a swapped file is refused) and accepted by its ``load_state_dict``; every
+    the model's name and label (a swapped file is refused) and accepted by its ``load_state_dict``; every
     failure is a ``DataError`` naming the file."""
     state, meta = load_state(path, with_meta=True)
-    saved = meta.get("model")
-    if saved is not None and saved != _model_id(model):
+    saved = meta.get("name")  # the registered name: stable when a plugin moves its class
+    if saved is not None and saved != model.name:
         raise DataError(f"{path}: holds the state of another model ({meta.get('label', '?')!s}: "
-                        f"{meta.get('name', saved)}), not of {label or 'this model'} ({model.name})")
+                        f"{saved!s}), not of {label or 'this model'} ({model.name})")
     if label is not None and meta.get("label") not in (None, label):
         raise DataError(f"{path}: holds the state of model {meta.get('label')!s}, not of {label}")
     try:
