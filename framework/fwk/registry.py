@@ -4,9 +4,17 @@ Duplicate names within a kind raise a PluginError naming both plugins and their 
 (a third-party component may replace a built-in one of the same kind and name only when
 ``FWK_PLUGIN_OVERRIDES`` lists the name, ``fwk.plugins``); an unknown name raises an
 UnknownComponentError that lists the registered choices (and the closest one).
+
+What a plugin author gets wrong silently otherwise is reported as a broken plugin (``fwk list``
+prints it on stderr; a recipe naming a component of it says to look there), the other plugins
+working on: a hook function fwk does not define (``fwk_register_dataset``) or a
+``fwk_register_*`` function not marked ``@hookimpl``; a plugin that registers no component; a
+component whose constructor has a parameter without an annotation (the constructor is the
+recipe schema: the component is refused, its plugin's others registered).
 """
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import inspect
 from dataclasses import dataclass, field
@@ -150,6 +158,8 @@ def build_registry(pm, overrides=frozenset()) -> Registry:
     third-party component may take from a built-in one (``Registry.add``)."""
     reg = Registry()
     dists = getattr(pm, "fwk_dists", {})
+    versions = getattr(pm, "fwk_versions", {})
+    returned: dict[str, int] = {}  # plugin -> components its hooks returned
     for kind in KINDS:
         hook = getattr(pm.hook, HOOKS[kind])
         for impl in hook.get_hookimpls():
@@ -159,7 +169,66 @@ def build_registry(pm, overrides=frozenset()) -> Registry:
             except (Exception, SystemExit, KeyboardInterrupt) as exc:  # a broken plugin must not take the others down
                 reg.broken.append(BrokenPlugin(plugin_name, describe_failure(exc)))
                 continue
-            version = pm.fwk_versions.get(plugin_name, "")
+            version = versions.get(plugin_name, "")
+            returned[plugin_name] = returned.get(plugin_name, 0) + len(comps)
             for comp in comps:
+                missing = unannotated_parameters(comp)
+                if missing:
+                    reg.broken.append(BrokenPlugin(plugin_name, (
+                        f"{kind} {quote(getattr(comp, 'name', None) or getattr(comp, '__qualname__', comp))} "
+                        f"not registered: constructor parameter{'s' if len(missing) > 1 else ''} "
+                        f"{', '.join(missing)} {'have' if len(missing) > 1 else 'has'} no annotation (the constructor "
+                        "is the recipe schema: annotate every parameter, docs/writing-a-plugin.md)")))
+                    continue
                 reg.add(kind, comp, plugin_name, version, dists.get(plugin_name, ""), overrides)
+    broken = {b.plugin for b in reg.broken}
+    for plugin_name, plugin in pm.list_name_plugin():
+        if plugin is None:  # blocked
+            continue
+        for problem in hook_problems(pm, plugin):
+            reg.broken.append(BrokenPlugin(plugin_name, problem))
+            broken.add(plugin_name)
+        if not returned.get(plugin_name) and plugin_name not in broken:
+            dist = f"{dists.get(plugin_name, '')} {versions.get(plugin_name, '')}".strip()
+            reg.broken.append(BrokenPlugin(plugin_name, (
+                f"registers no component{f' (distribution {dist})' if dist else ''}: none of its hooks "
+                f"({', '.join(HOOKS.values())}) returned a class")))
     return reg
+
+
+def unannotated_parameters(cls) -> list[str]:
+    """The constructor parameters of a component class that have no annotation (those the
+    framework supplies, ``build_args``, and ``*args`` / ``**kwargs`` aside)."""
+    init = cls if dataclasses.is_dataclass(cls) else getattr(cls, "__init__", None)
+    if init is None or init is object.__init__:
+        return []
+    try:
+        sig = inspect.signature(init)  # justified: the constructor is the recipe schema (fwk.hookspecs)
+    except (TypeError, ValueError):  # justified: a builtin's __init__ has no signature to read
+        return []
+    supplied = set(getattr(cls, "build_args", ()) or ())
+    return [n for n, p in sig.parameters.items()
+            if n != "self" and n not in supplied and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+            and p.annotation is inspect.Parameter.empty]
+
+
+def hook_problems(pm, plugin) -> list[str]:
+    """What a plugin's hooks get wrong silently: a function marked ``@hookimpl`` under a name fwk
+    defines no hook for (pluggy accepts it and never calls it), and a ``fwk_register_*``
+    function not marked ``@hookimpl`` (pluggy ignores it)."""
+    out = []
+    known = set(HOOKS.values())
+    for attr in sorted(dir(plugin)):
+        try:
+            obj = getattr(plugin, attr)
+        except Exception:  # a plugin attribute that fails to read is not a hook
+            continue
+        if not callable(obj):
+            continue
+        marked = pm.parse_hookimpl_opts(plugin, attr) is not None
+        if marked and attr not in known:
+            out.append(f"hook {attr} is not one of fwk's hooks{did_you_mean(attr, sorted(known))} "
+                       f"(fwk never calls it; the hooks: {', '.join(HOOKS.values())})")
+        elif not marked and attr in known:
+            out.append(f"{attr} is not marked @hookimpl (from fwk.hookspecs import hookimpl): fwk never calls it")
+    return out

@@ -106,3 +106,115 @@ def _ae_ok():
     conv = make_spec("conv", "spiral++", "models.ae.conv", reg)  # name-ok: a built-in conv to compare with
     sampler = make_spec("sampler", "quadric", "models.ae.sampler", reg)  # name-ok: its sampler
     return model(conv=conv, sampler=sampler, channels=[8, 16], latent=4)
+
+
+# ----------------------------------------------------------------------------- what fwk list reports
+
+def _module(name, **attrs):
+    import types
+
+    m = types.ModuleType(name)
+    for k, v in attrs.items():
+        setattr(m, k, v)
+    return m
+
+
+class PlyFolder:
+    """A dataset of PLY files."""
+
+    name = "ply-folder-test"
+
+    def __init__(self, root: str = "."):
+        self.root = root
+
+
+def _fwk_list(monkeypatch, capsys, *plugins):
+    import fwk.cli
+    from fwk.plugins import registry_from
+
+    reg = registry_from(*plugins)
+    monkeypatch.setattr(fwk.cli, "get_registry", lambda: reg)
+    assert fwk.cli.main(["list"]) == 0
+    return reg, capsys.readouterr().err
+
+
+def test_a_misspelled_hook_is_reported_by_fwk_list(monkeypatch, capsys):
+    from fwk.hookspecs import hookimpl
+
+    mine = _module("my_ply", fwk_register_dataset=hookimpl(lambda: [PlyFolder]))
+    reg, err = _fwk_list(monkeypatch, capsys, mine)
+    assert "broken plugin my_ply: hook fwk_register_dataset is not one of fwk's hooks; did you mean " \
+           "fwk_register_datasets?" in err, err
+    assert "ply-folder-test" not in reg.names("dataset")
+    from fwk.errors import UnknownComponentError
+
+    with pytest.raises(UnknownComponentError, match=r"plugins that failed to load \(fwk list\): my_ply"):
+        reg.get("dataset", "ply-folder-test")
+
+
+def test_an_unmarked_hook_is_reported(monkeypatch, capsys):
+    mine = _module("my_unmarked", fwk_register_datasets=lambda: [PlyFolder])
+    _, err = _fwk_list(monkeypatch, capsys, mine)
+    assert "broken plugin my_unmarked: fwk_register_datasets is not marked @hookimpl" in err, err
+
+
+def test_a_plugin_that_registers_nothing_is_reported(monkeypatch, capsys):
+    from fwk.hookspecs import hookimpl
+
+    empty = _module("my_empty", fwk_register_metrics=hookimpl(lambda: []))
+    nothing = _module("my_nothing")
+    _, err = _fwk_list(monkeypatch, capsys, empty, nothing)
+    assert "broken plugin my_empty: registers no component: none of its hooks" in err, err
+    assert "broken plugin my_nothing: registers no component" in err, err
+
+
+def test_an_installed_distribution_registering_nothing_names_it(monkeypatch):
+    """Through the entry points (the distribution's name and version in the report)."""
+    from importlib.metadata import EntryPoint
+
+    import fwk.plugins
+
+    class Dist:
+        name, version = "my-ply", "0.3"
+
+    ep = EntryPoint("my-ply", "tests.core.test_plugin_checks:_EMPTY", "fwk")
+    ep = ep._for(Dist())  # as importlib.metadata gives it: with its distribution
+    monkeypatch.setattr(fwk.plugins, "entry_points", lambda group: [ep])
+    pm = fwk.plugins.make_plugin_manager(load_entrypoints=True)
+    from fwk.registry import build_registry
+
+    reg = build_registry(pm)
+    (b,) = [b for b in reg.broken if b.plugin == "my-ply"]
+    assert "registers no component" in b.error
+    assert "(distribution my-ply 0.3)" in b.error, b.error
+
+
+_EMPTY = _module("empty_entry_point")
+
+
+# ----------------------------------------------------------------------------- unannotated parameters
+
+def test_an_unannotated_constructor_parameter_is_refused_at_registration():
+    from fwk.hookspecs import hookimpl
+    from fwk.plugins import registry_from
+
+    class Loose:
+        """A metric with an unannotated parameter."""
+
+        name = "loose-test"
+
+        def __init__(self, workers=1, scale: float = 1.0):
+            self.workers = workers
+
+    class Fine(PlyFolder):
+        """Another component of the same plugin, registered."""
+
+        name = "fine-test"
+
+    mine = _module("my_loose", fwk_register_metrics=hookimpl(lambda: [Loose]),
+                   fwk_register_datasets=hookimpl(lambda: [Fine]))
+    reg = registry_from(mine)
+    assert "loose-test" not in reg.names("metric") and "fine-test" in reg.names("dataset")
+    (b,) = reg.broken
+    assert b.plugin == "my_loose"
+    assert b.error.startswith("metric 'loose-test' not registered: constructor parameter workers has no annotation"), b
