@@ -68,6 +68,35 @@ expressions, the expression given to the decoders as a one-hot condition concate
 when the network's own code is a latent map). It trains on (subject, expression) pairs: a batch
 is ``batch_size`` pairs, each decoded with its own expression's one-hot, the loss per network the
 mean L1 over the pairs plus phi KL.
+
+Beyond the thesis (issue 31; what the band swaps of ``benchmarks/pbs_band_errors.py`` point to):
+
+``anchor: {name: dt, sources: [0, 1, 2]}`` (any model playing ``fwk.protocols.BlendshapeModel``):
+the anchor is fitted on the training split first and every expression's features are taken
+against its prediction A_expr = anchor(P_neutral) instead of the neutral (eqs. 5.3 / 5.4 with
+the reference changed)
+
+    F_expr = g(P_expression - A_expr)            P'_expr = g^-1(D(mu)) + A_expr
+
+(for ``dr``: the deformation from A_expr to the expression, integrated against A_expr), so each
+network learns the residual of the anchor's transfer, and a zero residual (the representation's
+features of "no change") gives the anchor's output exactly, at every k of the assembly (tested
+against DT). The networks' input is still the neutral. With Deformation Transfer as the anchor
+this is Li, Weise and Pauly 2010 ("Example-based facial rigging") in spirit: start from DT, which
+carries the source's smooth, plausible deformation, and correct it from examples; the networks'
+errors then scale with the residual, not with the whole expression. The anchor's state is saved
+with the model; at inference its predictions are computed once per set of neutrals for every
+expression (DT: one factorisation per neutral) and shared by both networks and the k sweep.
+
+``bending_weight: w`` (default 0): the spatial network's loss (branch 0) gains
+
+    w * mean_{b, i, c} | (L (unscale(D(z)) - unscale(F_expr)))_{b, i, c} |
+
+with L the template's cotangent Laplacian (no mass matrix: cotangent weights are dimensionless,
+so for euclidean offsets the term is in the offsets' own units and w = 1 weighs bending as much
+as position). For euclidean offsets L applied to the error is the error of the (area-weighted)
+mean-curvature normals: the bending error below k that the band swaps measured costs PBS its
+DAME. For another representation it is the roughness of the feature error.
 """
 from __future__ import annotations
 
@@ -391,6 +420,10 @@ class _Blend:
             if missing:
                 raise DataError(f"{self.name}: the anchor ({self.anchor_spec.name}) has no {', '.join(missing)}")
             self._anchor_memo = {}
+            if ctx is not None:
+                ctx.log(f"[{self.name}] anchor {self.anchor_spec.name}: its prediction of "
+                        f"{len(self.expressions)} expression(s) for {len(tr.subjects)} training and "
+                        f"{len(va.subjects)} validation neutrals, the reference of every network's features")
 
         def arrays(col, fit_reps: bool):
             j0 = col.shape_index("neutral")
