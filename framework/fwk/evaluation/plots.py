@@ -1,7 +1,9 @@
 """Scatter plots with the Pareto front (thesis figures 3.3, 4.9, 4.12, 5.8, 5.9) and line plots.
 
 Point labels never overprint (``place_labels``): the front's points are labelled first, each
-label tries four places around its point, and one that fits nowhere is left out. Figures are
+label tries eight directions at growing distances around its point (beyond the nearest, tied to
+it by a thin line), clear of every point and inside the axes, and one that fits nowhere is left
+out. Axes carry at most six ticks, in scientific notation where values are small. Figures are
 written atomically (a reader never sees half a PNG).
 """
 from __future__ import annotations
@@ -14,8 +16,15 @@ import numpy as np
 from ..cache import atomic_write_bytes
 from .core import pareto_front
 
-#: where a point's label may go: (dx, dy) in points, horizontal and vertical alignment
-_PLACES = ((4, 3, "left", "bottom"), (4, -3, "left", "top"), (-4, 3, "right", "bottom"), (-4, -3, "right", "top"))
+#: where a point's label may go, in order of preference: (dx, dy) directions (scaled by the
+#: distance, in points) with the alignment that keeps the text clear of its point
+_PLACES = ((1, 0.7, "left", "bottom"), (1, -0.7, "left", "top"), (-1, 0.7, "right", "bottom"),
+           (-1, -0.7, "right", "top"), (0, 1, "center", "bottom"), (0, -1, "center", "top"),
+           (1.2, 0, "left", "center"), (-1.2, 0, "right", "center"))
+#: the distances (points) tried; a label placed beyond the first is tied to its point by a thin line
+_DISTANCES = (4, 11, 20, 32, 46)
+#: font sizes (points) of the figures' text: labels of points, ticks, axis titles, titles
+LABEL_PT, TICK_PT, AXIS_PT, TITLE_PT = 8, 9, 10, 10.5
 
 
 def _plt():
@@ -51,36 +60,69 @@ def save_figure(fig, path, **savefig) -> Path:
     return path
 
 
-def place_labels(ax, points, labels, first=(), fontsize: float = 7) -> list:
+def place_labels(ax, points, labels, first=(), fontsize: float = LABEL_PT, markers=None, avoid=()) -> list:
     """Annotate ``points`` (k, 2, data coordinates) with ``labels`` without overprinting: the
     points ``first`` (indices) are labelled first, then the others in order; each label takes
-    the first of four places around its point where it overlaps no earlier label, or is left
-    out. Returns the placed matplotlib Text objects (a label left out has none)."""
+    the first place around its point (eight directions, three distances) where it overlaps no
+    earlier label, no point's marker (``markers``: each point's marker radius in pixels, default
+    5) and nothing of ``avoid`` (display-space boxes, e.g. the legend's), and stays inside the
+    axes; a label that fits nowhere is left out. Returns the placed matplotlib Text objects (a
+    label left out has none)."""
+    from matplotlib.text import Text
+    from matplotlib.transforms import Bbox
+
     fig = ax.figure
     fig.canvas.draw()  # the limits and layout the labels are placed in
     renderer = fig.canvas.get_renderer()
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    xy = ax.transData.transform(P) if len(P) else np.zeros((0, 2))
+    radius = np.full(len(P), 5.0) if markers is None else np.asarray(markers, dtype=np.float64)
+    dots = [Bbox.from_extents(x - r, y - r, x + r, y + r) for (x, y), r in zip(xy, radius)]
+    frame = ax.get_window_extent(renderer)
     first = [int(i) for i in first]
     done = set(first)
     order = first + [i for i in range(len(labels)) if i not in done]
-    placed, boxes = [], []
+    placed, boxes = [], list(avoid)
     for i in order:
-        for dx, dy, ha, va in _PLACES:
-            t = ax.annotate(str(labels[i]), tuple(points[i]), fontsize=fontsize, xytext=(dx, dy),
-                            textcoords="offset points", ha=ha, va=va)
-            box = t.get_window_extent(renderer)
-            if not any(box.overlaps(b) for b in boxes):
+        for d, (ux, uy, ha, va) in ((d, p) for d in _DISTANCES for p in _PLACES):
+            far = d > _DISTANCES[0]
+            t = ax.annotate(str(labels[i]), tuple(P[i]), fontsize=fontsize, xytext=(ux * d, uy * d),
+                            textcoords="offset points", ha=ha, va=va,
+                            arrowprops=dict(arrowstyle="-", lw=0.5, color="0.45", shrinkA=0, shrinkB=3) if far else None)
+            whole = t.get_window_extent(renderer)  # with its leader line: no two labels' overlap
+            box = Text.get_window_extent(t, renderer)  # the text alone: clear of every point, inside the axes
+            inside = (box.x0 >= frame.x0 and box.x1 <= frame.x1 and box.y0 >= frame.y0 and box.y1 <= frame.y1)
+            if inside and not any(whole.overlaps(b) for b in boxes) and not any(box.overlaps(b) for b in dots):
                 placed.append(t)
-                boxes.append(box)
+                boxes.append(whole)
                 break
             t.remove()
     return placed
 
 
+def _ticks(ax) -> None:
+    """At most six ticks per axis, in scientific notation (a ×10^n factor at the axis end) where the
+    values are small or large, so that tick labels never run into each other."""
+    from matplotlib.ticker import MaxNLocator, ScalarFormatter
+
+    for axis in (ax.xaxis, ax.yaxis):
+        if axis.get_scale() != "linear":
+            continue
+        axis.set_major_locator(MaxNLocator(nbins=6, min_n_ticks=3))
+        fmt = ScalarFormatter(useMathText=True)
+        fmt.set_powerlimits((-2, 3))
+        axis.set_major_formatter(fmt)
+    ax.tick_params(labelsize=TICK_PT)
+
+
 def scatter_pareto(points: dict, path, xlabel: str, ylabel: str, title: str | None = None,
-                   annotate: bool = True, groups: dict | None = None) -> Path:
+                   annotate: bool = True, groups: dict | None = None, highlight: str | None = None,
+                   highlight_label: str | None = None) -> Path:
     """``points``: label -> (x, y), both minimised; the non-dominated points are joined by the
-    front line and ringed. ``groups`` (label -> group name) colours points by group. Labels
-    that would overprint are left out, the front's kept first (``place_labels``)."""
+    front line and ringed. ``groups`` (label -> group name) colours points by group. ``highlight``
+    (a label: PBS's chosen k, say) is drawn as a star and named in the legend by
+    ``highlight_label``. Labels that would overprint are left out, the front's and the
+    highlighted point's kept first (``place_labels``). Axis titles should carry their units."""
     plt = _plt()
     labels = list(points)
     P = np.array([points[k] for k in labels], dtype=np.float64).reshape(-1, 2)
@@ -92,20 +134,39 @@ def scatter_pareto(points: dict, path, xlabel: str, ylabel: str, title: str | No
         for gi, g in enumerate(names):
             idx = [i for i, k in enumerate(labels) if groups.get(k) == g]
             ax.scatter(P[idx, 0], P[idx, 1], color=cmap(gi % 10), label=g, zorder=3)
-        ax.legend(fontsize=8)
     else:
         ax.scatter(P[:, 0], P[:, 1], color="#3b6ea8", zorder=3)
     if len(front):
         ax.plot(P[front, 0], P[front, 1], "--", color="#c0392b", zorder=2, label="Pareto front")
         ax.scatter(P[front, 0], P[front, 1], s=120, facecolors="none", edgecolors="#c0392b", zorder=4)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
+    hi = labels.index(highlight) if highlight is not None and highlight in labels else None
+    if hi is not None:
+        ax.scatter(P[hi:hi + 1, 0], P[hi:hi + 1, 1], s=260, marker="*", color="#f1c40f", edgecolors="black",
+                   linewidths=0.8, zorder=5, label=highlight_label or str(highlight))
+    _ticks(ax)
+    ax.set_xlabel(xlabel, fontsize=AXIS_PT)
+    ax.set_ylabel(ylabel, fontsize=AXIS_PT)
     if title:
-        ax.set_title(title)
+        ax.set_title(title, fontsize=TITLE_PT)
+    ax.grid(alpha=0.3)
+    # room for labels at the edges: 6% of each range beyond the outermost points
+    if len(P):
+        for lim, col in ((ax.set_xlim, 0), (ax.set_ylim, 1)):
+            lo, hi_ = float(P[:, col].min()), float(P[:, col].max())
+            pad = 0.06 * (hi_ - lo) if hi_ > lo else max(abs(lo) * 0.05, 1e-12)
+            lim(lo - pad, hi_ + pad)
+    legend = ax.legend(fontsize=LABEL_PT + 0.5, loc="best") if (len(front) or groups or hi is not None) else None
     fig.tight_layout()
     if annotate and len(P):
-        place_labels(ax, P, labels, first=front)
-    return _finish(fig, ax, path, xlabel, ylabel, title)
+        fig.canvas.draw()
+        avoid = [legend.get_window_extent(fig.canvas.get_renderer())] if legend is not None else []
+        radius = np.full(len(P), 5.0)
+        radius[front] = 9.0
+        if hi is not None:
+            radius[hi] = 11.0
+        first = ([hi] if hi is not None else []) + [int(i) for i in front if i != hi]
+        place_labels(ax, P, labels, first=first, markers=radius, avoid=avoid)
+    return save_figure(fig, path)
 
 
 def line_plot(series: dict, path, xlabel: str, ylabel: str, title: str | None = None, logy: bool = False,

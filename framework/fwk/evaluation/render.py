@@ -14,28 +14,37 @@ from 40 degrees to the head's left (its right cheek towards the viewer's left), 
 grid uses the same scale, so sizes compare across cells.
 
 Grids: ``cells[row][col]`` is a dict (``V``, and optionally ``scalars``, ``clim``, ``label``,
-``bar`` (colour-bar title), ``cmap``, ``color``, ``view``, ``show_bar``) or a tuple
-``(V, scalars_or_None, label)``. Convention: ground truth first, methods side by side, one row
-per mesh. Cells with scalars and the same ``bar`` title but no ``clim`` share colour limits
-(0 to the 99th percentile of all their values), so colours compare across methods.
+``bar`` (colour-bar title: the metric and its unit, ``DAME (rad)``), ``cmap``, ``color``,
+``view``, ``show_bar``) or a tuple ``(V, scalars_or_None, label)``. Convention: ground truth
+first, methods side by side, one row per mesh. Cells with scalars and the same ``bar`` title but
+no ``clim`` share colour limits (``colour_limits``), so colours compare across methods.
+
+Text: the meshes are rendered alone (``cell_size`` each); the cells' titles and the colour bars
+are then drawn around them by matplotlib (``compose``), at a size readable where a report shows
+the image: a viewer fits an image to about ``VIEW_WIDTH`` pixels, so text is
+``TEXT_PX * max(1, width / VIEW_WIDTH)`` pixels high (at most ``MAX_TEXT_PX``), long titles
+wrapped. One colour bar per (title, limits) group sits under the grid, its title naming the
+metric and unit; an upper limit that clips the group's values is labelled ``≥ limit`` and the bar
+ends in a triangle (likewise ``≤`` below).
 """
 from __future__ import annotations
 
-import io
 import os
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from ..cache import atomic_write_bytes
 from ..errors import FwkError
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 VIEWS = {"front": 0.0, "three-quarter": 40.0, "side": 90.0}
 SKIN = "#d9c7b8"
-TITLE_BAND, BAR_BAND = 0.09, 0.16  # fractions of a cell's height kept free for its title and colour bar
+MARGIN = 0.03  # fraction of a cell's height left free above and below its mesh
+VIEW_WIDTH = 900  # pixels: about the width a markdown viewer fits an image to
+TEXT_PX = 13  # pixels: the smallest text height readable at that width
+MAX_TEXT_PX = 36
 
 
 def _azimuth(view) -> float:
@@ -77,7 +86,6 @@ def _bars(cells: list[list[dict]]) -> None:
         for j, c in enumerate(row):
             if c.get("scalars") is not None and "show_bar" not in c:
                 c["show_bar"] = j in last.values()
-            c["bar_title"] = (c.get("bar") or " ") + " " * (i * len(row) + j)
 
 
 def colour_limits(maps) -> tuple[float, float]:
@@ -135,7 +143,9 @@ def _backend() -> str:
 
 def render_grid(cells: list[list], template, path, view: str | float | list = "front", cell_size=(300, 340),
                 cmap: str = "viridis", titles: bool = True) -> Path:
-    """Render a grid of meshes into one PNG (one plotter, one screenshot); see the module doc.
+    """Render a grid of meshes into one PNG; see the module doc. ``cell_size`` is each mesh's
+    (width, height) in pixels; the titles and colour bars add bands above the rows and under the
+    grid.
 
     ``view`` is one view for every cell, or a list giving each column's view (cycled); a cell's
     own ``view`` wins.
@@ -150,7 +160,7 @@ def render_grid(cells: list[list], template, path, view: str | float | list = "f
             v = c.get("view", view if isinstance(view, (str, int, float)) else view[j % len(view)])
             c["az"] = _azimuth(v)
             c["V"] = np.asarray(c["V"], dtype=np.float64)
-    # one scale for every cell: the largest half-extent, with a margin for the bar and the title
+    # one scale for every cell: the largest half-extent, with a margin
     aspect = cell_size[0] / cell_size[1]
     scale = 0.0
     for row in cells:
@@ -158,15 +168,152 @@ def render_grid(cells: list[list], template, path, view: str | float | list = "f
             c["centre"], hh, hw = _extent(c["V"], c["az"])
             scale = max(scale, hh, hw / aspect)
     scale *= 1.03
+    img = None
     if _backend() != "matplotlib":
         try:
-            return _render_pyvista(cells, template, path, cell_size, cmap, titles, scale)
+            img = _render_pyvista(cells, template, cell_size, cmap, scale)
         except (ImportError, RuntimeError, OSError) as exc:  # no OpenGL context at all
             warnings.warn(f"pyvista could not render ({type(exc).__name__}: {exc}); drawing with matplotlib")
-    return _render_matplotlib(cells, template, path, cell_size, cmap, titles, scale)
+    if img is None:
+        img = _render_matplotlib(cells, template, cell_size, cmap, scale)
+    return compose(img, cells, cell_size, path, cmap, titles)
 
 
-def _render_pyvista(cells, template, path, cell_size, cmap, titles, scale) -> Path:
+def text_px(width: int) -> float:
+    """The text height (pixels) readable in an image ``width`` pixels wide once a viewer fits it
+    to ``VIEW_WIDTH``."""
+    return float(min(MAX_TEXT_PX, TEXT_PX * max(1.0, width / VIEW_WIDTH)))
+
+
+def wrap_label(label: str, max_chars: int) -> list[str]:
+    """A title in lines of at most ``max_chars`` characters where it can be: broken after a
+    ``:`` first (``pbs:`` / ``pb-euclidean-std``), then at spaces and hyphens."""
+    import textwrap
+
+    max_chars = max(4, int(max_chars))
+    out = []
+    pieces = [p + ":" for p in label.split(":")[:-1]] + [label.split(":")[-1]] if len(label) > max_chars else [label]
+    for piece in pieces:
+        if out and len(out[-1]) + len(piece) <= max_chars:
+            out[-1] += piece
+        else:
+            out += textwrap.wrap(piece, max_chars, break_on_hyphens=True, break_long_words=False) or [piece]
+    return out
+
+
+def bar_ticks(lo: float, hi: float, clipped_low: bool = False, clipped_high: bool = False,
+              n: int = 4) -> tuple[list[float], list[str]]:
+    """Colour-bar ticks: round values inside [lo, hi] and the two limits, a clipped limit labelled
+    ``≥ hi`` (``≤ lo``); round ticks too close to a limit are dropped so that labels do not touch."""
+    from matplotlib.ticker import MaxNLocator  # deferred with matplotlib (see _render_matplotlib)
+
+    span = hi - lo if hi > lo else 1.0
+    inner = [float(t) for t in MaxNLocator(nbins=n).tick_values(lo, hi)
+             if lo + 0.18 * span < t < hi - 0.18 * span]
+    ticks = [lo, *inner, hi]
+
+    def fmt(x):
+        return "0" if x == 0 else f"{x:.3g}"
+
+    labels = [fmt(t) for t in ticks]
+    if clipped_low:
+        labels[0] = "≤ " + labels[0]
+    if clipped_high:
+        labels[-1] = "≥ " + labels[-1]
+    return ticks, labels
+
+
+def _groups(cells) -> list[dict]:
+    """The colour bars to draw: one per (title, limits) of the cells showing a bar, with its
+    colour map and whether the limits clip the group's values."""
+    groups: dict = {}
+    for row in cells:
+        for c in row:
+            if c.get("scalars") is None:
+                continue
+            key = (c.get("bar") or "", tuple(c["clim"]))
+            g = groups.setdefault(key, {"title": key[0], "clim": key[1], "cmap": c.get("cmap"), "values": [],
+                                        "shown": False})
+            g["values"].append(np.asarray(c["scalars"], dtype=np.float64).ravel())
+            g["shown"] = g["shown"] or bool(c.get("show_bar", True))
+    out = []
+    titles = [g["title"] for g in groups.values() if g["shown"]]
+    for g in groups.values():
+        if not g["shown"]:
+            continue
+        v = np.concatenate(g["values"])
+        v = v[np.isfinite(v)]
+        lo, hi = g["clim"]
+        tol = 1e-9 * max(abs(lo), abs(hi), 1e-300)
+        g["high"] = bool(v.size and v.max() > hi + tol)
+        g["low"] = bool(v.size and v.min() < lo - tol)
+        if titles.count(g["title"]) > 1:  # two ranges under one title: say which is which
+            g["title"] += f" ({lo:.3g} to {hi:.3g})"
+        out.append(g)
+    return out
+
+
+def compose(img: np.ndarray, cells, cell_size, path, cmap: str = "viridis", titles: bool = True) -> Path:
+    """The rendered meshes ``img`` (rows x cols cells of ``cell_size``) with each cell's title
+    above it and the colour bars under the grid, in text sized by ``text_px``; written to
+    ``path`` as PNG."""
+    import matplotlib  # deferred: see _render_matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .plots import save_figure
+
+    cw, ch = cell_size
+    rows, cols = len(cells), max(len(r) for r in cells)
+    W = cw * cols
+    F = text_px(W)
+    line = 1.25 * F
+    chars = cw / (0.56 * F)  # characters of a line that fit a cell (average glyph width ~0.56 em)
+    labels = [[wrap_label(str(c["label"]), chars) if titles and c.get("label") else [] for c in row] for row in cells]
+    bands = [max((len(x) for x in row), default=0) for row in labels]
+    bands = [(n * line + 0.5 * F) if n else 0.0 for n in bands]
+    bars = _groups(cells)
+    bar_h = 0.9 * F
+    bar_band = (line + bar_h + line + 0.8 * F) if bars else 0.0  # title, bar, tick labels, margin
+    H = sum(bands) + rows * ch + bar_band
+    dpi = 100
+    pt = F * 72 / dpi
+    fig = plt.figure(figsize=(W / dpi, H / dpi), dpi=dpi)
+    fig.patch.set_facecolor("white")
+    y = H  # from the top, in pixels
+    for i, row in enumerate(cells):
+        for j, text in enumerate(labels[i]):
+            if text:
+                fig.text((j + 0.5) * cw / W, (y - 0.25 * F) / H, "\n".join(text), ha="center", va="top",
+                         fontsize=pt, linespacing=1.1)
+        y -= bands[i]
+        ax = fig.add_axes([0, (y - ch) / H, min(1.0, len(row) * cw / W), ch / H])
+        ax.imshow(img[i * ch:(i + 1) * ch, :len(row) * cw], interpolation="nearest", aspect="auto")
+        ax.set_axis_off()
+        y -= ch
+    if bars:
+        slot = W / len(bars)
+        for k, g in enumerate(bars):
+            width = min(0.8 * slot, 0.5 * W if len(bars) == 1 else slot)
+            x0 = k * slot + (slot - width) / 2
+            cax = fig.add_axes([x0 / W, (bar_band - line - bar_h) / H, width / W, bar_h / H])
+            lo, hi = g["clim"]
+            extend = {(True, True): "both", (True, False): "min", (False, True): "max"}.get((g["low"], g["high"]),
+                                                                                           "neither")
+            sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(lo, hi),
+                                              cmap=plt.get_cmap(g["cmap"] or cmap))
+            cb = fig.colorbar(sm, cax=cax, orientation="horizontal", extend=extend, extendfrac=0.04)
+            ticks, tick_labels = bar_ticks(lo, hi, g["low"], g["high"])
+            cb.set_ticks(ticks)
+            cb.set_ticklabels(tick_labels)
+            cb.ax.tick_params(labelsize=pt * 0.9, length=0.3 * F)
+            cb.ax.set_title(g["title"], fontsize=pt, pad=0.3 * F)
+    return save_figure(fig, path, dpi=dpi, facecolor="white")
+
+
+def _render_pyvista(cells, template, cell_size, cmap, scale) -> np.ndarray:
+    """The meshes alone, each in its cell: an (rows * h, cols * w, 3) image."""
     import pyvista as pv  # deferred: 0.25 s of import time that `fwk list` and runs without renders need not pay
 
     rows, cols = len(cells), max(len(r) for r in cells)
@@ -175,7 +322,6 @@ def _render_pyvista(cells, template, path, cell_size, cmap, titles, scale) -> Pa
                     border=False)
     try:
         pl.set_background("white")
-        has_bar = any(c.get("scalars") is not None and c.get("show_bar", True) for r in cells for c in r)
         for i, row in enumerate(cells):
             for j, cell in enumerate(row):
                 pl.subplot(i, j)
@@ -188,19 +334,9 @@ def _render_pyvista(cells, template, path, cell_size, cmap, titles, scale) -> Pa
                     mesh.point_data["value"] = np.asarray(s, dtype=np.float64)
                     pl.add_mesh(mesh, scalars="value", cmap=cell.get("cmap", cmap), clim=cell.get("clim"),
                                 smooth_shading=True, show_scalar_bar=False)
-                    if cell.get("show_bar", True):
-                        # two labels (the limits): a middle label would sit under the title
-                        pl.add_scalar_bar(title=cell["bar_title"], n_labels=2, vertical=False, width=0.7,
-                                          height=0.06, position_x=0.15, position_y=0.03, color="black",
-                                          title_font_size=11, label_font_size=10, fmt="%.3g")
-                if titles and cell.get("label"):
-                    pl.add_text(str(cell["label"]), font_size=9, color="black", position="upper_edge")
                 right, up, back = _frame(V, cell["az"])
-                # keep the mesh inside the band left free by the title (top) and the bar (bottom)
-                top = TITLE_BAND if titles and any(c.get("label") for c in row) else 0.03
-                bottom = BAR_BAND if has_bar else 0.03
-                ps = scale / (1.0 - top - bottom)
-                c = cell["centre"] - (bottom - top) * ps * up
+                ps = scale / (1.0 - 2 * MARGIN)
+                c = cell["centre"]
                 pl.camera_position = [tuple(c + back * 10 * scale), tuple(c), tuple(up)]
                 pl.enable_parallel_projection()
                 pl.camera.parallel_scale = ps
@@ -208,38 +344,29 @@ def _render_pyvista(cells, template, path, cell_size, cmap, titles, scale) -> Pa
         img = pl.screenshot(None, return_img=True)
     finally:
         pl.close()
-    return _write_png(img, path)
+    return np.ascontiguousarray(img[..., :3])
 
 
-def _write_png(img, path) -> Path:
-    """An (h, w, 3 or 4) uint8 image written as PNG atomically (never half a file)."""
-    from matplotlib.image import imsave  # deferred: see _render_matplotlib
-
-    buf = io.BytesIO()
-    imsave(buf, np.ascontiguousarray(img), format="png")
-    atomic_write_bytes(Path(path), buf.getvalue())
-    return Path(path)
-
-
-def _render_matplotlib(cells, template, path, cell_size, cmap_name, titles, scale) -> Path:
-    """Fallback without OpenGL: painter's algorithm on per-face colours, Lambert-shaded."""
+def _render_matplotlib(cells, template, cell_size, cmap_name, scale) -> np.ndarray:
+    """Fallback without OpenGL: painter's algorithm on per-face colours, Lambert-shaded; the
+    meshes alone, as ``_render_pyvista``."""
     import matplotlib  # deferred: matplotlib.pyplot costs ~0.5 s of import time (see plots._plt)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.collections import PolyCollection
 
-    from .plots import save_figure
-
     rows, cols = len(cells), max(len(r) for r in cells)
     dpi = 100
     fig = plt.figure(figsize=(cell_size[0] * cols / dpi, cell_size[1] * rows / dpi), dpi=dpi)
+    fig.patch.set_facecolor("white")
     F = np.asarray(template.triangles)
     light = np.array([0.3, 0.4, 1.0])
     light /= np.linalg.norm(light)
+    ps = scale / (1.0 - 2 * MARGIN)
     for i, row in enumerate(cells):
         for j, cell in enumerate(row):
-            ax = fig.add_subplot(rows, cols, i * cols + j + 1)
+            ax = fig.add_axes([j / cols, 1 - (i + 1) / rows, 1 / cols, 1 / rows])
             ax.set_axis_off()
             V = cell["V"]
             right, up, back = _frame(V, cell["az"])
@@ -260,21 +387,17 @@ def _render_matplotlib(cells, template, path, cell_size, cmap_name, titles, scal
                 norm = matplotlib.colors.Normalize(lo, hi)
                 cm = plt.get_cmap(cell.get("cmap", cmap_name))
                 base = cm(norm(face_s))[:, :3]
-                if cell.get("show_bar", True):
-                    sm = matplotlib.cm.ScalarMappable(norm=norm, cmap=cm)
-                    cb = fig.colorbar(sm, ax=ax, orientation="horizontal", fraction=0.05, pad=0.02)
-                    cb.ax.set_title(cell.get("bar") or "", fontsize=8)
             order = np.argsort(z[F].mean(1))
             order = order[visible[order]]
             pc = PolyCollection(tri[order], facecolors=np.clip(base[order] * shade[order, None], 0, 1),
                                 edgecolors="none", antialiased=False)
             ax.add_collection(pc)
-            ax.set_xlim(-scale * cell_size[0] / cell_size[1], scale * cell_size[0] / cell_size[1])
-            ax.set_ylim(-scale, scale)
-            ax.set_aspect("equal")
-            if titles and cell.get("label"):
-                ax.set_title(str(cell["label"]), fontsize=9)
-    return save_figure(fig, path, dpi=dpi, facecolor="white")
+            ax.set_xlim(-ps * cell_size[0] / cell_size[1], ps * cell_size[0] / cell_size[1])
+            ax.set_ylim(-ps, ps)
+    fig.canvas.draw()
+    img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    plt.close(fig)
+    return img
 
 
 def render_mesh(V, template, path, view: str | float = "front", scalars=None, clim=None, cmap: str = "viridis",

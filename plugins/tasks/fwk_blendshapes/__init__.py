@@ -49,6 +49,7 @@ from fwk.errors import DataError, RecipeError
 from fwk.evaluation import (default_metrics, display, evaluate, evaluate_summary, figure_metrics, format_value,
                             markdown_table, write_report)
 from fwk.evaluation.legend import describe, model_legend
+from fwk.evaluation.presentation import axis_unit
 from fwk.evaluation.plots import scatter_pareto
 from fwk.evaluation.render import colour_limits, render_grid
 from fwk.hookspecs import hookimpl
@@ -464,41 +465,63 @@ class Blendshapes:
         return out
 
     # ------------------------------------------------------------------ figures
+    @staticmethod
+    def _in_units(results, metric, registry):
+        """(factor, unit) that bring ``metric``'s evaluation-space values into the dataset's units
+        (a metric of power p divided by scale**p: L1 in cm, DAME in rad, FMPD unitless), and the
+        unit as an axis or colour bar says it."""
+        shown = display(metric, registry)
+        ds = results["dataset"]
+        units = (shown.units or "").replace("input", ds.get("units") or "input")
+        return 1.0 / float(ds["scale"]) ** shown.power, axis_unit(units, True)
+
     def _figures(self, ctx, template, expressions, gt, preds, results, metrics, dist, perceptual, rendered) -> dict:
         """Figure 5.8 (each cut-selecting model's k sweep: the distance against each perceptual
-        metric it swept, the last first as in the thesis: FMPD, then DAME), figure 5.9 (the methods
-        on test: the distance against each perceptual metric) and the renders, for the expressions
-        ``rendered`` (every one, or the worst ``render_expressions``)."""
+        metric it swept, the last first as in the thesis: FMPD, then DAME; the chosen k marked),
+        figure 5.9 (the methods on test: the distance against each perceptual metric) and the
+        renders, for the expressions ``rendered`` (every one, or the worst ``render_expressions``).
+        Every axis is in the dataset's units (L1 in cm) and says so."""
         figures = {}
         names = [m.name for m in metrics]
         if dist is None:  # no registered distance metric to plot against
             return self._renders(ctx, template, rendered, gt, preds, metrics, dist, perceptual) if self.renders else {}
-        xlabel = display(dist, ctx.registry).label
+        reg = ctx.registry
+        fx, ux = self._in_units(results, dist, reg)
+        xlabel = display(dist, reg).label
         for label, d in results[CUTS].items():
             for e, s in ((e, s) for e, s in d["sweep"].items() if e in rendered):
                 for pm in perceptual[::-1]:
                     if pm not in s or dist not in s:
                         continue
-                    pts = {str(k): (s[dist][i], s[pm][i]) for i, k in enumerate(s["ks"])}
-                    p = scatter_pareto(pts, ctx.path("figures", f"pbs_k_{label}_{e}_{pm}.png"), xlabel,
-                                       pm.upper(), f"{e}: k sweep on validation (chosen k = {s['chosen']})")
-                    figures[f"{label} {e}: {dist.upper()} against {pm.upper()} for every k (figure 5.8)"] = p
+                    fy, uy = self._in_units(results, pm, reg)
+                    pts = {str(k): (s[dist][i] * fx, s[pm][i] * fy) for i, k in enumerate(s["ks"])}
+                    n = s.get("n_subjects")
+                    p = scatter_pareto(pts, ctx.path("figures", f"pbs_k_{label}_{e}_{pm}.png"),
+                                       f"{xlabel} (validation, {ux})", f"{display(pm, reg).label} (validation, {uy})",
+                                       f"{e}: {label}'s k sweep, points labelled by k"
+                                       + (f" ({n} validation subjects)" if n else " (validation)"),
+                                       highlight=str(s["chosen"]), highlight_label=f"chosen k = {s['chosen']}")
+                    figures[f"{label} {e}: {dist.upper()} against {pm.upper()} for every k, chosen k = "
+                            f"{s['chosen']} starred (figure 5.8)"] = p
         for e in rendered:
             r = results[PER_EXPRESSION][e]
             for pm in perceptual:
                 if pm not in names:
                     continue
-                pts = {x: (r[x][dist]["mean"], r[x][pm]["mean"]) for x in r if dist in r[x]}
-                p = scatter_pareto(pts, ctx.path("figures", f"methods_{e}_{pm}.png"), xlabel, pm.upper(),
-                                   f"{e}: methods on test")
+                fy, uy = self._in_units(results, pm, reg)
+                pts = {x: (r[x][dist]["mean"] * fx, r[x][pm]["mean"] * fy) for x in r if dist in r[x] and pm in r[x]}
+                p = scatter_pareto(pts, ctx.path("figures", f"methods_{e}_{pm}.png"), f"{xlabel} (test, {ux})",
+                                   f"{display(pm, reg).label} (test, {uy})", f"{e}: methods on test",
+                                   highlight=results.get("apply_model"), highlight_label="used by fwk apply")
                 figures[f"{e}: methods, {dist.upper()} against {pm.upper()} on test (figure 5.9)"] = p
         if self.renders:
-            figures.update(self._renders(ctx, template, rendered, gt, preds, metrics, dist, perceptual))
+            figures.update(self._renders(ctx, template, rendered, gt, preds, metrics, dist, perceptual, results))
         return figures
 
-    def _renders(self, ctx, template, expressions, gt, preds, metrics, dist, perceptual) -> dict:
+    def _renders(self, ctx, template, expressions, gt, preds, metrics, dist, perceptual, results=None) -> dict:
         """Test subjects: neutral, ground truth and every row's prediction with its error map of
-        the distance metric and of the first perceptual one (figures 5.4-5.6)."""
+        the distance metric and of the first perceptual one (figures 5.4-5.6), in the dataset's
+        units (the colour bar says which)."""
         by = {m.name: m for m in metrics}
         keys = [k for k in (dist, *perceptual[:1]) if k in by]
         figures = {}
@@ -510,14 +533,18 @@ class Blendshapes:
             labels = list(preds[e])
             maps = {r: evaluate(preds[e][r][:n], G[:n], template, [by[k] for k in keys]) for r in labels}
             for key in keys:
+                f, unit = self._in_units(results, key, ctx.registry) if results else (1.0, "evaluation space")
+                for r in labels:
+                    maps[r][key]["maps"] = maps[r][key]["maps"] * f
                 # shared limits: one poor method saturates instead of washing out everyone else's map
                 clim = colour_limits([maps[r][key]["maps"] for r in labels])
+                bar = f"{display(key, ctx.registry).label} ({unit})"
                 rows = []
                 for i in range(n):
                     row = [{"V": N[i], "label": f"neutral {i}"}, {"V": G[i], "label": "ground truth"}]
                     for r in labels:
                         row.append({"V": preds[e][r][i], "scalars": maps[r][key]["maps"][i], "clim": clim,
-                                    "label": r, "bar": key.upper(), "cmap": "viridis" if key == dist else "inferno"})
+                                    "label": r, "bar": bar, "cmap": "viridis" if key == dist else "inferno"})
                     rows.append(row)
                 try:
                     figures[f"{e}: test subjects with {key.upper()} error maps (figures 5.4-5.6)"] = render_grid(
