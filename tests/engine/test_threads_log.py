@@ -31,3 +31,15 @@ def test_thread_share_does_not_repeat_a_flipping_count(monkeypatch):
         share.on_train_epoch_start(None, None)
     assert said == ["threads: 1 (2 fwk processes on 2 cores)", "threads: 2 (1 fwk processes on 2 cores)"]
     assert torch.get_num_threads() == before
+
+
+def test_one_line_per_log_file_across_a_runs_contexts(tmp_path):
+    """A run's scoped and child contexts (one per model, an inline sub-run) share its log.txt:
+    fit says the count there once, not once per model."""
+    from fwk.engine.callbacks import report_threads
+    from fwk.runs import make_test_context
+
+    ctx = make_test_context(tmp_path)
+    for c in (ctx, ctx.scoped("a"), ctx.scoped("b"), ctx.child("sub")):
+        report_threads(c.log, 2, "1 fwk process on 2 cores", c.log_file)
+    assert ctx.log_file.read_text().count("threads: 2") == 1

@@ -109,12 +109,13 @@ class ManualSchedulers(pl.Callback):
 _threads_reported: dict = {}
 
 
-def report_threads(log, n: int, why: str) -> bool:
-    """Say ``threads: n (why)`` through ``log`` unless this count was said through it before:
-    a count that flips between two values as other fwk processes start and end (every epoch of
-    a long run beside a short one) is said once per value, not at every flip. Returns whether
-    it was said. ``log`` is a run context's ``log`` (bound methods of one context compare equal)."""
-    said = _threads_reported.setdefault(log, set())
+def report_threads(log, n: int, why: str, key=None) -> bool:
+    """Say ``threads: n (why)`` through ``log`` unless this count was said for ``key`` (the run's
+    log file; default ``log`` itself) before: a count that flips between two values as other fwk
+    processes start and end (every epoch of a long run beside a short one), or that every model
+    of a run finds again, is said once per value, not at every flip or fit. Returns whether it
+    was said."""
+    said = _threads_reported.setdefault(log if key is None else key, set())
     if n in said:
         return False
     said.add(n)
@@ -127,14 +128,15 @@ class ThreadShare(pl.Callback):
     cores shared among the live fwk processes, or the explicit ``FWK_THREADS`` /
     ``OMP_NUM_THREADS``); a count not said before is reported through ``log`` (``report_threads``)."""
 
-    def __init__(self, log=None):
+    def __init__(self, log=None, key=None):
         # not ``self.log``: Lightning sets a callback's ``log`` to the module's (callback_connector)
         self.report = log
+        self.key = key  # what report_threads says each count once for (the run's log file)
 
     def on_train_epoch_start(self, trainer, module):
         n, why, changed = apply_threads()
         if changed and self.report is not None:
-            report_threads(self.report, n, why)
+            report_threads(self.report, n, why, self.key)
 
 
 def stopping_rule(values, patience: int, min_delta: float, relative: bool = False) -> dict:

@@ -194,7 +194,7 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
                        f"({job['ckdir']}); the run's finished trainings differ from rank 0's")
     register()  # this process counts among those that share the cores (fwk.engine.threads)
     n, why, _ = apply_threads()
-    report_threads(ctx.log, n, why)  # once per run and count: not again at every flip
+    report_threads(ctx.log, n, why, ctx.log_file)  # once per log file and count: not at every flip or fit
     seed_everything(ctx.seed)
     train_loader = make_loader(train, config.batch_size, ctx.seed, True, config.num_workers)
     if train_loader is None:
@@ -225,7 +225,7 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
                                  save_on_train_epoch_end=True)
     show_bar = not ctx.quiet and sys.stderr.isatty()
     callbacks = [checkpoint, LearningRateMonitor("epoch"), RNGState(ctx.seed), ManualSchedulers(),
-                 ThreadShare(ctx.log), recorder]
+                 ThreadShare(ctx.log, ctx.log_file), recorder]
     if not ctx.quiet and not show_bar:  # a log file, a pipe: plain lines, a few seconds apart
         callbacks.append(ProgressLines(network, config.epochs))
     det = (torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled())
