@@ -425,3 +425,12 @@ def memo(namespace: str, key, build: Callable[[], Any], size: int = 64) -> Any:
         table.pop(next(iter(table)))
     table[key] = value
     return value
+
+
+def forget(namespace: str | None = None) -> None:
+    """Drop the values ``memo`` holds for ``namespace`` (every namespace when None): the next
+    ``memo`` builds again (from the disk cache where its ``build`` reads one)."""
+    if namespace is None:
+        _MEMOS.clear()
+    else:
+        _MEMOS.pop(namespace, None)

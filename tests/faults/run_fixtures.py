@@ -14,6 +14,7 @@ import pytest
 import torch
 import yaml
 
+from fwk.cache import forget
 from fwk.cli import main
 from tests.faults.common import PCA_RECIPE, TRAIN_RECIPE, assert_complete, fwk_run, models, recipe
 
@@ -88,6 +89,7 @@ def blendshapes_run(tmp_path_factory):
                            "dataset": {"name": "mesh-folder", "root": str(root)},
                            "split": {"ratios": [0.5, 0.17, 0.33]}, "models": {"dt": {"name": "dt", "sources": 0}},
                            "renders": 0, "metrics": ["l1", "l2"]})
+    forget("obj-topology")  # parsed in this process before (another module's fixture): read it from disk again
     d, _ = _finished(tmp_path_factory, text, "bs")
     assert list((d.parents[1] / "cache").rglob("*.bin")), "no pickled cache entry to plant in"
     return d, base / "me.obj"
