@@ -394,11 +394,13 @@ def _edit(ctx, env: Env, p: "EditSettings") -> tuple[dict, dict, list]:
     for b in bands:
         rows_src = [(f"{l} {b}", decoded[(l, b)]) for l in dsm_labels]
         rows_src += [(f"{l}", decoded[(l, None)]) for l in cmp_labels]
-        mags = [np.linalg.norm(out - base[None], axis=-1) for _, (out, base) in rows_src]
+        # each vertex's displacement by the edit, in the dataset's units (the preprocessing's scale undone)
+        mags = [np.linalg.norm(out - base[None], axis=-1) / float(env.pre.scale) for _, (out, base) in rows_src]
         clim = colour_limits(mags)  # one far larger change saturates; the others stay readable
+        bar = f"displacement by the edit ({env.template.units or 'input units'})"
         rows = []
         for (name, (out, _)), mag in zip(rows_src, mags):
-            rows.append([{"V": out[ai], "scalars": mag[ai], "clim": clim, "cmap": "magma", "bar": "|change|",
+            rows.append([{"V": out[ai], "scalars": mag[ai], "clim": clim, "cmap": "magma", "bar": bar,
                           "show_bar": ai == len(amounts) - 1, "label": f"{name}: {a:+g}" if ai == 0 else f"{a:+g}"}
                          for ai, a in enumerate(amounts)])
         f = _renders(ctx, rows, env.template, ctx.path("figures", f"edit_{b}.png"))
