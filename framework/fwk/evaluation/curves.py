@@ -116,6 +116,8 @@ def curves_figures(records: dict, path) -> list[Path]:
     """The validation (solid) and train (dashed) loss per epoch of every network, log scale,
     the best validation epoch ringed; ``NETWORKS_PER_FIGURE`` networks a figure (``path``,
     then ``<stem>-2.png``...)."""
+    from matplotlib.ticker import MaxNLocator
+
     from .plots import _plt, save_figure  # deferred: pyplot costs ~0.5 s of import time
 
     plt = _plt()
@@ -144,11 +146,12 @@ def curves_figures(records: dict, path) -> list[Path]:
             positive &= all(v > 0 for v in va + tr if _finite(v))
         if positive:
             ax.set_yscale("log")
-        ax.set_xlabel("epoch")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # whole epochs, never 1.2
+        ax.set_xlabel("epoch (count)")
         ax.set_ylabel("loss (each network's objective as logged, unitless)")
-        ax.set_title("Training curves: validation solid, train dashed, best validation epoch ringed", fontsize=9)
+        ax.set_title("Training curves: validation solid, train dashed, best validation epoch ringed", fontsize=10)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=8)
         fig.tight_layout()
         p = path if k == 0 else path.with_name(f"{path.stem}-{k // NETWORKS_PER_FIGURE + 1}{path.suffix}")
         out.append(save_figure(fig, p))
