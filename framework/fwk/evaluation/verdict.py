@@ -36,6 +36,11 @@ def _num(x: float) -> str:
     return f"{x:.3g}"
 
 
+def _pct(p: float) -> str:
+    """A percentage: whole numbers from 1 %, two significant digits below (``0.31%``)."""
+    return f"{p:.0f}%" if abs(p) >= 1 or p == 0 else f"{p:.2g}%"
+
+
 def _unit(units: str) -> str:
     """A value's unit as the verdict writes it after the number ("" for unitless)."""
     return "" if not units or units == "1" else f" {units}"
@@ -128,14 +133,14 @@ def verdict_lines(results: dict, registry: Registry | None = None) -> list[str]:
                     apart = _apart(b, r_)
                     spread = "" if apart is None else (", beyond the seeds' spread" if apart
                                                        else ", within the seeds' spread")
-                    text += f", {pct:.0f}% below the runner-up `{ru}`{spread}"
+                    text += f", {_pct(pct)} below the runner-up `{ru}`{spread}"
             else:
                 wins[best] = wins.get(best, 0) + 1
             parts.append(text)
             for h in highlight:
                 if h in have and h != best:
                     above = (have[h][0] / b[0] - 1) * 100 if b[0] else float("inf")
-                    ranks[h].append(f"{ordinal(order.index(h) + 1)} on {shown.label} (+{above:.0f}%)")
+                    ranks[h].append(f"{ordinal(order.index(h) + 1)} on {shown.label} (+{_pct(above)})")
                 elif h == best:
                     ranks[h].append(f"best on {shown.label}")
         if not parts:
