@@ -456,10 +456,24 @@ def role_members(role) -> list[str]:
     return names
 
 
+def missing_members(cls: type, role) -> list[str]:
+    """The members ``role`` declares that the class ``cls`` does not define, in the role's order
+    (what recipe validation names when a component does not play its role). This is the one place
+    where members are looked up by name."""
+    return [n for n in role_members(role) if not hasattr(cls, n)]  # justified: the role check on classes
+
+
 def plays(obj, role) -> bool:
     """Whether a component (instance or class) plays ``role``: ``isinstance`` for instances; for
     a class (before it is built, e.g. a recipe's Spec.cls), whether it defines every member the
-    role declares. This is the one place where members are looked up by name."""
+    role declares (``missing_members``)."""
     if isinstance(obj, type):
-        return all(hasattr(obj, n) for n in role_members(role))  # justified: the role check on classes
+        return not missing_members(obj, role)
     return isinstance(obj, role)
+
+
+#: The role every component of a kind plays: recipe validation refuses a component that does not
+#: define every member of it, naming the missing ones (``fwk.recipes.make_spec``), before any data
+#: loads. A parameter may ask for more (``Kind("model", BlendshapeModel)``).
+KIND_ROLES = {"dataset": Dataset, "representation": Representation, "sampler": Sampler, "conv": Conv,
+              "model": Model, "metric": Metric, "assembler": Assembler, "task": Task}

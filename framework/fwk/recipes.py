@@ -24,6 +24,7 @@ import dataclasses
 import inspect
 import math
 import os
+import re
 import stat
 import types
 import typing
@@ -38,6 +39,7 @@ from .data.template import check_units
 from .engine.config import TrainConfig
 from .errors import RecipeError, quote
 from .plugins import get_registry
+from .protocols import KIND_ROLES, missing_members, role_members
 from .registry import Registry, did_you_mean
 
 #: the largest integer a recipe may give (a signed 64-bit integer's)
@@ -53,13 +55,16 @@ RESERVED = ("task", "extends", "name", "seed", "seeds", "train", "description", 
 
 
 class Kind:
-    """Annotation marker: ``Annotated[Spec, Kind("representation")]``."""
+    """Annotation marker: ``Annotated[Spec, Kind("representation")]``. ``role``: a role of
+    ``fwk.protocols`` the component must play beyond its kind's (``Kind("model",
+    BlendshapeModel)``), checked when the recipe is validated."""
 
-    def __init__(self, kind: str):
+    def __init__(self, kind: str, role: type | None = None):
         self.kind = kind
+        self.role = role
 
     def __repr__(self):
-        return f"Kind({self.kind!r})"
+        return f"Kind({self.kind!r}" + (f", {self.role.__name__})" if self.role is not None else ")")
 
 
 @dataclass
@@ -74,14 +79,42 @@ class Spec:
 
     def build(self, *args, **extra):
         """The component: its class called with ``args`` and the recipe's parameters updated by
-        ``extra``."""
+        ``extra``. A ``RecipeError`` its constructor raises names the full recipe path: ``k: ...``
+        from the conv of ``models.ae.network`` reads ``models.ae.network.conv.k: ...``; any other
+        exception carries a note naming the path."""
         if self.cls is None:
             raise RuntimeError(f"{self.path}: spec of {self.kind} {self.name!r} is not resolved")
-        return self.cls(*args, **{**self.params, **extra})
+        try:
+            return self.cls(*args, **{**self.params, **extra})
+        except RecipeError as exc:
+            if self.path:
+                exc.args = (with_key_path(str(exc), self.path),)
+            raise
+        except Exception as exc:  # a plugin's constructor may raise anything: say which component
+            if self.path:
+                exc.add_note(f"(raised while building {self.path}: {self.kind} {self.name!r})")
+            raise
 
     def to_dict(self) -> dict:
         """The recipe form: ``{name: ..., parameters...}``."""
         return {"name": self.name, **{k: to_plain(v) for k, v in self.params.items()}}
+
+
+_KEY = re.compile(r"[A-Za-z_][\w-]*(?:\[\d+\]|\.[\w+-]+)*")
+
+
+def with_key_path(message: str, path: str) -> str:
+    """``message`` (a RecipeError's) prefixed with the recipe path ``path`` it happened under:
+    ``k: must be >= 1`` becomes ``path.k: must be >= 1``; a message that names no key of its own
+    becomes ``path: message``; one that already starts with ``path`` is kept."""
+    if not path or message == path or message.startswith((f"{path}.", f"{path}:", f"{path}[")):
+        return message
+    head = message.split(":", 1)[0]
+    if ":" in message and _KEY.fullmatch(head):
+        if "." in head and head.split(".")[0] == path.split(".")[0]:
+            return message  # a full path already (another component's, under the same recipe key)
+        return f"{path}.{message}"
+    return f"{path}: {message}"
 
 
 def to_plain(v):
@@ -414,10 +447,24 @@ def _is_spec_mapping(value) -> bool:
     return isinstance(value, dict) and isinstance(value.get("name"), str)
 
 
-def make_spec(kind: str, value, path: str, registry: Registry | None = None) -> Spec:
+def check_role(kind: str, name: str, cls: type, path: str, role: type | None = None) -> None:
+    """A RecipeError naming ``path`` and the missing members when ``cls`` does not play its
+    kind's role (``fwk.protocols.KIND_ROLES``) or ``role``."""
+    for r in [KIND_ROLES.get(kind), role]:
+        missing = missing_members(cls, r) if r is not None else []
+        if missing:
+            family = getattr(cls, "task_family", None) if kind == "model" else None
+            what = f"{cls.__module__}.{cls.__qualname__}" + (f", a {family} model" if isinstance(family, str) else "")
+            raise RecipeError(f"{path}: {kind} {quote(name)} ({what}) does not play the {r.__name__} role: "
+                              f"it lacks {', '.join(missing)} (fwk.protocols.{r.__name__}: "
+                              f"{', '.join(role_members(r))})")
+
+
+def make_spec(kind: str, value, path: str, registry: Registry | None = None, role: type | None = None) -> Spec:
     """A validated Spec of ``kind`` from a name or a mapping with ``name`` (``path`` names the
-    recipe key in errors). A component built in Python rather than from a recipe normalises its
-    nested components with this (``registry`` defaults to the process-wide one)."""
+    recipe key in errors), its class checked to play the kind's role and ``role`` (``check_role``).
+    A component built in Python rather than from a recipe normalises its nested components with
+    this (``registry`` defaults to the process-wide one)."""
     if isinstance(value, Spec):
         return value
     registry = registry or get_registry()
@@ -431,6 +478,7 @@ def make_spec(kind: str, value, path: str, registry: Registry | None = None) -> 
     else:
         raise RecipeError(f"{path}: expected a {kind} name or a mapping with `name`, got {quote(value)}")
     cls = registry.get(kind, name, key_path=f"{path}.name" if isinstance(value, dict) else path)
+    check_role(kind, name, cls, path, role)
     params = validate_params(cls, params, path, registry, label=name)
     if kind == "dataset" and "units" in params:  # a dataset's `units` names its meshes' unit (Template.units)
         check_units(params["units"], f"{path}.units")
@@ -446,7 +494,7 @@ def convert(value, tp, path: str, registry: Registry):
         base, *meta = get_args(tp)
         kinds = [m for m in meta if isinstance(m, Kind)]
         if kinds:
-            kind = kinds[0].kind
+            kind, role = kinds[0].kind, kinds[0].role
             if value is None:
                 return None
             b_origin = get_origin(base)
@@ -456,12 +504,12 @@ def convert(value, tp, path: str, registry: Registry):
             if b_origin is dict:
                 if not isinstance(value, dict):
                     raise RecipeError(f"{path}: expected a mapping of label -> {kind}, got {quote(value)}")
-                return {k: make_spec(kind, v, f"{path}.{_key(k)}", registry) for k, v in value.items()}
+                return {k: make_spec(kind, v, f"{path}.{_key(k)}", registry, role) for k, v in value.items()}
             if b_origin in (list, tuple):
                 if not isinstance(value, (list, tuple)):
                     value = [value]
-                return [make_spec(kind, v, f"{path}[{i}]", registry) for i, v in enumerate(value)]
-            return make_spec(kind, value, path, registry)
+                return [make_spec(kind, v, f"{path}[{i}]", registry, role) for i, v in enumerate(value)]
+            return make_spec(kind, value, path, registry, role)
         return convert(value, base, path, registry)
     origin = get_origin(tp)
     if origin in (typing.Union, types.UnionType):

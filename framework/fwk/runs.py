@@ -17,8 +17,9 @@ A run directory is complete, or says why not:
   ``fwk.lifecycle.open_run`` refuse a run that is not complete.
 
 A user's mistake found while validating writes no run directory; one found while running (a
-bad mesh file, say) removes the directory this invocation created, unless it already holds a
-trained model or a checkpoint (then it is marked ``FAILED`` and ``--resume`` continues it).
+bad mesh file, say) removes the directory this invocation created, and its one-line message says
+so, unless it already holds a trained model or a checkpoint (then it is marked ``FAILED`` and
+the message gives the ``--resume`` command that continues it).
 """
 from __future__ import annotations
 
@@ -545,6 +546,8 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
         if isinstance(exc, FwkError) and created and not _worth_keeping(run_dir):
             lock.release()
             shutil.rmtree(run_dir, ignore_errors=True)
+            # the log printed the directory's name: say it is gone, and why nothing is kept
+            _append(exc, f"; nothing was trained yet, so no run directory is left ({run_dir.name} removed)")
             raise
         _write_failed(run_dir, exc)
         lock.release()

@@ -218,3 +218,128 @@ def test_an_unannotated_constructor_parameter_is_refused_at_registration():
     (b,) = reg.broken
     assert b.plugin == "my_loose"
     assert b.error.startswith("metric 'loose-test' not registered: constructor parameter workers has no annotation"), b
+
+
+# ----------------------------------------------------------------------------- roles and constructor errors in a run
+
+class PickyConv(Narrow):
+    """A conv whose constructor refuses a parameter (as a plugin should: a RecipeError naming it)."""
+
+    name = "picky-test"
+
+    def __init__(self, in_channels: int, out_channels: int, hierarchy=None, level: int = 0, k: int = 0):
+        from fwk.errors import RecipeError
+
+        if k < 1:
+            raise RecipeError(f"k: at least 1, got {k}")
+        super().__init__(in_channels, out_channels, hierarchy, level, short=0)
+
+
+class HalfModel:
+    """A reconstruction model that forgot load_state_dict (and reconstruct)."""
+
+    name = "half-test"
+    task_family = "reconstruct"
+
+    def __init__(self, latent: int = 4):
+        self.latent = latent
+
+    def fit(self, data, ctx) -> None:
+        raise AssertionError("never reached")
+
+    def state_dict(self) -> dict:
+        return {}
+
+
+@pytest.fixture
+def run_env(tmp_path, monkeypatch):
+    """A registry with the built-ins and this module's test plugin; the cache and runs in tmp."""
+    from fwk.hookspecs import hookimpl
+    from fwk.plugins import registry_from
+
+    mine = _module("my_checks_plugin", fwk_register_convs=hookimpl(lambda: [PickyConv]),
+                   fwk_register_models=hookimpl(lambda: [HalfModel]))
+    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("FWK_THREADS", "1")
+    reg = registry_from(mine, load_entrypoints=True)
+    assert not reg.broken, reg.broken
+    return reg
+
+
+def _recipe(tmp_path, models: str, task: str = "reconstruct") -> str:
+    p = tmp_path / "r.yaml"
+    p.write_text(f"task: {task}\nseed: 0\ndataset: {{name: synthetic-heads, n_vertices: 300, n_subjects: 12}}\n"
+                 f"train: {{epochs: 1, batch_size: 8}}\nmodels: {models}\nrenders: 0\n")
+    return str(p)
+
+
+def _no_data(monkeypatch, reg):
+    """Make any dataset load fail the test: the check must come first."""
+    cls = reg.get("dataset", "synthetic-heads")
+    monkeypatch.setattr(cls, "load", lambda self, cache=None: pytest.fail("the dataset was loaded"))
+
+
+def test_a_model_missing_role_members_is_refused_before_data_loads(tmp_path, monkeypatch, run_env):
+    from fwk.errors import RecipeError
+    from fwk.runs import execute
+
+    _no_data(monkeypatch, run_env)
+    with pytest.raises(RecipeError) as e:
+        execute(_recipe(tmp_path, "{half: {name: half-test}}"), runs_dir=str(tmp_path / "runs"), quiet=True,
+                registry=run_env)
+    msg = str(e.value)
+    assert msg.startswith("models.half: model 'half-test' (tests.core.test_plugin_checks.HalfModel, a reconstruct "
+                          "model) does not play the Model role: it lacks load_state_dict ("), msg
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())
+
+
+def test_a_task_asks_for_its_family_role_before_data_loads(tmp_path, monkeypatch, run_env):
+    """The blendshapes task's models play BlendshapeModel (``Kind("model", BlendshapeModel)``): a
+    reconstruction model there is refused while the recipe is validated, naming what it lacks."""
+    from fwk.errors import RecipeError
+    from fwk.runs import execute
+
+    _no_data(monkeypatch, run_env)
+    with pytest.raises(RecipeError, match=r"^models\.p: model 'pca' \(.*, a reconstruct model\) does not play the "
+                                          r"BlendshapeModel role: it lacks expressions, predict, predict_all"):
+        execute(_recipe(tmp_path, "{p: {name: pca}}", task="blendshapes"),  # name-ok: a model of the other family
+                runs_dir=str(tmp_path / "runs"), quiet=True, registry=run_env)
+
+
+def test_a_plugin_constructor_error_names_the_full_path_and_what_is_left(tmp_path, run_env):
+    """The conv is built when its network is (after the data loaded): its RecipeError names
+    ``models.<label>.conv.k`` and says that no run directory is left."""
+    from fwk.errors import RecipeError
+    from fwk.runs import execute
+
+    runs = tmp_path / "runs"
+    with pytest.raises(RecipeError) as e:
+        execute(_recipe(tmp_path, "{ae: {name: ae, channels: [8], latent: 4, conv: {name: picky-test}, "
+                                  "sampler: {name: simple, levels: 1}}}"), runs_dir=str(runs), quiet=True,
+                registry=run_env)
+    msg = str(e.value)
+    assert "\n" not in msg
+    assert msg.startswith("models.ae.conv.k: at least 1, got 0"), msg
+    assert "no run directory is left" in msg, msg
+    assert list(runs.iterdir()) == []
+
+
+def test_a_borrowed_networks_conv_error_names_network_conv(tmp_path, run_env):
+    """dsm borrows its networks (``network:``): the conv's error reads ``models.d.network.conv.k``."""
+    from fwk.errors import RecipeError
+    from fwk.runs import execute
+
+    with pytest.raises(RecipeError) as e:
+        execute(_recipe(tmp_path, "{d: {name: dsm, k: 20, network: {name: vae, channels: [8], latent: 4, "
+                                  "conv: {name: picky-test}, sampler: {name: simple, levels: 1}}}}"),
+                runs_dir=str(tmp_path / "runs"), quiet=True, registry=run_env)
+    assert str(e.value).startswith("models.d.network.conv.k: at least 1, got 0"), str(e.value)
+
+
+def test_with_key_path():
+    from fwk.recipes import with_key_path
+
+    assert with_key_path("k: at least 1", "models.ae.network.conv") == "models.ae.network.conv.k: at least 1"
+    assert with_key_path("needs triangles", "models.ae.conv") == "models.ae.conv: needs triangles"
+    assert with_key_path("models.ae.conv.k: x", "models.ae") == "models.ae.conv.k: x"
+    assert with_key_path("models.ae.x: y", "models.ae.conv") == "models.ae.x: y"

@@ -71,7 +71,7 @@ class Blendshapes:
     def __init__(
         self,
         dataset: Annotated[Spec, Kind("dataset")] = "synthetic-heads",
-        models: Annotated[dict[str, Spec], Kind("model")] | None = None,
+        models: Annotated[dict[str, Spec], Kind("model", BlendshapeModel)] | None = None,
         expressions: list[str] | None = None,
         split: SplitConfig | None = None,
         preprocess: PreprocessConfig | None = None,

@@ -27,7 +27,7 @@ from fwk.evaluation import default_metrics
 from fwk.evaluation.report import standard_scatters
 from fwk.hookspecs import hookimpl
 from fwk.lifecycle import build_models, fit_or_resume
-from fwk.protocols import RECONSTRUCT, FitData
+from fwk.protocols import RECONSTRUCT, FitData, ReconstructionModel
 from fwk.recipes import Kind, Spec
 
 SPLITS = ("train", "val", "test")
@@ -41,7 +41,7 @@ class Reconstruct:
     def __init__(
         self,
         dataset: Annotated[Spec, Kind("dataset")] = "synthetic-heads",
-        models: Annotated[dict[str, Spec], Kind("model")] | None = None,
+        models: Annotated[dict[str, Spec], Kind("model", ReconstructionModel)] | None = None,
         split: SplitConfig | None = None,
         preprocess: PreprocessConfig | None = None,
         shapes: list[str] | None = None,
