@@ -54,6 +54,30 @@ def test_report_has_the_thesis_tables_and_figures(run):
     assert (run / "models" / "pbs.safetensors").exists() and (run / "stats" / "preprocess.npz").exists()
 
 
+def test_report_opens_with_the_verdict_and_the_legend(run):
+    """Issue 30: the first 10 lines say which model wins on which metric by how much, per
+    expression (one seed); the legend explains every label; per-expression tables come before the
+    pooled one; one PBS-against-DT table; log.txt says each thread count once."""
+    report = (run / "report.md").read_text()
+    lines = report.splitlines()
+    head = "\n".join(lines[:10])
+    assert "**Verdict** (test, " in head and "one seed" in head and "lower is better" in head
+    for e in ("mouth-wide", "face-compression"):
+        line = next(ln for ln in lines[:10] if ln.startswith(f"- **{e}**: "))
+        assert all(f"{m} `" in line for m in ("L1 norm", "DAME", "FMPD")) and " cm" in line and " rad" in line
+        assert "below the runner-up" in line or "tied with" in line
+        assert "`pbs`: " in line  # the model fwk apply uses: its rank on every metric
+    models = report.split("## Models\n")[1].split("\n## ")[0]
+    for label in ("dt", "pbs", "pbs:pb-euclidean-std", "pbs:pb-dr-norm"):
+        assert f"| `{label}` | " in models
+    assert "from training subject 0 as the source" in models and "network alone" in models
+    assert report.index("## Per expression (layout") < report.index("## Results pooled over the expressions")
+    assert report.index("## Per expression: PBS against DT") < report.index("## Results pooled over the expressions")
+    assert report.count("| expression | k |") == 1
+    said = [ln.split(" (")[0] for ln in (run / "log.txt").read_text().splitlines() if ln.startswith("threads: ")]
+    assert len(said) == len(set(said)) >= 1
+
+
 def test_apply_with_the_trained_pbs(run, tmp_path):
     from fwk.apply import Applier, apply
     from fwk.data.io import read_obj, write_obj

@@ -138,7 +138,8 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
                  "Columns show the mean divided by the factor in the header (×1e-3 means the number is in thousandths).\n")
     if results.get("legend"):
         parts.append("## Models\n\n" + legend_table(results["legend"]) + "\n")
-    for head, text in lead_sections or []:
+    # a task's per-key tables, and over seeds the comparisons and per-section tables, before any pooled one
+    for head, text in [*(lead_sections or []), *(seeds_sections(results, registry) if results.get("seeds") else [])]:
         parts.append(f"## {head}\n\n{text}\n")
     if results.get("models"):
         parts.append(f"## {results_title}\n")
@@ -149,7 +150,7 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
         parts.append("\n## Time (seconds)\n\n" + markdown_table(rows, cols))
     if results.get("training", {}).get("networks"):
         parts.append("\n## Training\n\n" + training_section(results["training"]))
-    for head, text in [*(seeds_sections(results, registry) if results.get("seeds") else []), *(sections or [])]:
+    for head, text in sections or []:
         parts.append(f"\n## {head}\n\n{text}")
     if figures:
         parts.append("\n## Figures\n")
