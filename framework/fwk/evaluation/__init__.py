@@ -35,8 +35,13 @@ metrics.json schema (every evaluating task writes it; ``fwk report`` reads it)::
      "training": {network: {"epochs", "ended_by", "best_val", "best_epoch", "plateau", ...}}}
                                                     # from curves/ (fwk.evaluation.curves); tasks may
                                                     # add more top-level keys
-     "comparisons": [{"a": key path, "b": key path, "metric", "about", "a_name", "b_name"}]}
+     "comparisons": [{"a": key path, "b": key path, "metric", "about", "a_name", "b_name"}],
                                                     # optional: the report's "A beats B" statements
+     "verdict": {"section", "split", "noun", "metrics", "highlight", "counted"},
+                                                    # optional: what the opening verdict judges
+                                                    # (fwk.evaluation.verdict; default: the test split)
+     "legend": {label: one line}}                   # optional: the report's "Models" table
+                                                    # (fwk.evaluation.legend)
 
 A run of several seeds (``seeds:``; ``fwk.seeds``, ``fwk.evaluation.seeds``) combines its seeds'
 metrics.json: each summary also has ``seed_sd``, ``seed_means`` ({seed: mean}), ``n_seeds`` (and
