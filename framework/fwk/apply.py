@@ -11,6 +11,10 @@ against the run's, centre it, register it rigidly to the mean neutral and scale 
 registration and scale, and write ``<expression>.obj`` with the neutral's polygons, ``vt`` and
 material lines, vertex order unchanged. A folder of neutrals gives one sub-folder per neutral.
 
+A run of a recipe with ``seeds:`` holds one trained model per seed, in ``seed-<s>/``: ``fwk apply
+RUN`` uses the first seed of ``seeds:`` and says so on stderr; ``--seed-run S`` (or ``RUN/seed-S``)
+picks seed S (``fwk.lifecycle.seed_sub_run``).
+
 ``--format`` (comma-separated) adds rig files beside the OBJs (``fwk.rig``): ``gltf`` writes
 ``<neutral>.glb`` (glTF 2.0 binary, one morph target per expression), ``usd`` ``<neutral>.usdc``
 (``usda`` for text; a UsdSkel rig, one BlendShape per expression). ``--naming arkit`` renames
@@ -44,6 +48,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -88,6 +93,9 @@ def add_apply_parser(subparsers):
     p.add_argument("--out", required=True, help="output folder (created; existing files of the same name are replaced)")
     p.add_argument("--model", default=None, help="model label of the run (default: the run's apply_model, else "
                    "the first model choosing its spectral cut, else the first)")
+    p.add_argument("--seed-run", type=int, default=None, metavar="S",
+                   help="of a run with seeds: the seed whose models to use (default: the first of its seeds; "
+                        "RUN/seed-S does the same)")
     p.add_argument("--expressions", nargs="*", default=None, help="only these expressions (default: all trained)")
     p.add_argument("--format", default="obj", help="comma-separated: obj (one OBJ per expression), gltf (.glb with "
                    "one morph target per expression), usd (.usdc UsdSkel rig; usda for text); default obj")
@@ -100,15 +108,21 @@ def add_apply_parser(subparsers):
     return p
 
 
+def _stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
 class Applier:
     """A run reopened for applying: ``predict(V_list) -> [{expression: (n, 3)}]`` in input units.
 
     The model is ``model`` (a label, ``--model``) when given, else the run's recorded
     ``apply_model``, else chosen by role: the first model choosing its spectral cut
-    (``fwk.protocols.CutSelectingModel``), else the first blendshape model."""
+    (``fwk.protocols.CutSelectingModel``), else the first blendshape model. A run with ``seeds:``
+    is applied with one seed's models: ``seed_run``, else its first seed (named through ``say``)."""
 
-    def __init__(self, run_dir, model: str | None = None, registry=None):
-        run = open_run(run_dir, registry)
+    def __init__(self, run_dir, model: str | None = None, registry=None, seed_run: int | None = None,
+                 say=_stderr):
+        run = open_run(run_dir, registry, seed_run=seed_run, say=say)
         label = model or run.metrics.get("apply_model") or run.params.get("apply_model")
         self.label = choose_model(run.specs, BlendshapeModel, label, prefer=CutSelectingModel,
                                   source=str(run.run_dir))
@@ -279,18 +293,21 @@ def parse_formats(text) -> list[str]:
 
 
 def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str] | None = None,
-          log=print, registry=None, formats="obj", naming: str = "source", units: str | float | None = None) -> list[Path]:
+          log=print, registry=None, formats="obj", naming: str = "source", units: str | float | None = None,
+          seed_run: int | None = None, say=_stderr) -> list[Path]:
     """Write the blendshapes of one neutral (``out/<expression>.obj``, ``out/<neutral>.glb``,
     ``out/<neutral>.usdc`` as ``formats`` asks) or of a folder of neutrals (the same in
     ``out/<stem>/``); returns the written files. ``units``: the neutrals' units or a factor into
-    the run's (``--units``; the outputs are written back in the neutrals' units)."""
+    the run's (``--units``; the outputs are written back in the neutrals' units). ``seed_run``:
+    of a run with ``seeds:``, the seed whose models to use (default its first, named by ``say``:
+    one line on stderr; None: silent)."""
     t0 = time.perf_counter()
     fmts = parse_formats(formats)
     if naming not in NAMINGS:
         raise FwkError(f"--naming {naming}: unknown naming (namings: {', '.join(NAMINGS)})")
     neutral, out = Path(neutral), Path(out)
     check_dir(out, "--out", min_free_mb=0)  # before any work (fwk.paths)
-    app = Applier(run_dir, model, registry)
+    app = Applier(run_dir, model, registry, seed_run=seed_run, say=say)
     k = app.factor(units)
     out_units = units.strip() if isinstance(units, str) and units.strip() in METRES else (
         app.units if units is None else next((u for u in METRES if app.units in METRES and
@@ -360,5 +377,6 @@ def run_apply(args) -> int:
     quiet = getattr(args, "quiet", False)
     apply(args.run_dir, args.neutral, args.out, getattr(args, "model", None), getattr(args, "expressions", None),
           log=(lambda *_: None) if quiet else print, formats=getattr(args, "format", "obj"),
-          naming=getattr(args, "naming", "source"), units=getattr(args, "units", None))
+          naming=getattr(args, "naming", "source"), units=getattr(args, "units", None),
+          seed_run=getattr(args, "seed_run", None), say=None if quiet else _stderr)
     return 0

@@ -1,4 +1,4 @@
-"""``fwk sample RUN_DIR --n N --out DIR [--seed S] [--model LABEL]``: new heads from a trained model.
+"""``fwk sample RUN_DIR --n N --out DIR [--seed S] [--model LABEL] [--seed-run S]``: new heads from a trained model.
 
 A finished ``reconstruct`` run (or an ``interpolate``/``edit`` run that trained inline: its
 ``reconstruct/`` sub-run is used) holds the trained models (``models/<label>.safetensors``) and the
@@ -8,12 +8,15 @@ The model is chosen by role: ``--model LABEL``, else the first model playing
 (``sample(n, seed)``: deterministic for a seed) and decodes; the meshes are taken back to the dataset's units
 (the preprocessing's uniform scale undone; they sit in the registered frame of the mean head)
 and written as ``sample_000.obj``, ... with the dataset's own polygons, UVs and material lines,
-vertex order unchanged, so they open in any DCC tool. The topology comes from the run's dataset
+vertex order unchanged, so they open in any DCC tool. A run of a recipe with ``seeds:`` holds one
+trained model per seed (``seed-<s>/``): the first seed of ``seeds:`` is used, said on stderr, unless
+``--seed-run S`` (or ``RUN/seed-S``) picks another (``fwk.lifecycle.seed_sub_run``). The topology comes from the run's dataset
 (rebuilt from its recipe); everything is written into a temporary folder and moved into place.
 """
 from __future__ import annotations
 
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
@@ -21,7 +24,7 @@ import numpy as np
 
 from .data.io import write_obj
 from .errors import FwkError
-from .lifecycle import choose_model, open_run
+from .lifecycle import choose_model, open_run, seed_sub_run
 from .paths import check_dir
 from .protocols import RECONSTRUCT, BandModel, GenerativeModel
 from .recipes import MAX_SEED
@@ -44,6 +47,9 @@ def add_sample_parser(subparsers):
                                                         "meshes)")
     p.add_argument("--model", default=None, help="model label of the run (default: the first band model, e.g. dsm, "
                                                  "else the first generative model)")
+    p.add_argument("--seed-run", type=int, default=None, metavar="S",
+                   help="of a run with seeds: the seed whose models to use (default: the first of its seeds; "
+                        "RUN/seed-S does the same)")
     return p
 
 
@@ -57,13 +63,21 @@ def _run_with_models(run_dir: Path) -> Path:
     raise FwkError(f"{run_dir}: no trained models (no models/ folder); is it a finished reconstruct run?")
 
 
-def sample_meshes(run_dir, n: int, seed: int = 0, model: str | None = None, registry=None):
-    """(label, meshes (n, v, 3) in the dataset's units, template with the user's polygons)."""
+def _stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def sample_meshes(run_dir, n: int, seed: int = 0, model: str | None = None, registry=None,
+                  seed_run: int | None = None, say=_stderr):
+    """(label, meshes (n, v, 3) in the dataset's units, template with the user's polygons).
+    ``seed_run``: of a run with ``seeds:``, the seed whose models to use (default its first,
+    named by ``say``: one line on stderr; None: silent)."""
     if not 1 <= n <= MAX_SAMPLES:
         raise FwkError(f"--n {n}: from 1 to {MAX_SAMPLES:,}")
     if not 0 <= seed <= MAX_SEED:
         raise FwkError(f"--seed {seed}: out of range (0 to {MAX_SEED})")
-    run = open_run(_run_with_models(Path(run_dir)), registry)
+    run_dir = seed_sub_run(run_dir, seed_run, registry, say=say)  # a run with seeds: one seed's sub-run
+    run = open_run(_run_with_models(run_dir), registry)
     label = choose_model(run.specs, GenerativeModel, model, prefer=BandModel, source=str(run.run_dir))
     m = run.model(label)
     pre = run.preprocessor
@@ -80,7 +94,9 @@ def sample_meshes(run_dir, n: int, seed: int = 0, model: str | None = None, regi
 def run_sample(args) -> int:
     """``fwk sample``: write the sampled meshes as OBJ files into ``--out`` (replaced atomically per file)."""
     check_dir(args.out, "--out")  # before the run is loaded: a bad destination fails in one line, at once
-    label, P, template = sample_meshes(args.run_dir, args.n, args.seed, args.model)
+    label, P, template = sample_meshes(args.run_dir, args.n, args.seed, args.model,
+                                       seed_run=getattr(args, "seed_run", None),
+                                       say=None if getattr(args, "quiet", False) else _stderr)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".fwk-sample-", dir=out.parent))

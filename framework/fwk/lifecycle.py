@@ -7,7 +7,7 @@ Inside a run (tasks)::
 
 Reopening a finished run (``fwk apply``, ``fwk sample``, the ``edit``/``interpolate`` tasks)::
 
-    run = open_run(run_dir)                                  # recipe, context, preprocessing, models' specs
+    run = open_run(run_dir, seed_run=None)                   # recipe, context, preprocessing, models' specs
     label = choose_model(run.specs, role, label, prefer)     # by --model LABEL, else by role
     model = run.model(label)                                 # built and loaded with the run's context
 
@@ -18,22 +18,32 @@ always receives the run's context (``ctx``), which lends the cache to graph hier
 of an earlier version (pickled ``models/<label>.pt``) is refused with the command that converts it
 (``fwk convert RUN --trust``); a damaged, swapped or malformed run file is refused in one line
 naming it.
+
+A run of a recipe with ``seeds:`` keeps its models in one sub-run per seed (``seed-<s>/``,
+``fwk.seeds``): ``open_run`` (through ``seed_sub_run``) opens one seed's sub-run, ``seed_run`` when
+given (``--seed-run S``), else the first seed of ``seeds:``, and says which in one line. A seed's
+sub-run, chosen so or given as ``RUN/seed-S``, must be finished (its ``metrics.json`` written, no
+``FAILED``) and hold the member recipe of the run's ``recipe.yaml`` (itself checked against the
+SHA-256 recorded when the run started); the run itself may still be running or have failed on
+another seed. Every ``recipe.yaml`` is read with ``fwk.recipes.read_recipe_file`` (a key given
+twice, an alias bomb: one line naming the file).
 """
 from __future__ import annotations
 
+import re
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
-
 from .data.preprocess import Preprocessor
 from .errors import DataError, FwkError, RecipeError
 from .protocols import FAMILIES, ChecksData, Model
-from .recipes import Spec, resolve
+from .recipes import Spec, parse_seeds, read_recipe_file, resolve
 from .registry import Registry
 from .runs import RunContext, check_recipe_hash, require_complete
 from .safeio import LEGACY_SUFFIX, SUFFIX, legacy_error, load_json, load_npz, load_state, save_state
+from .seeds import FAILED, SEED_DIR, member_recipe, plain_recipe, seed_finished, takes_split
 
 
 def state_path(run_dir: Path, label: str) -> Path:
@@ -207,25 +217,117 @@ class OpenedRun:
         return m
 
 
-def open_run(run_dir, registry: Registry | None = None, quiet: bool = True, task: str | None = None) -> OpenedRun:
-    """Reopen a finished run directory (its ``recipe.yaml`` validated against today's registry);
-    ``task`` (optional) is the task it must be a run of. A run that failed, was killed or is
-    still running (``fwk.runs.run_state``) is refused with the command that continues it."""
-    from .plugins import get_registry
-
+def read_run_recipe(run_dir) -> dict:
+    """A run's ``recipe.yaml`` as a mapping, read with every check of
+    ``fwk.recipes.read_recipe_file`` (UTF-8, size, a key given twice, alias bombs): one line naming
+    the file when it fails."""
     run_dir = Path(run_dir)
     if not (run_dir / "recipe.yaml").exists():
         raise FwkError(f"{run_dir}: not a run directory (no recipe.yaml)")
+    return read_recipe_file(run_dir / "recipe.yaml", "run recipe")
+
+
+_SEED_FOLDER = re.compile(r"seed-(\d+)")
+
+
+def _run_seeds(run_dir: Path, data: dict, registry: Registry) -> list[int] | None:
+    """The seeds of a run whose recipe has ``seeds:`` and whose task runs them as ``seed-<s>/``
+    sub-runs (``fwk.seeds``); None for a run of one seed or a task fanning seeds out itself."""
+    if data.get("seeds") is None:
+        return None
+    try:
+        seeds = parse_seeds(data.get("seeds"))
+        cls = registry.get("task", data.get("task"), key_path="task") if isinstance(data.get("task"), str) else None
+    except RecipeError as exc:
+        raise FwkError(f"{run_dir}/recipe.yaml no longer validates: {exc}") from None
+    if cls is not None and getattr(cls, "fans_out_seeds", False):  # a grid: <member>/seed-<s>/
+        return None
+    return seeds
+
+
+def _check_seed(run_dir: Path, data: dict, seed: int, registry: Registry) -> Path:
+    """``run_dir/seed-<seed>``, checked: finished, and holding the member recipe of ``data`` (the
+    run's recipe, its SHA-256 checked first)."""
+    sub = run_dir / SEED_DIR.format(seed)
+    if not sub.is_dir():
+        raise FwkError(f"{sub}: missing; seed {seed} of {run_dir} was not run (continue it with "
+                       f"fwk run --resume {run_dir})")
+    if not seed_finished(sub):
+        if (sub / FAILED).exists():
+            why = ((sub / FAILED).read_text(errors="replace").splitlines() or ["see FAILED"])[0]
+            raise FwkError(f"{sub}: seed {seed} failed ({why[:160]}); continue it with fwk run --resume {run_dir}")
+        raise FwkError(f"{sub}: seed {seed} did not finish (no metrics.json); continue it with "
+                       f"fwk run --resume {run_dir}")
+    check_recipe_hash(run_dir)  # the run's recipe.yaml as the run started: the seeds' recipes follow from it
+    try:
+        with_split = takes_split(registry.get("task", data.get("task"), key_path="task"))
+    except RecipeError as exc:
+        raise FwkError(f"{run_dir}/recipe.yaml no longer validates: {exc}") from None
+    source = data.get("source")
+    member = member_recipe({k: v for k, v in data.items() if k != "_source"}, seed, with_split)
+    want = plain_recipe({**member, "_source": source} if source else member)
+    if read_run_recipe(sub) != want:
+        raise DataError(f"{sub / 'recipe.yaml'}: not the recipe of seed {seed} of {run_dir}/recipe.yaml "
+                        f"(edited after the run)")
+    return sub
+
+
+def _say(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def seed_sub_run(run_dir, seed_run: int | None = None, registry: Registry | None = None, say=_say,
+                 choose: str = "--seed-run S or {run}/seed-S") -> Path:
+    """The folder to reopen for ``run_dir``: ``run_dir`` itself, or, for a run with ``seeds:``
+    (``fwk.seeds``), one seed's sub-run: ``seed-<seed_run>/``, else the first seed of ``seeds:``,
+    which ``say`` (stderr by default; None: silent) names in one line, with ``choose`` (how to pick
+    another). A seed's sub-run must be finished and hold its member recipe (``_check_seed``), given
+    as ``RUN/seed-S`` too; ``seed_run`` on a run of one seed, or not one of its seeds, is refused."""
+    from .plugins import get_registry
+
+    run_dir = Path(run_dir)
+    data = read_run_recipe(run_dir)
+    registry = registry or get_registry()
+    seeds = _run_seeds(run_dir, data, registry)
+    if seeds is None:
+        m = _SEED_FOLDER.fullmatch(run_dir.name)
+        parent = run_dir.parent
+        if m and (parent / "recipe.yaml").exists():  # RUN/seed-S: a seed of a run with seeds:
+            top = read_run_recipe(parent)
+            top_seeds = _run_seeds(parent, top, registry)
+            if top_seeds is not None and int(m.group(1)) in top_seeds:
+                if seed_run is not None and seed_run != int(m.group(1)):
+                    raise FwkError(f"--seed-run {seed_run}: {run_dir} is the sub-run of seed {m.group(1)}; "
+                                   f"give {parent} --seed-run {seed_run}, or {parent / SEED_DIR.format(seed_run)}")
+                return _check_seed(parent, top, int(m.group(1)), registry)
+        if seed_run is not None:
+            raise FwkError(f"--seed-run {seed_run}: {run_dir} is a run of one seed (its recipe has no seeds:)")
+        return run_dir
+    if seed_run is None:
+        seed_run = seeds[0]
+        if say is not None:
+            hint = choose.format(run=run_dir)
+            say(f"{run_dir} has seeds {', '.join(map(str, seeds))}: using {SEED_DIR.format(seed_run)} "
+                f"(choose with {hint})")
+    elif seed_run not in seeds:
+        raise FwkError(f"--seed-run {seed_run}: not a seed of {run_dir} (its seeds: {', '.join(map(str, seeds))})")
+    return _check_seed(run_dir, data, int(seed_run), registry)
+
+
+def open_run(run_dir, registry: Registry | None = None, quiet: bool = True, task: str | None = None,
+             seed_run: int | None = None, say=_say, choose: str = "--seed-run S or {run}/seed-S") -> OpenedRun:
+    """Reopen a finished run directory (its ``recipe.yaml`` validated against today's registry);
+    ``task`` (optional) is the task it must be a run of. A run that failed, was killed or is
+    still running (``fwk.runs.run_state``) is refused with the command that continues it. A run
+    with ``seeds:`` opens one seed's sub-run (``seed_sub_run``: ``seed_run``, else its first
+    seed, said through ``say``)."""
+    from .plugins import get_registry
+
+    registry = registry or get_registry()
+    run_dir = seed_sub_run(run_dir, seed_run, registry, say=say, choose=choose)
     require_complete(run_dir)  # a failed, killed or running run's files are not used
     check_recipe_hash(run_dir)  # recipe.yaml as the run was trained with, not edited since
-    registry = registry or get_registry()
-    try:
-        data = yaml.safe_load((run_dir / "recipe.yaml").read_bytes().decode("utf-8"))
-    except (UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise DataError(f"{run_dir / 'recipe.yaml'}: not a readable recipe ({' '.join(str(exc).split())[:160]})") \
-            from None
-    if not isinstance(data, dict):
-        raise DataError(f"{run_dir / 'recipe.yaml'}: not a recipe (a YAML mapping)")
+    data = read_run_recipe(run_dir)
     try:
         resolved = resolve(data, registry)
     except RecipeError as exc:

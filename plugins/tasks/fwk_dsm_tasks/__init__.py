@@ -4,7 +4,8 @@ Where the models come from (both tasks):
 
 * ``run: PATH`` names a finished ``reconstruct`` run (its ``models/<label>.safetensors``, ``split.json``
   and ``stats/preprocess.npz``; reopened with ``fwk.lifecycle.open_run``; the dataset is rebuilt
-  from that run's recipe to get the topology with the user's polygons and UVs);
+  from that run's recipe to get the topology with the user's polygons and UVs); of a run with
+  ``seeds:`` the first seed's sub-run is used (the log says so), ``run: PATH/seed-S`` picks seed S;
 * otherwise the task trains inline: the recipe's ``dataset``, ``split``, ``preprocess``,
   ``models``, ``metrics``, ``renders`` and ``train`` form a ``reconstruct`` recipe that runs as a
   sub-run in ``<run>/reconstruct/`` (its own report, metrics and saved models; a later recipe
@@ -125,9 +126,11 @@ class Env:
 
 
 def load_models(run_dir, ctx=None, registry=None) -> Env:
-    """Reopen a finished reconstruct run (``fwk.lifecycle.open_run``) with its trained models."""
-    run_dir = Path(run_dir)
-    run = open_run(run_dir, registry, task=RECONSTRUCT)
+    """Reopen a finished reconstruct run (``fwk.lifecycle.open_run``) with its trained models; of a
+    run with ``seeds:``, its first seed's sub-run (logged), or the ``seed-<s>/`` given."""
+    say = ctx.log if ctx is not None else None
+    run = open_run(Path(run_dir), registry, task=RECONSTRUCT, say=say, choose="run: {run}/seed-S")
+    run_dir = run.run_dir  # a seed's sub-run of a run with seeds
     for p in (run_dir / "split.json", run_dir / "stats" / "preprocess.npz"):
         if not p.exists():
             raise FwkError(f"run: {p} is missing; is {run_dir} a finished reconstruct run?")
