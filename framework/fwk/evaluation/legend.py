@@ -33,12 +33,12 @@ def first_line(cls) -> str:
 
 
 def _value(v, depth: int = 0) -> str:
-    """A recipe value in a few words: a nested component by its name (a nested model with its own
-    scalar parameters: an ``anchor: {name: dt, sources: 0}`` reads ``dt (sources: 0)``), lists as
-    ``[a, b]``; long values shortened."""
+    """A recipe value in a few words: a nested component by its name with its own plain
+    parameters where they are short (``anchor: {name: dt, sources: 0}`` reads ``dt (sources: 0)``,
+    a representation ``euclidean (scaling: std)``), lists as ``[a, b]``; long values shortened."""
     if isinstance(v, Spec):
-        inner = params_note(v, depth + 1) if v.kind == "model" and depth == 0 else ""
-        text = f"{v.name} ({inner})" if inner else v.name
+        inner = params_note(v, depth + 1) if depth == 0 else ""
+        text = f"{v.name} ({inner})" if inner and len(inner) <= MAX_VALUE else v.name  # a long one: its name
     elif isinstance(v, dict):
         text = str(v["name"]) if "name" in v else "{...}"
     elif isinstance(v, (list, tuple)):

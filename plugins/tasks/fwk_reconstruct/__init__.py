@@ -24,6 +24,7 @@ from fwk.data.preprocess import PreprocessConfig, split_and_preprocess
 from fwk.data.split import SplitConfig
 from fwk.errors import RecipeError
 from fwk.evaluation import default_metrics
+from fwk.evaluation.legend import model_legend
 from fwk.evaluation.report import standard_scatters
 from fwk.hookspecs import hookimpl
 from fwk.lifecycle import build_models, fit_or_resume
@@ -79,7 +80,10 @@ class Reconstruct:
                          "units": col.units, "scale": float(pre.scale), "subjects": {k: len(v) for k, v in split.items()}}}
         predictions = {}
         scores: dict = {"models": {}}  # per-subject test scores (fwk.evaluation.seeds' paired tests)
-        for label, model in build_models(self.models, RECONSTRUCT, ctx, data).items():  # all checked first
+        built = build_models(self.models, RECONSTRUCT, ctx, data)  # all checked first
+        # the report's legend: what each label is, as the model describes itself (fwk.evaluation.legend)
+        results["legend"] = model_legend(self.models, built)
+        for label, model in built.items():
             fit_s = fit_or_resume(model, label, data, ctx)
             results["models"][label] = {}
             predictions[label] = {}
