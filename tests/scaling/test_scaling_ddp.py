@@ -1,7 +1,7 @@
 """DDP on 2 CPU processes (gloo) through ``fwk run``, against 1 device; resume under DDP.
 
 Each test runs ``fwk run`` as a subprocess (the real entry point: fwk's launcher starts rank 1
-as ``python -m fwk.engine.distributed``, which must not happen inside pytest's process). Marked
+as ``python -m fwk.rank``, which must not happen inside pytest's process). Marked
 slow: about 15 s per run on 2 cores.
 
 Tolerances. The autoencoder of ``grid_base.yaml`` draws no noise: 2 ranks x 8 samples average
