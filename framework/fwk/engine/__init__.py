@@ -35,7 +35,7 @@ Modules:
 * ``trainer``: ``fit``, ``seed_everything``, ``make_optimizer``, ``predict_batches``;
 * ``callbacks``: ``RNGState``, ``ManualSchedulers``, ``ThreadShare``, ``TrainingCurves``,
   ``ProgressLines`` (the Lightning callbacks ``fit`` adds);
-* ``distributed``: DDP with fwk's launcher (ranks started as ``python -m fwk.engine.distributed``);
+* ``distributed``: DDP with fwk's launcher (ranks started as ``python -m fwk.rank``, above ``fwk.runs``);
 * ``modules``: ``LossModule``, ``AutoencoderModule`` (the LightningModules of the built-in models);
 * ``factories``: ``loss_module``, ``autoencoder_module`` (their call forms for plugins);
 * ``variational``: ``kl_divergence``, ``reparameterize``.
