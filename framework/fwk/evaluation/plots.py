@@ -60,16 +60,23 @@ def save_figure(fig, path, **savefig) -> Path:
     return path
 
 
-def place_labels(ax, points, labels, first=(), fontsize: float = LABEL_PT, markers=None, avoid=()) -> list:
+def _hits(box, rects: np.ndarray) -> bool:
+    """Whether the display-space ``box`` overlaps any of ``rects`` ((m, 4): x0, y0, x1, y1)."""
+    if not len(rects):
+        return False
+    return bool(np.any((rects[:, 0] < box.x1) & (rects[:, 2] > box.x0) & (rects[:, 1] < box.y1) & (rects[:, 3] > box.y0)))
+
+
+def place_labels(ax, points, labels, first=(), fontsize: float = LABEL_PT, markers=None, avoid=(), lines=()) -> list:
     """Annotate ``points`` (k, 2, data coordinates) with ``labels`` without overprinting: the
     points ``first`` (indices) are labelled first, then the others in order; each label takes
-    the first place around its point (eight directions, three distances) where it overlaps no
-    earlier label, no point's marker (``markers``: each point's marker radius in pixels, default
-    5) and nothing of ``avoid`` (display-space boxes, e.g. the legend's), and stays inside the
-    axes; a label that fits nowhere is left out. Returns the placed matplotlib Text objects (a
-    label left out has none)."""
+    the first place around its point (eight directions, growing distances; beyond the nearest a
+    thin leader line ties it to its point) where it overlaps no earlier label, no point's marker
+    (``markers``: each point's marker radius in pixels, default 5), no drawn line (``lines``:
+    polylines in data coordinates, e.g. the Pareto front) and nothing of ``avoid`` (display-space
+    boxes, e.g. the legend's), and stays inside the axes; a label that fits nowhere is left out.
+    Returns the placed matplotlib Text objects (a label left out has none)."""
     from matplotlib.text import Text
-    from matplotlib.transforms import Bbox
 
     fig = ax.figure
     fig.canvas.draw()  # the limits and layout the labels are placed in
@@ -77,12 +84,20 @@ def place_labels(ax, points, labels, first=(), fontsize: float = LABEL_PT, marke
     P = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     xy = ax.transData.transform(P) if len(P) else np.zeros((0, 2))
     radius = np.full(len(P), 5.0) if markers is None else np.asarray(markers, dtype=np.float64)
-    dots = [Bbox.from_extents(x - r, y - r, x + r, y + r) for (x, y), r in zip(xy, radius)]
+    blocked = [np.column_stack([xy - radius[:, None], xy + radius[:, None]])]
+    for line in lines:  # each segment sampled every ~3 pixels, 1.5-pixel boxes
+        L = ax.transData.transform(np.asarray(line, dtype=np.float64).reshape(-1, 2))
+        for a, b in zip(L[:-1], L[1:]):
+            t = np.linspace(0, 1, max(2, int(np.hypot(*(b - a)) / 3)))[:, None]
+            q = a + t * (b - a)
+            blocked.append(np.column_stack([q - 1.5, q + 1.5]))
+    blocked += [np.array([[b.x0, b.y0, b.x1, b.y1]]) for b in avoid]
+    blocked = np.concatenate(blocked) if blocked else np.zeros((0, 4))
     frame = ax.get_window_extent(renderer)
     first = [int(i) for i in first]
     done = set(first)
     order = first + [i for i in range(len(labels)) if i not in done]
-    placed, boxes = [], list(avoid)
+    placed, boxes = [], np.zeros((0, 4))
     for i in order:
         for d, (ux, uy, ha, va) in ((d, p) for d in _DISTANCES for p in _PLACES):
             far = d > _DISTANCES[0]
@@ -90,11 +105,11 @@ def place_labels(ax, points, labels, first=(), fontsize: float = LABEL_PT, marke
                             textcoords="offset points", ha=ha, va=va,
                             arrowprops=dict(arrowstyle="-", lw=0.5, color="0.45", shrinkA=0, shrinkB=3) if far else None)
             whole = t.get_window_extent(renderer)  # with its leader line: no two labels' overlap
-            box = Text.get_window_extent(t, renderer)  # the text alone: clear of every point, inside the axes
+            box = Text.get_window_extent(t, renderer)  # the text alone: clear of every point and line, inside
             inside = (box.x0 >= frame.x0 and box.x1 <= frame.x1 and box.y0 >= frame.y0 and box.y1 <= frame.y1)
-            if inside and not any(whole.overlaps(b) for b in boxes) and not any(box.overlaps(b) for b in dots):
+            if inside and not _hits(whole, boxes) and not _hits(box, blocked):
                 placed.append(t)
-                boxes.append(whole)
+                boxes = np.vstack([boxes, [[whole.x0, whole.y0, whole.x1, whole.y1]]])
                 break
             t.remove()
     return placed
@@ -165,7 +180,8 @@ def scatter_pareto(points: dict, path, xlabel: str, ylabel: str, title: str | No
         if hi is not None:
             radius[hi] = 11.0
         first = ([hi] if hi is not None else []) + [int(i) for i in front if i != hi]
-        place_labels(ax, P, labels, first=first, markers=radius, avoid=avoid)
+        place_labels(ax, P, labels, first=first, markers=radius, avoid=avoid,
+                     lines=[P[front]] if len(front) > 1 else [])
     return save_figure(fig, path)
 
 
