@@ -37,13 +37,11 @@ def add_convert_parser(subparsers):
 def _model_ids(run: Path) -> dict:
     """label -> the class ``fwk.lifecycle`` records for each model of the run's recipe (empty if
     the recipe does not resolve today)."""
-    import yaml
-
     from .plugins import get_registry
-    from .recipes import resolve
+    from .recipes import read_recipe_file, resolve
 
     try:
-        data = yaml.safe_load((run / "recipe.yaml").read_text())
+        data = read_recipe_file(run / "recipe.yaml", "run recipe")  # every check of a recipe file
         specs = resolve(data, get_registry()).task.params.get("models") or {}
         return {label: (f"{s.cls.__module__}.{s.cls.__qualname__}", s.name) for label, s in specs.items()}
     except Exception:  # an old recipe that no longer validates: the files are converted without the class

@@ -18,12 +18,11 @@ import sys
 import traceback
 from pathlib import Path
 
-import yaml
-
 from .cache import Cache
 from .engine.distributed import RankDone, join
+from .errors import FwkError
 from .plugins import get_registry
-from .recipes import resolve
+from .recipes import read_recipe_file, resolve
 from .runs import RunContext, run_task
 
 
@@ -35,7 +34,7 @@ def main(argv: list[str]) -> int:
     join(job)
     try:
         run_dir = Path(job["run_dir"])
-        data = yaml.safe_load((run_dir / "recipe.yaml").read_text())
+        data = read_recipe_file(run_dir / "recipe.yaml", "run recipe")  # every check of a recipe file
         if job.get("source") and not data.get("source"):
             data["_source"] = job["source"]
         registry = get_registry()
@@ -47,6 +46,9 @@ def main(argv: list[str]) -> int:
         run_task(resolved, ctx)
     except RankDone:
         return 0
+    except FwkError as exc:  # a user's error (a recipe.yaml refused, a damaged file): its one line
+        print(f"fwk DDP rank {rank}: {exc}", file=sys.stderr, flush=True)
+        return 1
     except Exception:
         print(f"fwk DDP rank {rank}: {traceback.format_exc()}", file=sys.stderr, flush=True)
         return 1

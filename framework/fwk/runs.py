@@ -49,10 +49,10 @@ from . import __version__
 from .cache import Cache, atomic_write_bytes, file_mode
 from .engine.config import TrainConfig
 from .engine.threads import register
-from .errors import FwkError, PathError, Terminated
+from .errors import FwkError, PathError, RecipeError, Terminated
 from .paths import check_dir
 from .plugins import get_registry
-from .recipes import Spec, load_recipe, make_spec, resolve, to_plain
+from .recipes import Spec, load_recipe, make_spec, read_recipe_file, resolve, to_plain
 from .registry import Registry
 from .safeio import refuse_pickled
 from .seeds import run_seeds
@@ -482,13 +482,10 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             raise FwkError(f"--resume {resume}: not a run directory (no recipe.yaml)")
         check_recipe_hash(run_dir, "--resume: ")
         refuse_pickled(run_dir)  # an earlier version's pickles: `fwk convert`, before anything is written
-        try:
-            data = yaml.safe_load((run_dir / "recipe.yaml").read_bytes().decode("utf-8"))
-        except (UnicodeDecodeError, yaml.YAMLError) as exc:
-            raise FwkError(f"--resume: {run_dir / 'recipe.yaml'}: not a readable recipe "
-                           f"({' '.join(str(exc).split())[:160]})") from None
-        if not isinstance(data, dict):
-            raise FwkError(f"--resume: {run_dir / 'recipe.yaml'}: not a recipe (a YAML mapping)")
+        try:  # every check of a recipe file: a key given twice, an alias bomb, not UTF-8 (one line)
+            data = read_recipe_file(run_dir / "recipe.yaml", "run recipe")
+        except RecipeError as exc:
+            raise FwkError(f"--resume: {exc}") from None
         if recipe_path:
             fresh = load_recipe(recipe_path, overrides)
             fresh["source"] = fresh.pop("_source", None)

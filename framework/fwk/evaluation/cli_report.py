@@ -13,13 +13,11 @@ import inspect
 import json
 from pathlib import Path
 
-import yaml
-
 from ..cache import atomic_write_bytes
 from ..data.split import SplitConfig
 from ..errors import FwkError, RecipeError
 from ..plugins import get_registry
-from ..recipes import to_plain
+from ..recipes import read_recipe_file, to_plain
 from ..paths import check_dir
 from ..runs import require_complete, write_json
 from .report import standard_scatters, write_report
@@ -106,10 +104,10 @@ def identity(run: Path) -> dict:
     name, size and units)."""
     recipe = {}
     if (run / "recipe.yaml").exists():
-        try:
-            recipe = yaml.safe_load((run / "recipe.yaml").read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise FwkError(f"{run}/recipe.yaml: unreadable ({str(exc).splitlines()[0]})") from None
+        try:  # every check of a recipe file: a key given twice, an alias bomb, not UTF-8 (one line)
+            recipe = read_recipe_file(run / "recipe.yaml", "run recipe")
+        except RecipeError as exc:
+            raise FwkError(str(exc)) from None
     if not recipe:
         ds = _load(run).get("dataset", {})
         return {"task": None, "dataset": {k: ds[k] for k in ("name", "n_vertices", "units") if k in ds} or None,
