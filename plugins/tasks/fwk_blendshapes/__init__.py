@@ -498,8 +498,8 @@ class Blendshapes:
                     n = s.get("n_subjects")
                     p = scatter_pareto(pts, ctx.path("figures", f"pbs_k_{label}_{e}_{pm}.png"),
                                        f"{xlabel} (validation, {ux})", f"{display(pm, reg).label} (validation, {uy})",
-                                       f"{e}: {label}'s k sweep, points labelled by k"
-                                       + (f" ({n} validation subjects)" if n else " (validation)"),
+                                       f"{e}: {label}'s k sweep, labels are k"
+                                       + (f" ({n} val. subjects)" if n else ""),
                                        highlight=str(s["chosen"]), highlight_label=f"chosen k = {s['chosen']}")
                     figures[f"{label} {e}: {dist.upper()} against {pm.upper()} for every k, chosen k = "
                             f"{s['chosen']} starred (figure 5.8)"] = p
