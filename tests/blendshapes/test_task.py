@@ -61,7 +61,7 @@ def test_report_opens_with_the_verdict_and_the_legend(run):
     report = (run / "report.md").read_text()
     lines = report.splitlines()
     head = "\n".join(lines[:10])
-    assert "**Verdict** (test, " in head and "one seed" in head and "lower is better" in head
+    assert "**Verdict** on the test split (one seed)" in head and "lower is better" in head
     for e in ("mouth-wide", "face-compression"):
         line = next(ln for ln in lines[:10] if ln.startswith(f"- **{e}**: "))
         assert all(f"{m} `" in line for m in ("L1 norm", "DAME", "FMPD")) and " cm" in line and " rad" in line

@@ -32,7 +32,8 @@ def _results(seeded=False):
 def test_the_verdict_names_the_winner_the_metric_and_the_margin_per_key():
     lines = verdict_lines(_results())
     head, body = lines[0], [ln for ln in lines[1:] if ln]
-    assert head.startswith("**Verdict** (test, 4 subjects, one seed; lower is better): of 4 expression-metric pairs")
+    assert head.startswith("**Verdict** on the test split (one seed), 4 subjects, lower is better: "
+                           "of 4 expression-metric pairs")
     assert "`pbs`'s on 2" in head
     smile = next(ln for ln in body if ln.startswith("- **smile**"))
     # L1 in the dataset's units, 50% below the runner-up; DAME won by dt-0, pbs 2nd by 20%
@@ -48,7 +49,7 @@ def test_over_seeds_the_verdict_gives_mean_and_sd_and_says_whether_the_margin_be
     res = _results(seeded=True)
     res["blendshapes"]["smile"]["dt-0"]["dame"] = _s(0.5, 0.2, "rad")  # a wide spread on one side
     lines = verdict_lines(res)
-    assert "mean ± sd over 3 seeds" in lines[0] and "one seed" not in lines[0]
+    assert "(mean ± sd over 3 seeds)" in lines[0] and "one seed" not in lines[0]
     smile = next(ln for ln in lines if ln.startswith("- **smile**"))
     assert "L1 norm `pbs` 10 ± 0.5 cm, 50% below the runner-up `dt-0`, beyond the seeds' spread" in smile
     assert "DAME `dt-0` 0.5 ± 0.2 rad, 17% below the runner-up `pbs`, within the seeds' spread" in smile
@@ -58,7 +59,7 @@ def test_without_a_verdict_spec_the_test_split_of_the_models_is_judged():
     res = _results()
     del res["verdict"], res["blendshapes"]
     lines = verdict_lines(res)
-    assert lines[0].startswith("**Verdict** (test, 4 meshes, one seed") and "of 2 metrics" in lines[0]
+    assert lines[0].startswith("**Verdict** on the test split (one seed), 4 meshes") and "of 2 metrics" in lines[0]
     assert any(ln.startswith("- **test**: L1 norm `pbs`") for ln in lines)
     assert verdict_lines({}) == [] and verdict_lines({"models": {"a": {"test": {"l1": {"mean": "x"}}}}}) == []
 

@@ -149,12 +149,12 @@ def verdict_lines(results: dict, registry: Registry | None = None) -> list[str]:
         lines.append(f"- **{key}**: " + "; ".join(parts) + "." + tail)
     if not lines:
         return []
-    spread = (f"mean ± sd over {n_seeds} seeds" if seeded and n_seeds else "one seed")
+    spread = (f"mean ± sd over {n_seeds} seeds" if seeded and n_seeds else "one seed")  # a one-seed run says so
     who = ", ".join(f"`{lb}`'s on {n}" for lb, n in sorted(wins.items(), key=lambda kv: -kv[1]))
     per = f"{noun}-metric pairs" if noun else "metrics"
     missing = "".join(f", `{h}`'s on none" for h in highlight if h not in wins)
     split = spec.get("split", "test")
-    n = f", {subjects:g} {spec.get('counted', 'meshes')}" if subjects else ""
-    head = (f"**Verdict** ({split}{n}, {spread}; lower is better): of {pairs} {per}, the lowest mean is "
-            f"{who or 'no one'}{missing}.")
+    n = f"{subjects:g} {spec.get('counted', 'meshes')}, " if subjects else ""
+    head = (f"**Verdict** on the {split} split ({spread}), {n}lower is better: of {pairs} {per}, the lowest mean "
+            f"is {who or 'no one'}{missing}.")
     return [head, "", *lines]
