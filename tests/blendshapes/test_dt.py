@@ -82,3 +82,20 @@ def test_transfer_is_personalised_and_several_sources_average():
     m2 = DeformationTransfer()
     m2.load_state_dict(m.state_dict())
     assert np.allclose(m2.predict(P[2:3, 0], "mouth-wide"), one[:1])
+
+
+def test_predict_all_one_neutral_at_a_time_equals_each_neutral_alone():
+    """predict_all factorises one neutral at a time (memory of one system): the same numbers as
+    a loop over the neutrals, each predicted alone, for every expression."""
+    from fwk.plugins import get_registry
+
+    col = get_registry().get("dataset", "synthetic-heads")(
+        n_subjects=4, n_vertices=400, shapes=["neutral", "mouth-wide", "face-compression"]).load(None)
+    m = _fit(col, sources=[0, 1])
+    N = np.asarray(col.positions[:, 0])
+    got = m.predict_all(N, ["mouth-wide", "face-compression"])
+    for e in ("mouth-wide", "face-compression"):
+        want = np.stack([m.predict(N[i:i + 1], e)[0] for i in range(len(N))])
+        assert np.array_equal(got[e], want)
+    with pytest.raises(Exception, match="no source"):
+        m.predict_all(N, ["nope"])

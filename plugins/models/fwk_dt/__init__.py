@@ -98,6 +98,7 @@ class DeformationTransfer:
         self.expressions = None
         self.F = None
         self.src = {}  # expression -> (neutral (s, n, 3), expression (s, n, 3))
+        self._maps = {}  # expression -> the sources' (Q, displacement, its centroid): see _source_maps
 
     def describe(self) -> str:
         """A report's legend line (``fwk.protocols.Described``): the source subject(s)."""
@@ -125,6 +126,7 @@ class DeformationTransfer:
             if ok.any():
                 self.src[e] = (N[ok], np.asarray(col.positions[self.sources, j])[ok])
         self.expressions = list(self.src)
+        self._maps = {}
 
     def gradients(self, expression: str) -> np.ndarray:
         """The source's per-triangle maps Q_j (m, 3, 3) for ``expression``, averaged over sources."""
@@ -134,32 +136,40 @@ class DeformationTransfer:
         Q = frames(S1, self.F) @ np.linalg.inv(frames(S0, self.F))
         return Q.mean(axis=0)
 
-    def _transfer(self, neutrals: np.ndarray, expression: str, systems: list) -> np.ndarray:
-        Q = self.gradients(expression)
-        S0, S1 = self.src[expression]
-        disp = (S1 - S0).mean(axis=0)
-        cdisp = disp.mean(axis=0)
-        out = np.empty_like(neutrals)
-        for i, T0 in enumerate(neutrals):
-            sys_ = systems[i]
-            X = sys_.solve(Q, T0[sys_.pins] + disp[sys_.pins])
-            out[i] = X - X.mean(0) + T0.mean(0) + cdisp
-        return out
+    def _transfer_one(self, T0: np.ndarray, system: TargetSystem, expression: str) -> np.ndarray:
+        """One target neutral (n, 3), its factorised system -> (n, 3) the expression transferred."""
+        Q, disp, cdisp = self._source_maps(expression)
+        X = system.solve(Q, T0[system.pins] + disp[system.pins])
+        return X - X.mean(0) + T0.mean(0) + cdisp
 
-    def _systems(self, neutrals: np.ndarray) -> list:
-        return [TargetSystem(T0, self.F) for T0 in neutrals]
+    def _source_maps(self, expression: str):
+        """(Q (m, 3, 3), the sources' mean displacement (n, 3), its centroid (3,)), kept per
+        expression: the same for every target."""
+        if expression not in self._maps:
+            S0, S1 = self.src.get(expression, (None, None))
+            Q = self.gradients(expression)
+            disp = (S1 - S0).mean(axis=0)
+            self._maps[expression] = (Q, disp, disp.mean(axis=0))
+        return self._maps[expression]
 
     def predict(self, neutrals, expression: str, target=None) -> np.ndarray:
         """(b, n, 3) neutrals -> (b, n, 3) the expression transferred (``target`` is not used:
         DT needs no ground truth)."""
-        neutrals = np.asarray(neutrals, dtype=np.float64)
-        return self._transfer(neutrals, expression, self._systems(neutrals))
+        return self.predict_all(neutrals, [expression])[expression]
 
     def predict_all(self, neutrals, expressions: list[str], target: dict | None = None) -> dict:
-        """Every expression for every neutral, one factorisation per neutral."""
+        """Every expression for every neutral: one factorisation per neutral, reused for every
+        expression and released before the next neutral's (memory stays that of one system,
+        whatever the number of neutrals)."""
         neutrals = np.asarray(neutrals, dtype=np.float64)
-        systems = self._systems(neutrals)
-        return {e: self._transfer(neutrals, e, systems) for e in expressions}
+        for e in expressions:
+            self._source_maps(e)  # an unknown expression is refused before any factorisation
+        out = {e: np.empty_like(neutrals) for e in expressions}
+        for i, T0 in enumerate(neutrals):
+            system = TargetSystem(T0, self.F)
+            for e in expressions:
+                out[e][i] = self._transfer_one(T0, system, e)
+        return out
 
     def state_dict(self) -> dict:
         return {"sources": self.sources, "F": self.F, "src": self.src}
@@ -168,6 +178,7 @@ class DeformationTransfer:
         """Restore (``ctx`` is not needed: DT keeps arrays only)."""
         self.sources, self.F, self.src = list(d["sources"]), np.asarray(d["F"]), dict(d["src"])
         self.expressions = list(self.src)
+        self._maps = {}
 
 
 @hookimpl
