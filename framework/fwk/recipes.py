@@ -648,6 +648,7 @@ def resolve(data: dict, registry: Registry) -> Resolved:
     seeds = parse_seeds(data.get("seeds"))
     train = convert(data.get("train") or {}, TrainConfig, "train", registry)
     cls = registry.get("task", task_name, key_path="task")
+    check_role("task", task_name, cls, "task")
     params = {k: v for k, v in data.items() if k not in RESERVED}
     params = validate_params(cls, params, "", registry, label=f"task {task_name}")
     spec = Spec("task", task_name, params, cls, "")

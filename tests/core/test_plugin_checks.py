@@ -343,3 +343,23 @@ def test_with_key_path():
     assert with_key_path("needs triangles", "models.ae.conv") == "models.ae.conv: needs triangles"
     assert with_key_path("models.ae.conv.k: x", "models.ae") == "models.ae.conv.k: x"
     assert with_key_path("models.ae.x: y", "models.ae.conv") == "models.ae.x: y"
+
+
+def test_a_task_without_run_is_refused_when_validating():
+    from fwk.errors import RecipeError
+    from fwk.hookspecs import hookimpl
+    from fwk.plugins import registry_from
+    from fwk.recipes import resolve
+
+    class Idle:
+        """A task that forgot run."""
+
+        name = "idle-test"
+
+        def __init__(self, n: int = 1):
+            self.n = n
+
+    reg = registry_from(_module("my_idle", fwk_register_tasks=hookimpl(lambda: [Idle])))
+    with pytest.raises(RecipeError, match=r"^task: task 'idle-test' \(.*Idle\) does not play the Task role: "
+                                          r"it lacks run \("):
+        resolve({"task": "idle-test"}, reg)
