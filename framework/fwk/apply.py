@@ -46,6 +46,7 @@ half-written. Files are created with the process umask (0644 under the usual 022
 """
 from __future__ import annotations
 
+import argparse
 import os
 import shutil
 import sys
@@ -104,7 +105,8 @@ def add_apply_parser(subparsers):
     p.add_argument("--units", default=None, help="the neutral's units when they are not the run's: a unit (mm, cm, "
                    "m, um, in, ft; the run's must be stated) or a factor (0.1: one of the neutral's units is 0.1 of "
                    "the run's); the neutral is scaled into the run's units and the outputs written back in its own")
-    p.add_argument("--quiet", action="store_true")
+    # fwk --quiet (moved first by fwk.cli.main) must not be reset by this parser default
+    p.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS, help="no messages")
     return p
 
 
