@@ -22,7 +22,8 @@ take a ``split``) and no ``seeds:``; a seed's sub-run is an ordinary run of it, 
   (for a fixed thread count, as any rerun: docs/recipes.md, Threads);
 * with ``seed: s`` and no ``split.seed``, seed s of ``seeds:`` is the plain run of ``seed: s``;
 * ``fwk run <run>/seed-<s>/recipe.yaml`` reruns one seed alone, and ``fwk apply`` /
-  ``fwk sample`` take a seed's sub-run (``<run>/seed-<s>``), which holds the models.
+  ``fwk sample`` use a seed's sub-run (``<run>/seed-<s>``), which holds the models: given ``<run>``,
+  the first seed's, or ``--seed-run S`` (``fwk.lifecycle.seed_sub_run``).
 
 The seeds run one after another in this process (the dataset's cache, ``fwk.cache``, serves
 every seed after the first; the split and preprocessing are recomputed per seed, identically,
@@ -151,7 +152,8 @@ def write_seeds_report(ctx, seeds, split_seed: int | None = None, title: str | N
     except (OSError, ValueError):
         notes = []
     notes = [n for n in notes if not n.startswith("`fwk apply")]
-    notes.append(f"`fwk apply` and `fwk sample` take one seed's sub-run, e.g. `{first}`")
+    notes.append(f"`fwk apply` and `fwk sample` use one seed's models: of `{ctx.run_dir}`, the first seed's "
+                 f"(`{first}`); `--seed-run S` or `{ctx.run_dir}/seed-S` picks another")
     name = (getattr(ctx, "recipe", None) or {}).get("name") or Path(ctx.run_dir).name
     title = title or f"{name}: {len(seeds)} seed{'s' if len(seeds) != 1 else ''}"
     return write_report(ctx, title, results, figures, notes=notes, registry=registry)
