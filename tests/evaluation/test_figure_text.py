@@ -122,3 +122,22 @@ def test_blendshapes_error_maps_and_axes_carry_units(tmp_path, monkeypatch):
     assert all(k["highlight"] == "10" and k["highlight_label"] == "chosen k = 10" for _, _, k in sweep)
     methods = [a for a in axes if "test" in a[0]]
     assert ("L1 norm (test, cm)", "DAME (test, rad)") in {(x, y) for x, y, _ in methods}
+
+
+def test_grid_sweep_plots_say_the_unit_and_the_swept_key(tmp_path, monkeypatch):
+    """Figure 4.11 of a k study: each metric in the dataset's units against k, the axes saying so."""
+    import fwk_grid
+
+    from fwk.runs import make_test_context
+
+    seen = []
+    monkeypatch.setattr(fwk_grid, "line_plot", lambda series, path, x, y, **k: seen.append((x, y, series)) or path)
+    g = fwk_grid.Grid(base="b.yaml", configs={"k10": {}, "k40": {}}, sweep="models.dsm.k", columns=["l1", "fmpd"])
+    res = {"models": {m: {s: {"l1": {"mean": v, "mean_input": v / 0.5, "units": "input", "units_input": "cm"},
+                               "fmpd": {"mean": v, "mean_input": v, "units": "1", "units_input": "1"}}
+                           for s in ("train", "test")} for m, v in (("k10", 0.1), ("k40", 0.2))}}
+    g._sweep_figures(make_test_context(tmp_path), res, {"k10": 10.0, "k40": 40.0})
+    labels = {(x, y) for x, y, _ in seen}
+    assert labels == {("k (models.dsm.k, log scale)", "L1 norm (cm)"), ("k (models.dsm.k, log scale)", "FMPD (unitless)")}
+    l1 = next(s for _, y, s in seen if y == "L1 norm (cm)")
+    assert l1["test"] == ([10.0, 40.0], [0.2, 0.4])  # in cm: the evaluation space over the scale

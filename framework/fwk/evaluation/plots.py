@@ -39,10 +39,11 @@ def _plt():
 
 
 def _finish(fig, ax, path, xlabel, ylabel, title):
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
+    _ticks(ax)
+    ax.set_xlabel(xlabel, fontsize=AXIS_PT)
+    ax.set_ylabel(ylabel, fontsize=AXIS_PT)
     if title:
-        ax.set_title(title)
+        ax.set_title(title, fontsize=TITLE_PT)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     return save_figure(fig, path)
@@ -196,5 +197,9 @@ def line_plot(series: dict, path, xlabel: str, ylabel: str, title: str | None = 
         ax.set_yscale("log")
     if logx and all(v > 0 for x, _ in series.values() for v in x):
         ax.set_xscale("log")
-    ax.legend(fontsize=8)
+        xs = sorted({float(v) for x, _ in series.values() for v in x})
+        if len(xs) <= 12:  # a tick at every swept value, written plainly (10, 40, 100), not 10^1, 10^2
+            ax.set_xticks(xs, [f"{v:g}" for v in xs])
+            ax.xaxis.set_minor_locator(_plt().NullLocator())
+    ax.legend(fontsize=LABEL_PT + 0.5)
     return _finish(fig, ax, path, xlabel, ylabel, title)

@@ -46,6 +46,7 @@ from fwk.cache import atomic_write_bytes
 from fwk.errors import FwkError, RecipeError
 from fwk.evaluation import display, markdown_table, standard_scatters, write_report
 from fwk.evaluation.plots import line_plot
+from fwk.evaluation.presentation import axis_unit
 from fwk.evaluation.seeds import SEED_DIR, mean_sd
 from fwk.hookspecs import hookimpl
 from fwk.recipes import Kind, Spec, deep_merge, load_recipe, resolve
@@ -208,20 +209,26 @@ class Grid:
         figures = {}
         for m in self.columns:
             shown = display(m, ctx.registry)
+            summaries = [per.get(s, {}).get(m) for per in results["models"].values() for s in self.splits]
+            summaries = [x for x in summaries if isinstance(x, dict) and x.get("mean") is not None]
+            # in the dataset's units where every member has them (L1 in cm), else in the evaluation space
+            inp = bool(summaries) and all(x.get("mean_input") is not None for x in summaries)
             series = {}
             for label, per in results["models"].items():
                 member, _, model = label.partition("/")
                 for s in self.splits:
-                    v = per.get(s, {}).get(m, {}).get("mean")
+                    x = per.get(s, {}).get(m, {})
+                    v = x.get("mean_input" if inp else "mean")
                     if v is not None and member in xs:
                         name = f"{s}" + (f" {model}" if model else "")
-                        series.setdefault(name, []).append((xs[member], v / shown.scale))
+                        series.setdefault(name, []).append((xs[member], v if inp else v / shown.scale))
             if not series:
                 continue
             series = {n: tuple(map(list, zip(*sorted(p)))) for n, p in series.items()}
-            path = line_plot(series, ctx.path("figures", f"sweep_{key}_{m}.png"), key,
-                             f"{m.upper()}{shown.suffix}", title=f"{m.upper()} against {key}",
-                             logx=True)
+            units = next((x.get("units_input" if inp else "units", "") for x in summaries), "")
+            unit = axis_unit(units, inp) + ("" if inp else shown.suffix)
+            path = line_plot(series, ctx.path("figures", f"sweep_{key}_{m}.png"), f"{key} ({self.sweep}, log scale)",
+                             f"{shown.label} ({unit})", title=f"{shown.label} against {key}", logx=True)
             figures[f"{m.upper()} against {key} (figure 4.11)"] = path
         return figures
 
