@@ -117,11 +117,22 @@ def place_labels(ax, points, labels, first=(), fontsize: float = LABEL_PT, marke
 
 
 def _ticks(ax) -> None:
-    """At most six ticks per axis, in scientific notation (a ×10^n factor at the axis end) where the
-    values are small or large, so that tick labels never run into each other."""
-    from matplotlib.ticker import MaxNLocator, ScalarFormatter
+    """At most six ticks per linear axis, in scientific notation (a ×10^n factor at the axis end)
+    where the values are small or large; a log axis at 1, 2, 5 x 10^n (more within a decade) written plainly
+    (0.05, 0.1, 0.2); ticks a caller fixed are kept. Tick labels never run into each other."""
+    from matplotlib.ticker import FixedLocator, FuncFormatter, LogLocator, MaxNLocator, NullFormatter, ScalarFormatter
 
     for axis in (ax.xaxis, ax.yaxis):
+        if isinstance(axis.get_major_locator(), FixedLocator):  # ticks a caller placed (every swept value)
+            continue
+        if axis.get_scale() == "log":  # plain numbers at 1, 2, 5 x 10^n (1 x 10^n only over many decades)
+            lo, hi = (ax.get_xlim() if axis is ax.xaxis else ax.get_ylim())
+            decades = np.log10(max(hi, 1e-300) / max(lo, 1e-300)) if lo > 0 else 9
+            subs = (1.0, 1.5, 2.0, 3.0, 5.0, 7.0) if decades <= 1.2 else ((1.0, 2.0, 5.0) if decades <= 2.5 else (1.0,))
+            axis.set_major_locator(LogLocator(base=10, subs=subs))
+            axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            axis.set_minor_formatter(NullFormatter())
+            continue
         if axis.get_scale() != "linear":
             continue
         axis.set_major_locator(MaxNLocator(nbins=6, min_n_ticks=3))
