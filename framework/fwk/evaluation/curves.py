@@ -118,7 +118,7 @@ def curves_figures(records: dict, path) -> list[Path]:
     then ``<stem>-2.png``...)."""
     from matplotlib.ticker import MaxNLocator
 
-    from .plots import _plt, save_figure  # deferred: pyplot costs ~0.5 s of import time
+    from .plots import _plt, _ticks, save_figure  # deferred: pyplot costs ~0.5 s of import time
 
     plt = _plt()
     path = Path(path)
@@ -146,6 +146,7 @@ def curves_figures(records: dict, path) -> list[Path]:
             positive &= all(v > 0 for v in va + tr if _finite(v))
         if positive:
             ax.set_yscale("log")
+        _ticks(ax)  # plain log ticks (0.03, 0.05), no 3.3 x 10^-2 on every line
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # whole epochs, never 1.2
         ax.set_xlabel("epoch (count)")
         ax.set_ylabel("loss (each network's objective as logged, unitless)")
