@@ -1,5 +1,6 @@
-"""Shared by the claims scripts (``claims_ch3.py``, ``claims_ch4.py``): how a model of a finished
-run trained, read from its ``metrics.json`` (the report's Training section)."""
+"""Shared by the claims scripts (``claims_ch3.py``, ``claims_ch4.py``, ``claims_ch5.py``): how a model of a finished
+run trained, read from its ``metrics.json`` (the report's Training section), and the rule by which a
+comparison and a verdict are made (``RULE``)."""
 from __future__ import annotations
 
 import json
@@ -32,3 +33,70 @@ def training(m: dict, label: str, run: Path | None = None) -> dict:
             "ended": ", ".join(str(v["stopped_by"]) for v in nets.values()),
             "verdict": ", ".join(v["plateau"] for v in nets.values()),
             "minutes": None if secs is None else sum(secs) / 60}
+
+
+# ------------------------------------------------------------------ comparisons and verdicts (issue 26)
+#: The rule every claims script states and applies (docs/methods/claims.md, "How a verdict is computed").
+RULE = ("Rule: A is lower than B when A's mean over the split's subjects is below B's. With seeds (metrics.json "
+        "seed_sd), a difference within the larger of the two seeds' sd is a tie and counts for neither. One seed "
+        "cannot show a tie: a verdict on one seed says '(one seed)' and lists its deciding margins under 10 % "
+        "with the verdict they would give as ties. A claim 'holds' when its comparison goes its way on more than "
+        "half of the cases, 'partly' on some, 'does not hold' on none.")
+#: a one-seed margin below this is listed as not settled (issue 26: re-measure those with 3 seeds)
+CLOSE = 0.10
+
+
+def stat(x) -> tuple[float, float | None]:
+    """(mean, seed sd or None) of a metrics.json summary ({"mean", "seed_sd"}), a (mean, sd) pair or a number."""
+    if isinstance(x, dict):
+        return float(x["mean"]), x.get("seed_sd")
+    if isinstance(x, tuple):
+        return float(x[0]), x[1]
+    return float(x), None
+
+
+def margin(a, b) -> float:
+    """|a - b| over the smaller of the two means: the higher one's excess over the lower."""
+    (ma, _), (mb, _) = stat(a), stat(b)
+    lo = min(abs(ma), abs(mb))
+    return float("inf") if lo == 0 else abs(ma - mb) / lo
+
+
+def lower(a, b, close: float | None = None) -> bool | None:
+    """True when a is lower than b, False when higher, None for a tie: equal means; a difference
+    within the larger seed sd (both with seeds); with ``close``, a margin below it."""
+    (ma, sa), (mb, sb) = stat(a), stat(b)
+    if ma == mb or (sa is not None and sb is not None and abs(ma - mb) <= max(sa, sb)):
+        return None
+    if close is not None and margin(a, b) < close:
+        return None
+    return ma < mb
+
+
+def verdict(n_yes: int, n: int) -> str:
+    """'holds' on more than half of n cases, 'partly' on some, 'does not hold' on none."""
+    return "holds" if 2 * n_yes > n else ("does not hold" if n_yes == 0 else "partly")
+
+
+def yes(b: bool | None) -> str:
+    return "tie" if b is None else ("yes" if b else "no")
+
+
+def pct(m: float) -> str:
+    return f"{m * 100:.2g} %"
+
+
+def seeded(*summaries) -> bool:
+    """Whether the values carry a seeds' sd (a run with ``seeds:``)."""
+    return any(stat(s)[1] is not None for s in summaries)
+
+
+def qualify(word: str, close_margins: list[str], word_as_ties: str, seeds: bool) -> str:
+    """The verdict with its seed note: '(mean over seeds; ties within their sd)' or '(one seed)' with the
+    deciding margins under 10 % and the verdict those would give as ties."""
+    if seeds:
+        return f"{word} (over seeds; differences within the seeds' sd are ties)"
+    if not close_margins:
+        return f"{word} (one seed; every deciding margin 10 % or more)"
+    return (f"{word} (one seed; deciding margins under 10 %: {', '.join(close_margins)}; "
+            f"counting those as ties: {word_as_ties})")
