@@ -263,10 +263,11 @@ def _check_seed(run_dir: Path, data: dict, seed: int, registry: Registry) -> Pat
         with_split = takes_split(registry.get("task", data.get("task"), key_path="task"))
     except RecipeError as exc:
         raise FwkError(f"{run_dir}/recipe.yaml no longer validates: {exc}") from None
-    source = data.get("source")
-    member = member_recipe({k: v for k, v in data.items() if k != "_source"}, seed, with_split)
-    want = plain_recipe({**member, "_source": source} if source else member)
-    if read_run_recipe(sub) != want:
+    # `source` (the recipe file relative paths resolve from) aside: a grid member's recipe.yaml
+    # leaves it out, its seeds' record it
+    member = member_recipe({k: v for k, v in data.items() if k not in ("_source", "source")}, seed, with_split)
+    got = {k: v for k, v in read_run_recipe(sub).items() if k != "source"}
+    if got != plain_recipe(member):
         raise DataError(f"{sub / 'recipe.yaml'}: not the recipe of seed {seed} of {run_dir}/recipe.yaml "
                         f"(edited after the run)")
     return sub

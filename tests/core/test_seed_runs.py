@@ -13,7 +13,7 @@ from fwk.apply import apply
 from fwk.cli import main
 from fwk.generate import sample_meshes
 from fwk.runs import execute
-from tests.core.test_seeds import _json, tmp  # noqa: F401  (the module's folder, one thread, own cache)
+from tests.core.test_seeds import _grid, _json, tmp  # noqa: F401  (tmp: the module's folder, one thread, own cache)
 
 NET = {"name": "vae", "channels": [8], "latent": 4, "sampler": {"name": "quadric", "factors": [4]}}
 #: two seeds of a trained blendshape model: its predictions differ by seed
@@ -89,6 +89,18 @@ def test_sample_uses_the_first_seed_or_the_one_chosen(rec2, tmp_path, capsys):
     assert _same(tmp_path / "a", tmp_path / "b")
     assert main(["sample", str(rec2), "--n", "2", "--out", str(tmp_path / "c")]) == 0
     assert capsys.readouterr().err.strip() == _line(rec2)
+
+
+def test_a_grid_members_seeds(tmp):
+    """A grid member with seeds (``<grid>/<member>/seed-<s>/``) opens like a run with seeds."""
+    grid = execute(str(_grid(tmp)), runs_dir=str(tmp / "grid"), quiet=True)
+    said = []
+    top = sample_meshes(grid / "a", 2, say=said.append)[1]
+    assert said == [_line(grid / "a")]
+    assert (top == sample_meshes(grid / "a" / "seed-0", 2, say=said.append)[1]).all()
+    assert (sample_meshes(grid / "a", 2, seed_run=1, say=said.append)[1] ==
+            sample_meshes(grid / "a" / "seed-1", 2, say=said.append)[1]).all()
+    assert len(said) == 1
 
 
 def test_edit_run_key_uses_the_first_seed(rec2, tmp_path):
