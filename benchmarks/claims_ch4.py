@@ -10,14 +10,28 @@ run of ``recipes/thesis/ch4/k-plateau.yaml`` (grid members ``k<k>``). Prints, in
   the model is on the L1/DAME Pareto front of the learned models (the thesis's comparison: the
   mean shape is not in it), and its training: epochs, what ended it, the plateau rule's verdict
   and minutes (the sum of the epochs' own seconds, a resumed run's earlier epochs included);
-* per dsm model and split, the C4 reading: on the front or not, its DAME rank and L1 rank among
-  the learned models, and whether it beats the mean shape on both metrics. Thesis table 4.2:
-  dsm had the lowest DAME on both data sets' training and test splits and was behind SpiralNet++
-  and Neural 3DMM on L1 on 3 of the 4; C4 "holds" for a split when dsm is on the front with the
-  lowest DAME, "partly" when it is on the front without it, "does not hold" off the front;
-* with KRUN, the k study: L1, DAME, FMPD of dsm per k on each split, and the front over k.
+* per dsm model and split, C4 (thesis 4.7.1, table 4.2, l. 1866-1881): dsm against table 4.2's
+  methods in the run: SpiralNet++ and Neural 3DMM (Euclidean Std.), the Mesh Autoencoder, whose
+  table 4.2 row is raw Euclidean coordinates (``vae-euclidean`` or ``mesh-autoencoder``: table 4.2's
+  Mesh Autoencoder numbers are table 4.3's Euclidean row, l. 1872/1895), and FeaStNet when present.
+  The thesis: dsm has the lowest DAME on both data sets' training and test splits and is behind
+  SpiralNet++ and Neural 3DMM on L1 on 3 of the 4. C4 "holds" on a split when dsm's DAME is lower
+  than every one of them, "partly" than some, "does not hold" than none; its L1 rank is printed;
+* C7 (table 4.3, l. 1887-1905): dsm against the single-representation VAEs (``vae-euclidean``,
+  ``vae-euclidean-std``, ``vae-dr-norm``, ``vae-dr``). The thesis: on the training set dsm has the
+  lowest L1 and DAME on most data sets (Facsimile and FaceWarehouse); on the test set it
+  "favourably compromises", i.e. lies on their L1/DAME front (the DR VAE has the lower test DAME
+  there too, 3.00 and 1.22 against 3.17 and 1.29). Train: "holds" when dsm is the lowest on both,
+  "partly" on one, "does not hold" on neither; test: "holds" when no VAE has both a lower L1 and a
+  lower DAME, else "does not hold";
+* C16 (table 4.4, l. 1922-1935): whether the Euclidean Std. VAE has a lower L1 and a lower DAME than
+  the raw Euclidean VAE, per split;
+* with KRUN, the k study: L1, DAME, FMPD of dsm per k on each split, the front over k, and C8 (l. 2282:
+  "As the parameter k increases, the perceptual error increases and geometric error decreases"): a
+  metric follows the claim when it moves the claimed way on more than half of the steps between
+  consecutive k; C8 "holds" when both L1 and DAME follow, "partly" when one does, else "does not hold".
 
-No threshold is tuned: a comparison is the sign of a difference of means.
+Comparisons and ties: ``_claims.RULE`` (printed).
 """
 from __future__ import annotations
 
@@ -30,7 +44,7 @@ from pathlib import Path
 from fwk.evaluation.core import pareto_front
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _claims import training  # noqa: E402
+from _claims import CLOSE, RULE, lower, margin, pct, qualify, seeded, training, verdict  # noqa: E402
 
 BASELINE = "mean-shape"
 
@@ -39,12 +53,39 @@ def load(run: Path) -> dict:
     """{label: {split: {metric: mean}, "training": {...}}} of the run's models."""
     m = json.loads((run / "metrics.json").read_text())
     return {label: {**{split: {k: v["mean"] for k, v in res.items()} for split, res in r.items()},
+                    "_sd": {split: {k: v.get("seed_sd") for k, v in res.items()} for split, res in r.items()},
                     "training": training(m, label, run)}
             for label, r in m["models"].items()}
 
 
+#: table 4.2's methods (l. 1866-1881) by their labels in the chapter 4 recipes: the Mesh Autoencoder's
+#: row is raw Euclidean coordinates (vae-euclidean in reconstruction.yaml, mesh-autoencoder in autoencoders-full.yaml)
+TABLE_4_2 = ("spiralnet++", "neural-3dmm", "vae-euclidean", "mesh-autoencoder", "feastnet")
+#: table 4.3's single-representation VAEs (l. 1887-1905)
+TABLE_4_3 = ("vae-euclidean", "vae-euclidean-std", "vae-dr-norm", "vae-dr")
+
+
+def every(n_yes: int, n: int) -> str:
+    """A "lowest" claim: 'holds' when the comparison goes its way against all n, 'partly' some, else 'does not hold'."""
+    return "holds" if n_yes == n else ("does not hold" if n_yes == 0 else "partly")
+
+
+def _v(models: dict, label: str, split: str, metric: str):
+    return models[label][split][metric], models[label].get("_sd", {}).get(split, {}).get(metric)
+
+
+def _versus(models, dsm, split, others, metric):
+    """[(other, dsm lower?, margin)] of ``metric`` against each other model present on the split."""
+    out = []
+    for o in others:
+        if o in models and split in models[o]:
+            a, b = _v(models, dsm, split, metric), _v(models, o, split, metric)
+            out.append((o, lower(a, b), lower(a, b, CLOSE), margin(a, b)))
+    return out
+
+
 def reading(models: dict, split: str) -> tuple[list[str], dict]:
-    """(the learned models on the L1/DAME front, {dsm label: its C4 reading}) on ``split``."""
+    """(the learned models on the L1/DAME front, {dsm label: its C4, C7 and C16 readings}) on ``split``."""
     learned = [k for k in models if k != BASELINE and split in models[k]]
     pts = [(models[k][split]["l1"], models[k][split]["dame"]) for k in learned]
     front = [learned[i] for i in pareto_front(pts)]
@@ -55,12 +96,65 @@ def reading(models: dict, split: str) -> tuple[list[str], dict]:
     for k in learned:
         if not k.startswith("dsm"):
             continue
-        on, best = k in front, by_dame[0] == k
         r = models[k][split]
-        out[k] = {"front": on, "dame_rank": by_dame.index(k) + 1, "l1_rank": by_l1.index(k) + 1, "n": len(learned),
+        seeds = seeded(_v(models, k, split, "dame"))
+        # C4: DAME against table 4.2's methods
+        c4 = _versus(models, k, split, TABLE_4_2, "dame")
+        n4, n4t = sum(x is True for _, x, _, _ in c4), sum(t is True for _, _, t, _ in c4)
+        close4 = [f"{o} {pct(m)}" for o, x, _, m in c4 if x is True and m < CLOSE]
+        l1_42 = sorted([k, *[o for o, *_ in c4]], key=lambda x: models[x][split]["l1"])
+        c4_word = every(n4, len(c4)) if c4 else "not measured"
+        # C7: against table 4.3's VAEs
+        l1v, dv = _versus(models, k, split, TABLE_4_3, "l1"), _versus(models, k, split, TABLE_4_3, "dame")
+        if not dv:
+            c7 = "not measured"
+        elif split == "train":
+            both = [all(x is True for _, x, _, _ in l1v), all(x is True for _, x, _, _ in dv)]
+            both_t = [all(t is True for _, _, t, _ in l1v), all(t is True for _, _, t, _ in dv)]
+            close7 = [f"{m_} against {o} {pct(mm)}" for m_, vs in (("L1", l1v), ("DAME", dv))
+                      for o, x, _, mm in vs if x is True and mm < CLOSE]
+            c7 = (f"lowest L1 of dsm and the VAEs: {'yes' if both[0] else 'no'}, lowest DAME: "
+                  f"{'yes' if both[1] else 'no'}: " + qualify(every(sum(both), 2), close7,
+                                                               every(sum(both_t), 2), seeds))
+        else:
+            dom = [o for (o, xl, _, _), (_, xd, _, _) in zip(l1v, dv) if xl is False and xd is False]
+            c7 = (f"on the front of dsm and the VAEs: {'no, dominated by ' + ', '.join(dom) if dom else 'yes'}: "
+                  f"{'does not hold' if dom else 'holds'} (a front by means; "
+                  f"{'over seeds' if seeds else 'one seed'})")
+        out[k] = {"front": k in front, "dame_rank": by_dame.index(k) + 1, "l1_rank": by_l1.index(k) + 1,
+                  "n": len(learned),
                   "beats_mean": None if base is None else bool(r["l1"] < base["l1"] and r["dame"] < base["dame"]),
-                  "verdict": "holds" if on and best else ("partly" if on else "does not hold")}
+                  "c4_vs": [o for o, *_ in c4], "c4_lower": n4, "c4_l1_rank": l1_42.index(k) + 1,
+                  "verdict": c4_word,
+                  "c4": (f"{qualify(c4_word, close4, every(n4t, len(c4)), seeds)}" if c4 else c4_word),
+                  "c7": c7}
     return front, out
+
+
+def c16(models: dict, split: str) -> str | None:
+    """C16: the Euclidean Std. VAE against the raw Euclidean VAE on ``split`` (table 4.4)."""
+    if not all(x in models and split in models[x] for x in ("vae-euclidean", "vae-euclidean-std")):
+        return None
+    got = {m: (lower(_v(models, "vae-euclidean-std", split, m), _v(models, "vae-euclidean", split, m)),
+               margin(_v(models, "vae-euclidean-std", split, m), _v(models, "vae-euclidean", split, m)))
+           for m in ("l1", "dame")}
+    ok = all(x is True for x, _ in got.values())
+    close = [f"{m.upper()} {pct(mm)}" for m, (x, mm) in got.items() if x is True and mm < CLOSE]
+    return (f"C16, {split}: Euclidean Std. VAE lower L1 ({'yes' if got['l1'][0] else 'no'}) and DAME "
+            f"({'yes' if got['dame'][0] else 'no'}) than the raw Euclidean VAE: "
+            f"{qualify('holds' if ok else 'does not hold', close, 'holds' if ok and not close else 'does not hold', seeded(_v(models, 'vae-euclidean', split, 'l1')))}.")
+
+
+def c8(rows: list, split: str) -> str:
+    """C8 over the k study's members (sorted by k): the steps between consecutive k on which L1 falls and DAME rises."""
+    steps = list(zip(rows, rows[1:]))
+    fall = sum(b[split]["l1"] < a[split]["l1"] for (_, a), (_, b) in steps)
+    rise = sum(b[split]["dame"] > a[split]["dame"] for (_, a), (_, b) in steps)
+    n = len(steps)
+    seeds = any(v is not None for _, r in rows for v in r.get("_sd", {}).get(split, {}).values())
+    follows = [2 * fall > n, 2 * rise > n]
+    return (f"C8, {split}: L1 falls on {fall} of {n} steps of k, DAME rises on {rise} of {n}: "
+            f"{verdict(sum(follows), 2)} ({'over seeds' if seeds else 'one seed per k'}).")
 
 
 def k_rows(krun: Path) -> list[tuple[int, dict]]:
@@ -100,8 +194,16 @@ def main(argv=None) -> int:
         for k, c in read.items():
             mean = {None: "no mean shape in the run", True: "beats the mean shape on L1 and DAME",
                     False: "does not beat the mean shape on both"}[c["beats_mean"]]
-            print(f"\nC4, {k}, {split}: {'on' if c['front'] else 'off'} the front; DAME rank {c['dame_rank']} and "
-                  f"L1 rank {c['l1_rank']} of {c['n']} learned models; {mean}: {c['verdict']}.")
+            print(f"\n{k}, {split}: {'on' if c['front'] else 'off'} the front of all learned models; DAME rank "
+                  f"{c['dame_rank']} and L1 rank {c['l1_rank']} of {c['n']}; {mean}.")
+            print(f"C4, {k}, {split}: lower DAME than {c['c4_lower']} of table 4.2's {len(c['c4_vs'])} "
+                  f"({', '.join(c['c4_vs']) or 'none in the run'}); L1 rank {c['c4_l1_rank']} of "
+                  f"{len(c['c4_vs']) + 1}: {c['c4']}.")
+            print(f"C7, {k}, {split}: {c['c7']}.")
+        line = c16(models, split)
+        if line:
+            print(line)
+    print(f"\n{RULE}")
     if a.k is not None:
         rows = k_rows(a.k)
         for split in a.splits.split(","):
@@ -116,6 +218,7 @@ def main(argv=None) -> int:
                 print(f"| {k} | {r[split]['l1'] * 1e3:.3f} | {r[split]['dame'] * 1e2:.3f} | "
                       f"{r[split].get('fmpd', float('nan')) * 1e2:.3f} | {'yes' if k in front else 'no'} | "
                       f"{t['verdict']} | {mins} |")
+            print(f"\n{c8(rows, split)}")
     return 0
 
 

@@ -23,26 +23,65 @@ def test_c4_readings_per_split(tmp_path, capsys):
     run = tmp_path / "ch4"
     _run(run, {
         "mean-shape": {"train": (10.0, 2.0), "test": (10.0, 2.0)},
-        # train: dsm best DAME, on the front (holds); test: on the front by L1 only (partly)
+        # train: lowest DAME of table 4.2's (holds); test: lower DAME than spiralnet++ only (partly)
         "dsm": {"train": (3.0, 1.0), "test": (2.0, 3.0)},
-        # off the front on both (dominated by spiralnet++)
         "dsm-g04": {"train": (5.0, 4.0), "test": (5.0, 5.0)},
-        "spiralnet++": {"train": (2.0, 3.0), "test": (3.0, 2.5)},
+        "spiralnet++": {"train": (2.0, 3.0), "test": (3.0, 3.5)},
+        "vae-euclidean": {"train": (4.0, 0.5), "test": (4.0, 2.0)},  # table 4.2's Mesh Autoencoder row
         "vae-dr-norm": {"train": (6.0, 1.5), "test": (6.0, 1.0)},
     })
     mod = _module()
     models = mod.load(run)
     front, read = mod.reading(models, "train")
-    assert front == ["spiralnet++", "dsm"]  # sorted by L1; vae-dr-norm is dominated by dsm
-    assert read["dsm"] == {"front": True, "dame_rank": 1, "l1_rank": 2, "n": 4, "beats_mean": True, "verdict": "holds"}
+    assert front == ["spiralnet++", "dsm", "vae-euclidean"]  # sorted by L1; vae-dr-norm is dominated by dsm
+    c = read["dsm"]
+    assert (c["front"], c["dame_rank"], c["l1_rank"], c["n"], c["beats_mean"]) == (True, 2, 2, 5, True)
+    assert c["c4_vs"] == ["spiralnet++", "vae-euclidean"] and c["c4_lower"] == 1 and c["verdict"] == "partly"
     assert read["dsm-g04"]["verdict"] == "does not hold"
+    # table 4.3 on train: dsm lowest L1 (3.0 against 4.0 and 6.0), not lowest DAME (vae-euclidean 0.5)
+    assert c["c7"].startswith("lowest L1 of dsm and the VAEs: yes, lowest DAME: no: partly (one seed;")
     front, read = mod.reading(models, "test")
     assert read["dsm"]["verdict"] == "partly" and read["dsm"]["beats_mean"] is False  # DAME 3.0 above the mean's 2.0
+    assert read["dsm"]["c7"].startswith("on the front of dsm and the VAEs: yes: holds")
     assert models["dsm"]["training"]["minutes"] == 5.0
     assert mod.main([str(run)]) == 0
     out = capsys.readouterr().out
-    assert "C4, dsm, train: on the front; DAME rank 1 and L1 rank 2 of 4 learned models; beats the mean shape" in out
+    assert "C4, dsm, train: lower DAME than 1 of table 4.2's 2 (spiralnet++, vae-euclidean); L1 rank 2 of 3: partly" in out
     assert "| mean-shape | 10000.000 | 200.000 | 400.000 | (baseline) |" in out
+    assert "Rule: A is lower than B" in out
+
+
+# docs/methods/claims.md, "Chapter 4 at the budget's plateau": ch4_plateau-20261201-225739 (L1 x1e-3, DAME x1e-2)
+CH4 = {"mean-shape": {"train": (11.373, 1.959), "test": (11.963, 1.978)},
+       "dsm": {"train": (1.076, 1.620), "test": (3.716, 1.827)},
+       "dsm-g04": {"train": (1.446, 1.756), "test": (3.841, 1.928)},
+       "vae-euclidean": {"train": (7.223, 14.53), "test": (7.646, 14.94)},
+       "vae-euclidean-std": {"train": (1.556, 4.988), "test": (3.644, 4.894)},
+       "vae-dr-norm": {"train": (1.384, 1.445), "test": (4.092, 1.631)},
+       "spiralnet++": {"train": (2.286, 6.255), "test": (3.692, 6.126)},
+       "neural-3dmm": {"train": (2.093, 6.239), "test": (3.410, 6.133)}}
+# the k study, k-plateau-20261202-015750, dsm's test L1 and DAME per k
+KSTUDY = {10: (3.892, 1.685), 50: (3.538, 1.644), 200: (3.641, 1.673), 500: (3.715, 1.827), 1000: (3.715, 2.114),
+          2000: (3.695, 2.680)}
+
+
+def test_the_chapter_4_run_gives_the_pages_verdicts(tmp_path, capsys):
+    run, krun = tmp_path / "ch4_plateau-20261201-225739", tmp_path / "k"
+    _run(run, {k: {s: (v[0] * 1e-3, v[1] * 1e-2) for s, v in r.items()} for k, r in CH4.items()})
+    for k, (l1, dame) in KSTUDY.items():
+        _run(krun / f"k{k}", {"dsm": {"test": (l1 * 1e-3, dame * 1e-2), "train": (l1 * 1e-3, dame * 1e-2)}})
+    assert _module().main([str(run), "--k", str(krun)]) == 0
+    out = capsys.readouterr().out
+    for split in ("train", "test"):
+        assert (f"C4, dsm, {split}: lower DAME than 3 of table 4.2's 3 (spiralnet++, neural-3dmm, vae-euclidean); "
+                ) in out
+    assert "L1 rank 1 of 4: holds (one seed; every deciding margin 10 % or more)." in out  # train
+    assert "L1 rank 3 of 4: holds (one seed; every deciding margin 10 % or more)." in out  # test: behind both
+    assert ("C7, dsm, train: lowest L1 of dsm and the VAEs: yes, lowest DAME: no: partly (one seed; every deciding "
+            "margin 10 % or more).") in out
+    assert "C7, dsm, test: on the front of dsm and the VAEs: yes: holds (a front by means; one seed)." in out
+    assert "C16, train: Euclidean Std. VAE lower L1 (yes) and DAME (yes) than the raw Euclidean VAE: holds" in out
+    assert "C8, test: L1 falls on 2 of 5 steps of k, DAME rises on 4 of 5: partly (one seed per k)." in out
 
 
 def test_k_study_table(tmp_path, capsys):
