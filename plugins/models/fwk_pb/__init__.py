@@ -263,6 +263,17 @@ class _Blend:
         self._anchor_memo = {}   # one entry: (neutrals' hash) -> {expression: anchor prediction}
         self._bending = None     # (torch sparse cotangent Laplacian of the template, its dtype)
 
+    def _describe_extras(self) -> str:
+        """The options beyond the thesis, for ``describe``."""
+        out = []
+        if self.anchor_spec is not None:
+            p = ", ".join(f"{k}: {v}" for k, v in self.anchor_spec.params.items())
+            out.append(f"beyond the thesis: the networks learn the residual from {self.anchor_spec.name}"
+                       f"{f' ({p})' if p else ''}'s prediction (a zero residual is {self.anchor_spec.name} itself)")
+        if self.bending_weight:
+            out.append(f"beyond the thesis: the spatial network's loss has a bending term of weight {self.bending_weight:g}")
+        return "".join(f"; {x}" for x in out)
+
     # ------------------------------------------------------------------ anchor and bending
     def refs(self, N, expressions) -> dict:
         """{expression: (b, n, 3) the reference each expression's features are taken against}: the
@@ -619,6 +630,13 @@ class PB(_Blend):
                    bending_weight)
         self.branch_names = [self.branch_specs[0].name]
 
+    def describe(self) -> str:
+        """A report's legend line (``fwk.protocols.Described``)."""
+        rep = self.branch_specs[0]
+        what = " ".join(x for x in (rep.name, rep.params.get("scaling")) if x)
+        return f"PB (thesis 5.2): a graph VAE from the neutral to each expression, {self.mode}, {what}" + \
+            self._describe_extras()
+
     @property
     def places_rigidly(self) -> bool:
         """Whether the output representation loses the rigid placement (dr): ``predict`` then
@@ -669,6 +687,16 @@ class PBS(_Blend):
         self.k: dict[str, int] = {}
         self.sweep: dict = {}
         self.assembler = None
+
+    def describe(self) -> str:
+        """A report's legend line (``fwk.protocols.Described``)."""
+        s, d = self.branch_specs
+        k = "k fixed" if self.k_fixed is not None else f"k at the ({self.distance_metric.upper()}, " \
+            f"{self.knee_metric.upper()}) knee on validation"
+        head = "DT-anchored PBS" if self.anchor_spec is not None else "PBS (thesis 5.3)"
+        def rep(r):
+            return " ".join(x for x in (r.name, r.params.get("scaling")) if x)
+        return (f"{head}: a {rep(s)} and a {rep(d)} PB network spectrally assembled, {k}" + self._describe_extras())
 
     # ------------------------------------------------------------------ assembly
     def _ks(self, n: int) -> list[int]:
