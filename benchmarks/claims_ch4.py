@@ -140,9 +140,10 @@ def c16(models: dict, split: str) -> str | None:
            for m in ("l1", "dame")}
     ok = all(x is True for x, _ in got.values())
     close = [f"{m.upper()} {pct(mm)}" for m, (x, mm) in got.items() if x is True and mm < CLOSE]
+    word = qualify("holds" if ok else "does not hold", close, "holds" if ok and not close else "does not hold",
+                   seeded(_v(models, "vae-euclidean", split, "l1")))
     return (f"C16, {split}: Euclidean Std. VAE lower L1 ({'yes' if got['l1'][0] else 'no'}) and DAME "
-            f"({'yes' if got['dame'][0] else 'no'}) than the raw Euclidean VAE: "
-            f"{qualify('holds' if ok else 'does not hold', close, 'holds' if ok and not close else 'does not hold', seeded(_v(models, 'vae-euclidean', split, 'l1')))}.")
+            f"({'yes' if got['dame'][0] else 'no'}) than the raw Euclidean VAE: {word}.")
 
 
 def c8(rows: list, split: str) -> str:
