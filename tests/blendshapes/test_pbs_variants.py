@@ -158,3 +158,25 @@ def test_bending_weight_enters_the_training_loss(tmp_path):
     Fa, Fb = a.branch_features(N, "mouth-wide", 0), b.branch_features(N, "mouth-wide", 0)
     assert not np.allclose(Fa, Fb)
     # the differential branch's loss has no bending term: its gradient path is untouched by the weight
+
+
+def test_a_conditional_anchored_pbs_predicts_every_expression_from_the_anchor(tmp_path):
+    """The rig's conditional PBS with an anchor: predict_all (one encoder pass, every expression's
+    condition decoded in batches) equals one expression at a time, and a zero residual gives DT
+    for every expression."""
+    from fwk_pb import PBS
+
+    data = tiny_blendshape_data()
+    m = PBS(network=NET, ks=[0, 20, 10_000], anchor=DT, conditional=True)
+    m.fit(data, make_test_context(tmp_path, epochs=1, batch_size=4))
+    N = np.asarray(data.val.positions[:, 0])
+    es = list(m.expressions)
+    many = m.predict_all(N, es)
+    for e in es:
+        assert np.allclose(many[e], m.predict(N, e), atol=1e-5)
+    m.branch_features_many = lambda N_, exprs, b, batch=64: {
+        e: m.out_reps[b].encode(m.refs(N_, [e])[e], m.refs(N_, [e])[e]) for e in exprs}
+    zero = m.predict_all(N, es)
+    want = _dt(data).predict_all(N, es)
+    for e in es:
+        assert np.abs(zero[e] - want[e]).max() < 1e-5 * np.abs(want[e]).max(), e
