@@ -206,8 +206,9 @@ def main(argv=None) -> int:
             print(line)
     print(f"\n{RULE}")
     if a.k is not None:
-        rows = k_rows(a.k)
+        every_row = k_rows(a.k)
         for split in a.splits.split(","):
+            rows = [(k, r) for k, r in every_row if split in r]  # a member without the split is left out
             pts = [(r[split]["l1"], r[split]["dame"]) for _, r in rows]
             front = {rows[i][0] for i in pareto_front(pts)}
             print(f"\nk study ({a.k.name}), {split}\n")
