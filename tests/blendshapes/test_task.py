@@ -67,6 +67,8 @@ def test_report_opens_with_the_verdict_and_the_legend(run):
         assert all(f"{m} `" in line for m in ("L1 norm", "DAME", "FMPD")) and " cm" in line and " rad" in line
         assert "below the runner-up" in line or "tied with" in line
         assert "`pbs`: " in line  # the model fwk apply uses: its rank on every metric
+        assert "pbs:pb-dr-norm" not in line  # placed onto the ground truth: not ranked, and said so
+    assert any(ln.startswith("- not ranked: `pbs:pb-dr-norm`") for ln in lines[:10])
     models = report.split("## Models\n")[1].split("\n## ")[0]
     for label in ("dt", "pbs", "pbs:pb-euclidean-std", "pbs:pb-dr-norm"):
         assert f"| `{label}` | " in models

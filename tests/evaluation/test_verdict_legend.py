@@ -110,3 +110,18 @@ def test_dt_describes_its_source_subjects():
     assert isinstance(dt(0), Described)
     assert "from training subject 0 as the source" in dt(0).describe()
     assert "from training subjects 0, 1, 2 as the sources" in dt([0, 1, 2]).describe()
+
+
+def test_only_judged_rows_compete_and_the_others_are_named_with_the_reason():
+    """A row scored with help the user does not have (a dr network placed onto the ground truth)
+    is left out of the ranking, and the verdict says which rows and why."""
+    r = _results()
+    per = r["blendshapes"]
+    for e in per:  # a better-looking row that used the ground truth's placement
+        per[e]["pbs:pb-dr"] = {"l1": _s(0.1, mean_input=1.0), "dame": _s(0.01, units="rad")}
+    lines = verdict_lines(r)
+    assert "`pbs:pb-dr`'s" in lines[0]  # without `judged` it wins everything
+    r["verdict"].update(judged=["dt-0", "pbs"], not_judged_why="`pbs:pb-dr` (placed onto the ground truth)")
+    lines = verdict_lines(r)
+    assert "pb-dr" not in "\n".join(lines[:-1]) and "`pbs`'s on 2" in lines[0]
+    assert lines[-1] == "- not ranked: `pbs:pb-dr` (placed onto the ground truth)"

@@ -7,6 +7,9 @@ A task says what to judge with ``verdict`` in its results (metrics.json)::
      "split": "test", "noun": "expression",
      "metrics": ["l1", "dame", "fmpd"],
      "highlight": ["pbs"],           # models whose rank is stated even when they do not win
+     "judged": ["dt-0", "pbs"],      # optional: only these rows compete (others are reported, not
+                                     # ranked: e.g. rows scored with the ground truth's placement)
+     "not_judged_why": "...",        # optional: the reason, said once under the verdict
      "counted": "subjects"}          # what a summary's n counts (default "meshes")
 
 Without it the verdict judges ``results["models"]`` on the test split with the figure metrics
@@ -47,13 +50,15 @@ def _unit(units: str) -> str:
 
 
 def _groups(results: dict, spec: dict) -> dict[str, dict]:
-    """{key: {label: {metric: summary}}} that the verdict judges."""
+    """{key: {label: {metric: summary}}} that the verdict judges (only ``judged`` labels when given)."""
+    judged = spec.get("judged")
+    keep = (lambda label: True) if judged is None else set(judged).__contains__
     section = spec.get("section")
     if section:
         sec = results.get(section) or {}
-        return {k: v for k, v in sec.items() if isinstance(v, dict)}
+        return {k: {lb: r for lb, r in v.items() if keep(lb)} for k, v in sec.items() if isinstance(v, dict)}
     split = spec.get("split", "test")
-    rows = {label: per.get(split) for label, per in (results.get("models") or {}).items()}
+    rows = {label: per.get(split) for label, per in (results.get("models") or {}).items() if keep(label)}
     rows = {k: v for k, v in rows.items() if isinstance(v, dict) and v}
     return {split: rows} if rows else {}
 
@@ -157,4 +162,5 @@ def verdict_lines(results: dict, registry: Registry | None = None) -> list[str]:
     n = f"{subjects:g} {spec.get('counted', 'meshes')}, " if subjects else ""
     head = (f"**Verdict** on the {split} split ({spread}), {n}lower is better: of {pairs} {per}, the lowest mean "
             f"is {who or 'no one'}{missing}.")
-    return [head, "", *lines]
+    why = spec.get("not_judged_why")
+    return [head, "", *lines, *([f"- not ranked: {why}"] if why else [])]
