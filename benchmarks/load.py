@@ -243,11 +243,7 @@ def main():
         for line in lines[:-1]:
             print(f"  {line}", flush=True)
         out["before"] = json.loads(lines[-1])
-        for name in ("vcconv VAE", "eigenbasis"):
-            if name in out["before"]:
-                r = out["before"][name]
-                print(f"  {name}: alone {r['alone_ms']:.0f} ms, beside {r['beside_ms']:.0f} ms: {r['ratio']:.1f}x",
-                      flush=True)
+    out["load_average_end"] = os.getloadavg()[0]
     print(f"load average at start / end: {out['load_average_start']:.2f} / {out['load_average_end']:.2f}")
     print(json.dumps(out))
 

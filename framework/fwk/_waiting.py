@@ -47,12 +47,9 @@ def apply(environ=None, modules=None) -> dict[str, str]:
     env = os.environ if environ is None else environ
     mods = sys.modules if modules is None else modules
     chosen = (env.get("OMP_WAIT_POLICY") or "").strip()
-    if chosen and chosen.upper() != "PASSIVE" and "OMP_WAIT_POLICY" not in added:
+    if chosen and chosen.upper() != "PASSIVE":
         return {}  # the user chose another policy: theirs for every pool
-    if "OPENBLAS_THREAD_TIMEOUT" in env or "GOTO_THREAD_TIMEOUT" in env:
-        skip = {"OPENBLAS_THREAD_TIMEOUT"}  # OpenBLAS reads either name
-    else:
-        skip = set()
+    skip = {"OPENBLAS_THREAD_TIMEOUT"} if "GOTO_THREAD_TIMEOUT" in env else set()  # OpenBLAS reads either name
     now = {}
     for key, value in DEFAULTS.items():
         if key not in env and key not in skip:
