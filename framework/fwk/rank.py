@@ -52,6 +52,8 @@ def main(argv: list[str]) -> int:
     except Exception:
         print(f"fwk DDP rank {rank}: {traceback.format_exc()}", file=sys.stderr, flush=True)
         return 1
+    finally:
+        join(None)  # this process is a rank only while main runs (a caller in-process, a test, goes on as itself)
     print(f"fwk DDP rank {rank}: the run ended without reaching the training of {job['ckdir']}",
           file=sys.stderr, flush=True)
     return 1

@@ -58,8 +58,9 @@ def rank_job() -> dict | None:
     return _JOB
 
 
-def join(job: dict) -> None:
-    """In a rank > 0 process (``fwk.rank``), before it reruns the task: the training to join."""
+def join(job: dict | None) -> None:
+    """In a rank > 0 process (``fwk.rank``), before it reruns the task: the training to join
+    (None: none, this process is no rank)."""
     global _JOB
     _JOB = job
 
@@ -176,7 +177,9 @@ def make_strategy(job: dict, devices, world: int):
             DistributedDataParallel._set_params_and_buffers_to_ignore_for_model(model, sparse_state(model))
             return super()._setup_model(model)
 
-    return FwkDDP(cluster_environment=LightningEnvironment())
+    # a strategy instance keeps its own checkpoint IO (Lightning's default pickles): fwk's safe one
+    from .callbacks import SafeCheckpointIO
+    return FwkDDP(cluster_environment=LightningEnvironment(), checkpoint_io=SafeCheckpointIO())
 
 
 class DistEnv:

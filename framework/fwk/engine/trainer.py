@@ -238,7 +238,9 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
                 # bit-exact on CPU; on GPUs some scatter kernels have no deterministic variant
                 deterministic=True if on_cpu else "warn",
                 logger=TensorBoardLogger(str(tbdir), name="", version=""),
-                callbacks=callbacks, plugins=[SafeCheckpointIO()],  # checkpoints: data only, never a pickle
+                # checkpoints: data only, never a pickle (fwk's DDP strategy carries the same IO itself:
+                # Lightning refuses it twice, and a strategy instance otherwise pickles)
+                callbacks=callbacks, plugins=[SafeCheckpointIO()] if isinstance(strategy, str) else [],
                 enable_progress_bar=show_bar, enable_model_summary=False,
                 log_every_n_steps=config.log_every_n_steps, num_sanity_val_steps=0, default_root_dir=str(ckdir),
                 use_distributed_sampler=False,
