@@ -433,7 +433,7 @@ def _env_after(code, **set_):
 
 
 @pytest.mark.parametrize("entry", ["import fwk", "from fwk.cli import main",  # the console script's import
-                                   "import fwk.engine.distributed"])
+                                   "import fwk.engine.distributed", "import fwk.rank"])  # DDP ranks: python -m fwk.rank
 def test_every_entry_point_sets_the_wait_policy(entry):
     got = _env_after(entry)
     assert got["OMP_WAIT_POLICY"] == "PASSIVE" and got["OPENBLAS_THREAD_TIMEOUT"] == "4"
