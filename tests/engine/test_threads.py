@@ -464,27 +464,6 @@ def test_apply_records_what_it_set_and_what_was_loaded_before():
     assert out.stdout.split("\n")[0] == "['OMP_WAIT_POLICY', 'OPENBLAS_THREAD_TIMEOUT'] ['numpy']"
 
 
-IDLE_CPU = """
-import fwk, sys, time
-if sys.argv[1] == "torch":
-    import torch
-    torch.set_num_threads(2)
-    a = torch.randn(256, 256)
-    work, gap = (lambda: torch.mm(a, a)), 0.002
-else:
-    import numpy as np
-    a = np.random.rand(512, 512)
-    work, gap = (lambda: a @ a), 0.02
-work()
-cpu = wall = 0.0
-for _ in range(40):
-    work()
-    c0, w0 = time.process_time(), time.perf_counter()
-    time.sleep(gap)
-    cpu += time.process_time() - c0
-    wall += time.perf_counter() - w0
-print(cpu / wall)
-"""
 
 
 @pytest.mark.parametrize("lib", ["torch", "numpy"])
@@ -492,6 +471,7 @@ def test_idle_pools_do_not_spin(lib):
     """The policy takes effect: a process whose pools (torch's OpenMP, NumPy's OpenBLAS; 2 threads)
     sit idle between products burns almost no CPU while it sleeps. Spinning threads burn 0.4-0.7
     of a core here; a loaded machine can only lower the figure, never raise it."""
-    env = _child_env(OMP_NUM_THREADS="2", OPENBLAS_NUM_THREADS="2")
-    out = subprocess.run([sys.executable, "-c", IDLE_CPU, lib], env=env, capture_output=True, text=True, check=True)
-    assert float(out.stdout.strip()) < 0.15
+    from tests.core.scripts import load_benchmark
+
+    # benchmarks/load.py's probe (the same child script the benchmark prints), with fwk imported first
+    assert load_benchmark("load").probe_idle_cpu(lib, _child_env()) < 0.15
