@@ -66,15 +66,23 @@ def legacy_error(path: Path) -> LegacyFormatError:
         f"trust who made the run, rewrite it in the safe format with: fwk convert {run_of(path)} --trust")
 
 
+HEAD_BYTES = 9  # what is_pickle reads: a safetensors header length (8 bytes) and the JSON's first byte
+
+
 def is_pickle(head: bytes) -> bool:
-    """Whether a file starting with ``head`` is a ``torch.save`` pickle (zip or legacy format)."""
+    """Whether a file starting with ``head`` (its first ``HEAD_BYTES``) is a ``torch.save``
+    pickle (zip or legacy format). A safetensors file starts with its header's length (8 bytes,
+    little-endian) and the header's "{": a length whose low byte is 0x80 (one header in 256) must
+    not read as pickle protocol 2's first byte."""
+    if len(head) >= 9 and head[8:9] == b"{" and 0 < int.from_bytes(head[:8], "little") < 1 << 40:
+        return False
     return head[:4] == b"PK\x03\x04" or head[:1] == b"\x80"
 
 
 def file_is_pickle(path: Path) -> bool:
     try:
         with open(path, "rb") as f:
-            return is_pickle(f.read(4))
+            return is_pickle(f.read(HEAD_BYTES))
     except OSError:
         return False
 
@@ -237,7 +245,7 @@ def loads_state(data: bytes, where: str = "the file") -> tuple[Any, dict]:
     """(state, meta) from bytes ``dumps_state`` wrote, verified: a pickle raises
     ``LegacyFormatError``, anything else that is not a whole, unchanged state file ``DataError``
     naming ``where``."""
-    if is_pickle(data[:4]):
+    if is_pickle(data[:HEAD_BYTES]):
         raise legacy_error(Path(where))
     try:
         start, header = _split(data)

@@ -145,3 +145,25 @@ def test_importing_safeio_does_not_import_torch():
     code = "import sys, fwk.safeio, fwk.lifecycle, fwk.convert; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.stdout.strip() == "False", out.stderr
+
+
+def test_a_state_whose_header_length_starts_with_0x80_is_no_pickle(tmp_path):
+    """One header length in 256 has 0x80 as its low byte, pickle protocol 2's first byte: such a
+    state file (a checkpoint whose stored paths made it so) is read as a state, not refused as an
+    earlier fwk's pickle; a real pickle still is one."""
+    from fwk.safeio import file_is_pickle, load_state, save_state
+
+    for pad in range(600):
+        path = tmp_path / f"s{pad}.safetensors"
+        save_state(path, {"w": np.arange(3.0), "dir": "x" * pad})
+        if path.read_bytes()[0] == 0x80:
+            break
+    else:
+        raise AssertionError("no padding gave a header length with low byte 0x80")
+    assert not file_is_pickle(path)
+    assert load_state(path)["dir"] == "x" * pad
+    buf = io.BytesIO()
+    torch.save({"w": torch.zeros(2)}, buf, _use_new_zipfile_serialization=False)  # starts with 0x80
+    legacy = tmp_path / "legacy.pt"
+    legacy.write_bytes(buf.getvalue())
+    assert legacy.read_bytes()[0] == 0x80 and file_is_pickle(legacy)
