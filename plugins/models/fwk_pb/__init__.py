@@ -100,6 +100,7 @@ DAME. For another representation it is the roughness of the feature error.
 """
 from __future__ import annotations
 
+import hashlib
 from types import MappingProxyType
 from typing import Annotated
 
@@ -283,7 +284,7 @@ class _Blend:
         the same neutrals again)."""
         if self.anchor is None:
             return {e: N for e in expressions}
-        key = (N.shape, hash(np.ascontiguousarray(N).tobytes()))
+        key = (N.shape, hashlib.blake2b(np.ascontiguousarray(N).tobytes(), digest_size=16).digest())
         memo = self._anchor_memo.get(key)
         if memo is None or any(e not in memo for e in expressions):
             wanted = list(dict.fromkeys([*expressions, *(self.expressions or [])]))
