@@ -252,19 +252,6 @@ class Cache:
         h.update(data)
         return h.hexdigest()
 
-    def authentic(self, data_p: Path) -> bool:
-        """Whether the pickled entry at ``data_p`` (``<namespace>/<key>.bin``) carries the HMAC the
-        user's key gives its bytes (nothing is unpickled)."""
-        secret = cache_key()
-        data_p = Path(data_p)
-        sum_p = data_p.with_suffix(".hmac")
-        try:
-            expected = sum_p.read_text().strip()
-            mac = self._mac(secret, data_p.parent.name, data_p.stem, data_p.read_bytes()) if secret else ""
-        except OSError:
-            return False
-        return bool(secret) and hmac.compare_digest(mac, expected)
-
     def _verified(self, data_p: Path, sum_p: Path, digest: Callable[[], str]) -> bool:
         """Whether the entry at ``data_p`` is whole: ``digest()`` (its bytes' SHA-256, or for a
         pickled entry their HMAC) equals ``sum_p``'s. A missing entry, or one without its check

@@ -138,16 +138,6 @@ class RunContext:
         atomic_write_bytes(p, buf.getvalue())
         return p
 
-    def save_torch(self, rel, obj) -> Path:
-        """``torch.save`` of ``obj`` to ``rel`` in the run directory (atomic); returns the path."""
-        import torch  # deferred: see _default_device
-
-        p = self.path(rel)
-        buf = io.BytesIO()
-        torch.save(obj, buf)
-        atomic_write_bytes(p, buf.getvalue())
-        return p
-
     # output ------------------------------------------------------------------------
     def log(self, msg: str) -> None:
         """Print ``msg`` (unless quiet) and append it to the run's log file."""
