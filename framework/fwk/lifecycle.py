@@ -43,7 +43,7 @@ from .recipes import Spec, parse_seeds, read_recipe_file, resolve
 from .registry import Registry
 from .runs import RunContext, check_recipe_hash, require_complete
 from .safeio import LEGACY_SUFFIX, SUFFIX, legacy_error, load_json, load_npz, load_state, save_state
-from .seeds import FAILED, SEED_DIR, member_recipe, plain_recipe, seed_finished, takes_split
+from .seeds import FAILED, SEED_DIR, fans_out_seeds, member_recipe, plain_recipe, seed_finished, takes_split
 
 
 def state_path(run_dir: Path, label: str) -> Path:
@@ -240,7 +240,7 @@ def _run_seeds(run_dir: Path, data: dict, registry: Registry) -> list[int] | Non
         cls = registry.get("task", data.get("task"), key_path="task") if isinstance(data.get("task"), str) else None
     except RecipeError as exc:
         raise FwkError(f"{run_dir}/recipe.yaml no longer validates: {exc}") from None
-    if cls is not None and getattr(cls, "fans_out_seeds", False):  # a grid: <member>/seed-<s>/
+    if cls is not None and fans_out_seeds(cls):  # a grid: <member>/seed-<s>/
         return None
     return seeds
 

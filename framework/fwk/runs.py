@@ -55,7 +55,7 @@ from .plugins import get_registry
 from .recipes import Spec, load_recipe, make_spec, read_recipe_file, resolve, to_plain
 from .registry import Registry
 from .safeio import refuse_pickled
-from .seeds import run_seeds
+from .seeds import fans_out_seeds, run_seeds
 
 SCOPED = ("checkpoints", "tb", "curves")  # per network, under the model's label
 
@@ -445,7 +445,7 @@ def run_task(resolved, ctx: RunContext) -> None:
     """Build the recipe's task and run it in ``ctx``; a recipe with ``seeds`` runs it once per
     seed, in sub-runs of ``ctx`` on one split (``fwk.seeds.run_seeds``), unless the task fans
     seeds out itself (its class says ``fans_out_seeds = True``: the grid)."""
-    if resolved.seeds is not None and not getattr(resolved.task.cls, "fans_out_seeds", False):
+    if resolved.seeds is not None and not fans_out_seeds(resolved.task.cls):
         run_seeds(resolved, ctx)
         return
     task = resolved.task.build()

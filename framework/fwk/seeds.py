@@ -61,6 +61,12 @@ def split_seed(data: dict) -> int:
     return int(data.get("seed", 0) or 0)
 
 
+def fans_out_seeds(task_cls) -> bool:
+    """Whether a task runs a recipe's ``seeds`` itself (its class says ``fans_out_seeds = True``:
+    the grid, whose members each get the seeds) instead of fwk running it once per seed."""
+    return bool(getattr(task_cls, "fans_out_seeds", False))
+
+
 def takes_split(task_cls) -> bool:
     """Whether a task's recipe has a ``split`` key."""
     return "split" in inspect.signature(task_cls.__init__).parameters  # justified: the constructor is the recipe schema
