@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from ..errors import DataError, FwkError
-from ..safeio import file_is_pickle, legacy_error, load_state
+from ..safeio import LegacyFormatError, load_state
 from .config import TrainConfig
 from .distributed import DistEnv, RankDone, make_job, make_strategy, rank_job, wants_ddp
 from .loading import make_loader
@@ -49,11 +49,11 @@ def _quiet_lightning():
 def _loadable(path: Path):
     """The checkpoint at ``path`` (``fwk.safeio``'s format), or None when it is damaged (a write
     a kill cut short); a pickled checkpoint of an earlier fwk is refused, never unpickled."""
-    if file_is_pickle(path):
-        raise legacy_error(path)
     try:
         ck = load_state(path)
-    except DataError:
+    except LegacyFormatError:
+        raise
+    except DataError:  # damaged, truncated
         return None
     return ck if isinstance(ck, dict) else None
 
