@@ -112,6 +112,11 @@ def test_anchor_must_be_a_blendshape_model():
 
     with pytest.raises(RecipeError, match="anchor"):
         PBS(network=NET, anchor="vae")
+    # from a recipe: refused when the recipe is validated, naming the full key and the role
+    from fwk.recipes import make_spec
+
+    with pytest.raises(RecipeError, match=r"models\.p\.anchor: .*BlendshapeModel"):
+        make_spec("model", {"name": "pbs", "network": NET, "anchor": "vae"}, "models.p")
 
 
 def test_bending_error_equals_a_loop_over_the_cotangent_weights(tmp_path):

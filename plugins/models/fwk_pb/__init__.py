@@ -115,7 +115,7 @@ from fwk.errors import DataError, RecipeError
 from fwk.evaluation import evaluate, pareto_front
 from fwk.hookspecs import hookimpl
 from fwk.geometry.operators import cotangent_laplacian
-from fwk.protocols import BLENDSHAPES, BlendshapeModel, NetworkFactory, plays
+from fwk.protocols import BLENDSHAPES, BlendshapeModel, NetworkFactory
 from fwk.recipes import Kind, Spec, make_spec
 from fwk.scaling import Scaler
 
@@ -253,10 +253,8 @@ class _Blend:
         self._net_model = None
         self.template = None
         self.shape = None
-        self.anchor_spec = None if anchor is None else make_spec("model", anchor, "anchor")
-        if self.anchor_spec is not None and not plays(self.anchor_spec.cls, BlendshapeModel):
-            raise RecipeError(f"anchor: model {self.anchor_spec.name!r} is not a blendshape model "
-                              "(predict / predict_all: see fwk.protocols.BlendshapeModel)")
+        # a recipe's anchor is checked against the role when validated (Kind); one built in Python here
+        self.anchor_spec = None if anchor is None else make_spec("model", anchor, "anchor", role=BlendshapeModel)
         if not (np.isfinite(bending_weight) and bending_weight >= 0):
             raise RecipeError(f"bending_weight: expected a finite number >= 0, got {bending_weight!r}")
         self.bending_weight = float(bending_weight)
@@ -272,7 +270,8 @@ class _Blend:
             out.append(f"beyond the thesis: the networks learn the residual from {self.anchor_spec.name}"
                        f"{f' ({p})' if p else ''}'s prediction (a zero residual is {self.anchor_spec.name} itself)")
         if self.bending_weight:
-            out.append(f"beyond the thesis: the spatial network's loss has a bending term of weight {self.bending_weight:g}")
+            out.append("beyond the thesis: the spatial network's loss has a bending term of weight "
+                       f"{self.bending_weight:g}")
         return "".join(f"; {x}" for x in out)
 
     # ------------------------------------------------------------------ anchor and bending
@@ -624,7 +623,7 @@ class PB(_Blend):
                  network: Annotated[Spec, Kind("model")] = "vae", mode: str = "end-to-end",
                  expressions: list[str] | None = None, conditional: bool = False,
                  kl_weight: float | None = None, train: dict | None = None,
-                 anchor: Annotated[Spec | None, Kind("model")] = None, bending_weight: float = 0.0):
+                 anchor: Annotated[Spec | None, Kind("model", BlendshapeModel)] = None, bending_weight: float = 0.0):
         if anchor is not None and mode != "end-to-end":
             raise RecipeError("anchor: only with mode end-to-end")
         self._init(network, [representation], mode, expressions, conditional, kl_weight, train, anchor,
@@ -674,7 +673,7 @@ class PBS(_Blend):
                  conditional: bool = False, k: int | dict[str, int] | None = None, ks: list[int] | None = None,
                  knee_metric: str = "fmpd", sweep_metrics: list[str] = ("l1", "dame", "fmpd"),
                  distance_metric: str = "l1", kl_weight: float | None = None, train: dict | None = None,
-                 anchor: Annotated[Spec | None, Kind("model")] = None, bending_weight: float = 0.0):
+                 anchor: Annotated[Spec | None, Kind("model", BlendshapeModel)] = None, bending_weight: float = 0.0):
         self._init(network, [spatial, differential], "end-to-end", expressions, conditional, kl_weight, train,
                    anchor, bending_weight)
         self.branch_names = ["spatial", "differential"]
