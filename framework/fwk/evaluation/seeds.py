@@ -153,6 +153,14 @@ def min_pairs(alpha: float = ALPHA) -> int:
     return n
 
 
+def intervals_apart(ma: float, sa: float | None, mb: float, sb: float | None) -> bool | None:
+    """Whether the intervals mean ± sd of A and B do not overlap: |mb - ma| > sa + sb; None
+    without both sds (one seed: no spread to compare with)."""
+    if sa is None or sb is None:
+        return None
+    return abs(mb - ma) > sa + sb
+
+
 def compare(a_scores: dict, b_scores: dict, a_means: dict | None = None, b_means: dict | None = None) -> dict:
     """Whether A beats B over seeds (``RULE``). ``a_scores``, ``b_scores``: {seed: per-subject
     scores}; ``a_means``, ``b_means``: {seed: the seed's mean} (default: the scores' means).
@@ -183,7 +191,7 @@ def compare(a_scores: dict, b_scores: dict, a_means: dict | None = None, b_means
         return v["mean_a"] < v["mean_b"] if lower == "a" else v["mean_b"] < v["mean_a"]
 
     out["significant"] = sum(1 for v in per.values() if v["p"] is not None and v["p"] < ALPHA and seed_lower(v))
-    out["apart"] = sa is not None and sb is not None and abs(mb - ma) > sa + sb
+    out["apart"] = bool(intervals_apart(ma, sa, mb, sb))
     out["verdict"] = lower if (len(per) >= 2 and out["significant"] == len(per) and out["apart"]) else None
     return out
 

@@ -27,6 +27,7 @@ import math
 
 from ..registry import Registry
 from .presentation import display, figure_metrics
+from .seeds import intervals_apart
 
 
 def ordinal(n: int) -> str:
@@ -88,10 +89,8 @@ def _shown(v: float, sd: float | None, unit: str) -> str:
 
 
 def _apart(a: tuple, b: tuple) -> bool | None:
-    """Whether b's mean - a's mean exceeds sd(a) + sd(b); None without sds (one seed)."""
-    if a[1] is None or b[1] is None:
-        return None
-    return abs(b[0] - a[0]) > a[1] + b[1]
+    """Whether (mean, sd) ``a`` and ``b`` lie apart beyond the seeds' spread (``intervals_apart``)."""
+    return intervals_apart(a[0], a[1], b[0], b[1])
 
 
 def verdict_lines(results: dict, registry: Registry | None = None) -> list[str]:
