@@ -59,7 +59,7 @@ import numpy as np
 from .cache import file_mode
 from .data import Template
 from .data.io import ObjWriter, check_topology, line_number, read_obj
-from .data.template import UNITS
+from .data.template import METRES_PER_UNIT
 from .errors import DataError, FwkError, TopologyError, quote
 from .lifecycle import choose_model, open_run
 from .safeio import load_npz
@@ -80,8 +80,6 @@ MAX_SCALE_RATIO = 2.0
 MAX_STRAY = 4.0
 #: how far from the origin a coordinate may lie, in the mean training neutral's largest extents
 MAX_COORDINATE = 1e4
-#: metres per unit of each unit ``--units`` may name (fwk.data.template.UNITS but ``unit``)
-METRES = {"m": 1.0, "cm": 0.01, "mm": 0.001, "um": 1e-6, "in": 0.0254, "ft": 0.3048}
 
 
 def add_apply_parser(subparsers):
@@ -153,15 +151,15 @@ class Applier:
         """``--units`` as the factor that takes a neutral into the run's units (1 when None)."""
         if units is None:
             return 1.0
-        if isinstance(units, str) and units.strip() in METRES:
-            if self.units not in METRES:
+        if isinstance(units, str) and units.strip() in METRES_PER_UNIT:
+            if self.units not in METRES_PER_UNIT:
                 raise FwkError(f"--units {units.strip()}: the run's units are not stated (its dataset.units is "
                                f"{self.units}); give a factor instead, e.g. --units 0.1")
-            return METRES[units.strip()] / METRES[self.units]
+            return METRES_PER_UNIT[units.strip()] / METRES_PER_UNIT[self.units]
         try:
             f = float(units)
         except ValueError:
-            raise FwkError(f"--units {quote(units)}: expected a unit ({', '.join(METRES)}) or a factor "
+            raise FwkError(f"--units {quote(units)}: expected a unit ({', '.join(METRES_PER_UNIT)}) or a factor "
                            f"(a positive number)") from None
         if not (np.isfinite(f) and 1e-9 <= f <= 1e9):
             raise FwkError(f"--units {quote(units)}: a factor must be a finite number from 1e-9 to 1e9")
@@ -195,11 +193,12 @@ class Applier:
     def _hint(self, ratio: float) -> str:
         """The ``--units`` that would fit, or how to give one."""
         need = 1.0 / ratio
-        if self.units in METRES:
-            close = [u for u in METRES if abs(np.log(METRES[u] / METRES[self.units] / need)) < np.log(1.3)]
+        if self.units in METRES_PER_UNIT:
+            mine = METRES_PER_UNIT[self.units]
+            close = [u for u, m in METRES_PER_UNIT.items() if abs(np.log(m / mine / need)) < np.log(1.3)]
             if close:
                 return f"in {close[0]} rather than the run's {self.units}? give --units {close[0]}"
-            return (f"give its units with --units (the run's are {self.units}; {', '.join(METRES)}) "
+            return (f"give its units with --units (the run's are {self.units}; {', '.join(METRES_PER_UNIT)}) "
                     f"or a factor, e.g. --units {need:.3g}")
         return f"in other units than the run's? give a factor, e.g. --units {need:.3g}"
 
@@ -311,9 +310,9 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     check_dir(out, "--out", min_free_mb=0)  # before any work (fwk.paths)
     app = Applier(run_dir, model, registry, seed_run=seed_run, say=say)
     k = app.factor(units)
-    out_units = units.strip() if isinstance(units, str) and units.strip() in METRES else (
-        app.units if units is None else next((u for u in METRES if app.units in METRES and
-                                              np.isclose(METRES[u], k * METRES[app.units])), "unit"))
+    out_units = units.strip() if isinstance(units, str) and units.strip() in METRES_PER_UNIT else (
+        app.units if units is None else next((u for u in METRES_PER_UNIT if app.units in METRES_PER_UNIT and
+                                              np.isclose(METRES_PER_UNIT[u], k * METRES_PER_UNIT[app.units])), "unit"))
     t_load = time.perf_counter() - t0
     files = _inputs(neutral)
     meshes = []

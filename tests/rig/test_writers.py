@@ -73,3 +73,28 @@ def test_arkit_rename():
         rename({"eyeBlink_L": N, "eyeBlinkLeft": N}, N, "arkit")
     with pytest.raises(FwkError, match="unknown naming"):
         rename(shapes, N, "maya")
+
+
+@pytest.mark.parametrize("units", ["m", "cm", "mm", "um", "in", "ft", "unit"])
+def test_rig_files_carry_the_scale_of_every_stated_unit(tmp_path, units):
+    """glTF's node scale and USD's metersPerUnit are the metres in one of the head's units, for
+    every unit a dataset (or `fwk apply --units`) may state: a head in inches is not read as metres
+    (an unstated unit: 1)."""
+    pytest.importorskip("pygltflib")
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+
+    from fwk.rig.gltf import write_glb
+    from fwk.rig.usd import write_usd
+
+    from .readers import read_glb
+
+    want = {"m": 1.0, "cm": 0.01, "mm": 0.001, "um": 1e-6, "in": 0.0254, "ft": 0.3048, "unit": 1.0}[units]
+    V, t = _grid(tmp_path)
+    V = V - V.mean(axis=0)
+    write_glb(tmp_path / "r.glb", V, t, {"a": V + 0.01}, units=units)
+    doc, _ = read_glb(tmp_path / "r.glb")
+    assert doc["nodes"][0].get("scale", [1.0] * 3) == pytest.approx([want] * 3)
+    assert doc["extras"]["fwk"]["metres_per_unit"] == pytest.approx(want)
+    write_usd(tmp_path / "r.usda", V, t, {"a": V + 0.01}, units=units)
+    assert UsdGeom.GetStageMetersPerUnit(Usd.Stage.Open(str(tmp_path / "r.usda"))) == pytest.approx(want)

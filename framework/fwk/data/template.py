@@ -19,6 +19,9 @@ from ..registry import did_you_mean
 #: recipe is validated, and every MeshCollection's on construction.
 Units = Literal["unit", "m", "cm", "mm", "um", "in", "ft"]
 UNITS: tuple[str, ...] = get_args(Units)
+#: metres per unit of every stated unit (``unit``, not stated, has none): the rig files' scale and
+#: ``fwk apply --units``
+METRES_PER_UNIT = {"m": 1.0, "cm": 0.01, "mm": 0.001, "um": 1e-6, "in": 0.0254, "ft": 0.3048}
 
 
 def check_units(units, key: str = "dataset.units") -> str:

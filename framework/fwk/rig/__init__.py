@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import sparse
 
+from ..data.template import METRES_PER_UNIT  # noqa: F401 (the writers' scale, re-exported)
 from ..errors import FwkError
 
 
@@ -51,5 +52,3 @@ def vertex_normals(V: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return out if V.ndim == 3 else out[0]
 
 
-#: metres per unit of the units fwk records (``Template.units``); anything else is taken as 1
-METRES_PER_UNIT = {"m": 1.0, "cm": 0.01, "mm": 0.001}
