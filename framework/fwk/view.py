@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .data.io import fan_triangulate, read_obj
+from .data.template import METRES_PER_UNIT
 from .errors import DataError, FwkError
 from .evaluation.plots import save_figure
 from .rig import missing
@@ -151,7 +152,8 @@ def _usd(path: Path) -> Rig:
         else:
             deltas[i][np.asarray(pi, dtype=np.int64)] = offsets
     mpu = UsdGeom.GetStageMetersPerUnit(stage)
-    units = {1.0: "m", 0.01: "cm", 0.001: "mm"}.get(round(mpu, 6), "unit")
+    # the unit whose metres match the stage's (the writers' table); anything else: not stated
+    units = next((u for u, m in METRES_PER_UNIT.items() if abs(mpu - m) <= 1e-6 * m), "unit")
     return Rig(P, tris, names, deltas, units, source=str(path))
 
 

@@ -98,3 +98,7 @@ def test_rig_files_carry_the_scale_of_every_stated_unit(tmp_path, units):
     assert doc["extras"]["fwk"]["metres_per_unit"] == pytest.approx(want)
     write_usd(tmp_path / "r.usda", V, t, {"a": V + 0.01}, units=units)
     assert UsdGeom.GetStageMetersPerUnit(Usd.Stage.Open(str(tmp_path / "r.usda"))) == pytest.approx(want)
+    from fwk.view import load_rig
+
+    # and fwk view reads the unit back (USD stores metres only: an unstated unit reads as metres)
+    assert load_rig(tmp_path / "r.usda").units == (units if units != "unit" else "m")
