@@ -57,7 +57,10 @@ def quote(value, limit: int = QUOTE_LIMIT) -> str:
         text = repr(value)
     except Exception:  # a value whose repr fails (or recurses) is named by its type
         text = f"<{type(value).__name__}>"
-    text = text.replace("\n", "\\n").replace("\r", "\\r")
-    if len(text) > limit:
-        text = f"{text[:limit]}... ({len(text):,} characters)"
-    return text
+    return cut(text.replace("\n", "\\n").replace("\r", "\\r"), limit)
+
+
+def cut(text: str, limit: int = QUOTE_LIMIT) -> str:
+    """``text`` cut to ``limit`` characters, saying how long it was (``quote`` without the repr:
+    a recipe key in a key path)."""
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text):,} characters)"

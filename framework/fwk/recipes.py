@@ -37,7 +37,7 @@ import yaml
 
 from .data.template import check_units
 from .engine.config import TrainConfig
-from .errors import RecipeError, quote
+from .errors import RecipeError, cut, quote
 from .plugins import get_registry
 from .protocols import KIND_ROLES, missing_members, role_members
 from .registry import Registry, did_you_mean
@@ -358,8 +358,7 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> dict:
 
 def _key(key) -> str:
     """A recipe key for a key path in an error message, cut like ``fwk.errors.quote``."""
-    text = str(key)
-    return text if len(text) <= 200 else f"{text[:200]}... ({len(text):,} characters)"
+    return cut(str(key))
 
 
 def check_run_name(name, key: str = "name") -> str:
