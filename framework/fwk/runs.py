@@ -48,7 +48,8 @@ from tqdm.auto import tqdm
 from . import __version__
 from .cache import Cache, atomic_write_bytes, file_mode
 from .engine.config import TrainConfig
-from .engine.threads import register
+from .engine.threads import (explicit_threads, forget_reported, pin, pinned, recorded_threads, register, report_threads,
+                             thread_budget, unpin)
 from .errors import FwkError, PathError, RecipeError, Terminated
 from .paths import check_dir
 from .plugins import get_registry
@@ -418,6 +419,42 @@ def check_recipe_hash(run_dir, what: str = "") -> None:
                        f"start a new run with the edited recipe")
 
 
+def fix_threads(ctx: RunContext, created: bool) -> tuple[int, str]:
+    """Fix the run's thread count as it starts (``fwk.engine.threads.pin``): every training of the
+    run uses it, whatever starts or ends beside it, so its numbers do not depend on the machine's
+    load. A new run takes ``thread_budget()`` (``--threads``/``FWK_THREADS``, an executor's
+    allocation, ``OMP_NUM_THREADS``, else the cores shared with the fwk processes and other work
+    running now) and records it in ``versions.json``; ``--resume`` takes the count recorded there
+    unless one is given (then it says that the run's numbers now come from two counts). Inside a
+    run already pinned (a run started from a run's process) the outer count stays. Said once in
+    the log: ``threads: N (why), fixed for this run``."""
+    if pinned() is not None:
+        return pinned()
+    recorded = None if created else recorded_threads(ctx.run_dir)
+    given = explicit_threads()
+    if recorded is not None and given is None:
+        n, why = recorded[0], f"as the run started: {recorded[1]}"
+    else:
+        n, why = thread_budget()
+    pin(n, why)
+    forget_reported(ctx.log_file)  # said at every start and resume
+    report_threads(ctx.log, n, f"{why}; fixed for this run, fwk run --resume reuses it", ctx.log_file)
+    if recorded is not None and n != recorded[0]:
+        ctx.log(f"threads: this run started with {recorded[0]} and resumes with {n} ({why}): its numbers "
+                f"now come from two thread counts (fwk run --resume --threads {recorded[0]} keeps one)")
+    path = ctx.path("versions.json")
+    try:
+        stored = json.loads(path.read_text())
+    except (OSError, ValueError):
+        stored = {}
+    if not isinstance(stored, dict):
+        stored = {}
+    if created or recorded is None:
+        stored.update(threads=n, threads_why=why)
+        ctx.write_json("versions.json", stored)
+    return n, why
+
+
 def record_resume(ctx: RunContext, registry: Registry) -> None:
     """Append the code a resume runs with to the run's ``versions.json`` (``resumed``: one entry
     per resume, with its time) and log a line when it differs from the code that ran the run last
@@ -431,6 +468,8 @@ def record_resume(ctx: RunContext, registry: Registry) -> None:
     now = versions(registry)
     entry = {"at": _dt.datetime.now().isoformat(timespec="seconds"),
              **{k: now[k] for k in CODE_KEYS if k in now}}
+    if pinned() is not None:
+        entry["threads"] = pinned()[0]
     before = (stored.get("resumed") or [stored])[-1]
     changed = [k for k in CODE_KEYS if k in entry and k in before and entry[k] != before[k]]
     if changed:
@@ -464,6 +503,7 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
     The process registers among those that share the cores (``fwk.engine.threads``)."""
     registry = registry or get_registry()
     register()
+    outer_pin = pinned()  # a run inside a run (from Python) keeps the outer run's thread count
     if resume:
         run_dir = Path(resume)
         if not run_dir.is_dir():
@@ -516,6 +556,7 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
             ctx.write_text("recipe.yaml", yaml.safe_dump(plain, sort_keys=False))
             ctx.write_json("versions.json", {**versions(registry), RECIPE_HASH: recipe_hash(run_dir)})
         ctx.log(f"fwk run {resolved.name}: task {resolved.task.name}, run directory {run_dir}")
+        fix_threads(ctx, created)
         if resume:
             for tmp in run_dir.rglob(".*.tmp"):  # writes a killed process cut short (this one holds the lock)
                 tmp.unlink()
@@ -547,5 +588,7 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if outer_pin is None:
+            unpin()  # this run's count ends with it (a run inside a run keeps the outer one's)
     lock.release()
     return run_dir

@@ -3,7 +3,7 @@ and go is not repeated at every epoch (issue 30)."""
 
 
 def test_report_threads_says_each_count_once_per_log():
-    from fwk.engine.callbacks import report_threads
+    from fwk.engine.threads import report_threads
 
     said, other = [], []
     for n in (1, 2, 1, 2, 1, 2):
@@ -36,7 +36,7 @@ def test_thread_share_does_not_repeat_a_flipping_count(monkeypatch):
 def test_one_line_per_log_file_across_a_runs_contexts(tmp_path):
     """A run's scoped and child contexts (one per model, an inline sub-run) share its log.txt:
     fit says the count there once, not once per model."""
-    from fwk.engine.callbacks import report_threads
+    from fwk.engine.threads import report_threads
     from fwk.runs import make_test_context
 
     ctx = make_test_context(tmp_path)

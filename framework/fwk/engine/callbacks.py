@@ -18,7 +18,7 @@ from lightning.fabric.plugins.io.checkpoint_io import CheckpointIO
 from ..cache import atomic_write_bytes
 from ..errors import RecipeError
 from ..safeio import load_state, save_state
-from .threads import apply_threads
+from .threads import apply_threads, report_threads
 
 
 class SafeCheckpointIO(CheckpointIO):
@@ -103,24 +103,6 @@ class ManualSchedulers(pl.Callback):
         for c, seen in zip(trainer.lr_scheduler_configs, self._seen):
             if c.interval == "epoch" and not c.reduce_on_plateau and c.scheduler.last_epoch == seen:
                 c.scheduler.step()
-
-
-#: log -> the thread counts reported through it (``report_threads``)
-_threads_reported: dict = {}
-
-
-def report_threads(log, n: int, why: str, key=None) -> bool:
-    """Say ``threads: n (why)`` through ``log`` unless this count was said for ``key`` (the run's
-    log file; default ``log`` itself) before: a count that flips between two values as other fwk
-    processes start and end (every epoch of a long run beside a short one), or that every model
-    of a run finds again, is said once per value, not at every flip or fit. Returns whether it
-    was said."""
-    said = _threads_reported.setdefault(log if key is None else key, set())
-    if n in said:
-        return False
-    said.add(n)
-    log(f"threads: {n} ({why})")
-    return True
 
 
 class ThreadShare(pl.Callback):

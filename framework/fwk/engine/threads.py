@@ -25,9 +25,17 @@ previous measurement (the first is taken when the process registers) to now, and
 during the window counts as fwk for its whole life (so ``outside`` errs low: towards the rule
 without load). Where ``/proc`` cannot be read, ``outside`` is 0.
 
-``fit`` applies the rule when it starts and again at the start of every epoch (the window then
-being the epoch just run), so a training that started alone gives up threads when a second one
-or another job starts, and takes them back when it ends.
+**A run's count is fixed when it starts.** ``fwk run`` (``fwk.runs.execute``) applies the rule
+once, as the run starts, and pins the result for the rest of the run (``pin``): every training
+of the run uses it, whatever starts or ends beside it, because thread counts change the order of
+floating-point reductions and so the numbers (a fresh clone's main job moved mouth-wide metrics
+by 7-12 % between a 1-thread and a 2-thread run of one seed). The count is printed, recorded in
+``versions.json`` (``threads``, ``threads_why``) and the report, and ``fwk run --resume`` reuses
+it. The spread of a result is measured with seeds (``seeds:``), never with thread counts.
+Outside a run (``fit`` called from Python, the benchmarks) nothing is pinned: ``fit`` applies the
+rule when it starts and again at the start of every epoch (the window then being the epoch just
+run), so a training that started alone gives up threads when a second one or another job starts,
+and takes them back when it ends.
 
 An explicit count wins: ``FWK_THREADS=n`` (``fwk --threads n``); then an allocation an executor
 made for this process, ``FWK_ALLOCATED_CPUS=n`` (a grid member running as a Ray task sets it to
@@ -48,14 +56,14 @@ training does not use torch's inter-op pool, which torch creates lazily and lets
 size only once. How idle threads wait (passively: they sleep instead of spinning) is set on
 ``import fwk``, before torch and NumPy load (``fwk._waiting``).
 
-Thread counts change the order of some floating-point reductions: a run is bit-for-bit
-reproducible (and resumable to the same weights) for a fixed count, so pin it with
-``FWK_THREADS`` where that matters (the count now also follows the machine's load). This module
-imports neither torch nor Lightning.
+A run is bit-for-bit reproducible (and resumable to the same weights) for its count; ``fwk run
+--threads N`` (``FWK_THREADS``) reproduces a run that recorded N. This module imports neither
+torch nor Lightning.
 """
 from __future__ import annotations
 
 import atexit
+import json
 import math
 import os
 import tempfile
@@ -323,9 +331,68 @@ def outside_between(a: LoadSnapshot | None, b: LoadSnapshot | None) -> float | N
 
 class _LoadState:
     last: LoadSnapshot | None = None
+    pinned: tuple[int, str] | None = None  # (threads, why) fixed for the run in progress
 
 
 _LOAD = _LoadState()
+
+
+#: log -> the thread counts reported through it (``report_threads``)
+_threads_reported: dict = {}
+
+
+def report_threads(log, n: int, why: str, key=None) -> bool:
+    """Say ``threads: n (why)`` through ``log`` unless this count was said for ``key`` (the run's
+    log file; default ``log`` itself) before: a count that flips between two values as other fwk
+    processes start and end (every epoch of a long run beside a short one), or that every model
+    of a run finds again, is said once per value, not at every flip or fit. Returns whether it
+    was said."""
+    said = _threads_reported.setdefault(log if key is None else key, set())
+    if n in said:
+        return False
+    said.add(n)
+    log(f"threads: {n} ({why})")
+    return True
+
+
+def forget_reported(key) -> None:
+    """Let ``report_threads`` say every count for ``key`` again (a run's log as the run starts or
+    resumes)."""
+    _threads_reported.pop(key, None)
+
+
+def recorded_threads(run_dir) -> tuple[int, str] | None:
+    """(threads, why) that a run's ``versions.json`` recorded when it started (``fwk.runs.fix_threads``),
+    or None (no such record: an earlier version's run, a folder that is not a run, an unreadable or
+    implausible one)."""
+    try:
+        stored = json.loads((Path(run_dir) / "versions.json").read_text())
+    except (OSError, ValueError):
+        return None
+    n = stored.get("threads") if isinstance(stored, dict) else None
+    if isinstance(n, int) and not isinstance(n, bool) and 1 <= n <= 4096:
+        why = stored.get("threads_why")
+        return n, why if isinstance(why, str) and why else "recorded in versions.json"
+    return None
+
+
+def pin(threads: int, why: str) -> None:
+    """Fix this process's count at ``threads`` until ``unpin``: ``thread_budget`` then returns it in
+    place of the load rule (an explicit ``FWK_THREADS``, an executor's allocation and
+    ``OMP_NUM_THREADS`` still come first). ``fwk.runs.execute`` pins a run's count as it starts."""
+    if not isinstance(threads, int) or isinstance(threads, bool) or threads < 1:
+        raise FwkError(f"threads: expected a whole number >= 1, got {threads!r}")
+    _LOAD.pinned = (threads, why)
+
+
+def unpin() -> None:
+    """Let the load rule decide again (``pin``)."""
+    _LOAD.pinned = None
+
+
+def pinned() -> tuple[int, str] | None:
+    """(threads, why) pinned for the run in progress, or None."""
+    return _LOAD.pinned
 
 
 def outside_load(pids=None, directory: Path | None = None, proc: Path | None = None) -> tuple[float, int]:
@@ -370,14 +437,9 @@ def _explicit(env, key: str, strict: bool) -> int | None:
     return n
 
 
-def thread_budget(env=None, cores: int | None = None, live: int | None = None,
-                  directory: Path | None = None, outside: float | None = None,
-                  cpus: int | None = None) -> tuple[int, str]:
-    """(threads, why): ``FWK_THREADS``, else ``FWK_ALLOCATED_CPUS`` (an executor's allocation),
-    else ``OMP_NUM_THREADS`` (where set), else ``share(cores, live, outside, cpus)``: ``live`` the
-    live registered fwk processes, this one counted whether registered or not; ``outside`` the
-    CPUs busy with other work and ``cpus`` the CPUs that counts (``outside_load()`` where not
-    given; ``cpus`` defaults to ``cores`` when ``outside`` is given)."""
+def explicit_threads(env=None) -> tuple[int, str] | None:
+    """(threads, why) where the environment gives the count (``FWK_THREADS``, an executor's
+    ``FWK_ALLOCATED_CPUS``, ``OMP_NUM_THREADS``, in that order), else None."""
     env = os.environ if env is None else env
     for key, strict in ((ENV_THREADS, True), (ENV_ALLOCATED, True), ("OMP_NUM_THREADS", False)):
         n = _explicit(env, key, strict)
@@ -385,6 +447,23 @@ def thread_budget(env=None, cores: int | None = None, live: int | None = None,
             if key == ENV_ALLOCATED:
                 return n, f"{n} CPU{'s' if n > 1 else ''} allocated to this process"
             return n, f"{key}={n}"
+    return None
+
+
+def thread_budget(env=None, cores: int | None = None, live: int | None = None,
+                  directory: Path | None = None, outside: float | None = None,
+                  cpus: int | None = None) -> tuple[int, str]:
+    """(threads, why): ``FWK_THREADS``, else ``FWK_ALLOCATED_CPUS`` (an executor's allocation),
+    else ``OMP_NUM_THREADS`` (where set), else the count pinned for the run in progress (``pin``),
+    else ``share(cores, live, outside, cpus)``: ``live`` the
+    live registered fwk processes, this one counted whether registered or not; ``outside`` the
+    CPUs busy with other work and ``cpus`` the CPUs that counts (``outside_load()`` where not
+    given; ``cpus`` defaults to ``cores`` when ``outside`` is given)."""
+    given = explicit_threads(env)
+    if given is not None:
+        return given
+    if _LOAD.pinned is not None:
+        return _LOAD.pinned
     cores = cores if cores is not None else available_cores()
     pids = None
     if live is None:

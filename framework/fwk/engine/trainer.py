@@ -17,7 +17,7 @@ from ..safeio import LegacyFormatError, load_state
 from .config import TrainConfig
 from .distributed import DistEnv, RankDone, make_job, make_strategy, rank_job, wants_ddp
 from .loading import make_loader
-from .threads import apply_threads, register
+from .threads import apply_threads, register, report_threads
 
 
 def seed_everything(seed: int) -> None:
@@ -149,8 +149,7 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
     from lightning.pytorch.loggers import TensorBoardLogger
 
-    from .callbacks import (ManualSchedulers, ProgressLines, RNGState, SafeCheckpointIO, ThreadShare, TrainingCurves,
-                            report_threads)
+    from .callbacks import ManualSchedulers, ProgressLines, RNGState, SafeCheckpointIO, ThreadShare, TrainingCurves
 
     _quiet_lightning()
     config = config or ctx.train

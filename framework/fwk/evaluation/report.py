@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from ..engine.threads import pinned, recorded_threads
 from ..registry import Registry
 from .core import evaluate
 from .curves import training_section, training_summary
@@ -119,6 +120,9 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
     training = training_summary(ctx, lambda p: _relative(p, ctx.run_dir))
     if training is not None:
         results["training"] = training
+    threads = run_threads(ctx.run_dir)
+    if threads is not None:
+        results["threads"] = threads[0]
     ctx.write_json("metrics.json", results)
     units = results.get("dataset", {}).get("units", "")
     parts = [f"# {title}", ""]
@@ -130,6 +134,10 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
         parts.append("Dataset: " + dataset_line(ds) + "\n")
     if results.get("seeds"):
         parts.append(f"- {seeds_note(results)}")
+    if threads is not None:
+        parts.append(f"- Threads: {threads[0]} per process, fixed when the run started ({threads[1]}); a run's "
+                     "numbers depend on its thread count, so `fwk run --threads "
+                     f"{threads[0]}` reproduces them, and seeds, not thread counts, measure their spread.")
     for n in notes or []:
         parts.append(f"- {n}")
     parts.append("")
@@ -158,6 +166,16 @@ def write_report(ctx, title: str, results: dict, figures: dict | None = None, no
             rel = _relative(p, ctx.run_dir)
             parts.append(f"### {name}\n\n![{name}]({rel})\n")
     return ctx.write_text("report.md", "\n".join(parts) + "\n")
+
+
+def run_threads(run_dir) -> tuple[int, str] | None:
+    """(threads, why) the run in progress pinned (``fwk.engine.threads.pinned``), else what the
+    ``versions.json`` of ``run_dir`` (or of the run it is a seed's sub-run of) recorded; None
+    where neither says."""
+    got = pinned()
+    if got is None:
+        got = recorded_threads(run_dir) or recorded_threads(Path(run_dir).parent)
+    return got
 
 
 def dataset_line(ds: dict) -> str:
