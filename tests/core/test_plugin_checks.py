@@ -306,6 +306,22 @@ def test_a_task_asks_for_its_family_role_before_data_loads(tmp_path, monkeypatch
                 runs_dir=str(tmp_path / "runs"), quiet=True, registry=run_env)
 
 
+@pytest.mark.parametrize("model", ["{d: {name: dsm, k: 20, network: {name: pca}}}",
+                                   "{d: {name: pbs, network: {name: pca}}}"])
+def test_a_network_that_lends_no_networks_is_refused_before_data_loads(tmp_path, monkeypatch, run_env, model):
+    """dsm, pb and pbs take ``network:`` as ``Kind("model", NetworkFactory)``: a model that does
+    not lend an encoder and a decoder is refused while the recipe is validated, naming what it
+    lacks (it used to fail when that model was fitted, after others had trained)."""
+    from fwk.errors import RecipeError
+    from fwk.runs import execute
+
+    _no_data(monkeypatch, run_env)
+    task = "blendshapes" if "pbs" in model else "reconstruct"
+    with pytest.raises(RecipeError, match=r"^models\.d\.network: model 'pca' \(.*\) does not play the "
+                                          r"NetworkFactory role: it lacks variational, build_encoder, build_decoder"):
+        execute(_recipe(tmp_path, model, task=task), runs_dir=str(tmp_path / "runs"), quiet=True, registry=run_env)
+
+
 def test_a_plugin_constructor_error_names_the_full_path_and_what_is_left(tmp_path, run_env):
     """The conv is built when its network is (after the data loaded): its RecipeError names
     ``models.<label>.conv.k`` and says that no run directory is left."""

@@ -181,7 +181,7 @@ class DSM:
     name = "dsm"
     task_family = RECONSTRUCT
 
-    def __init__(self, network: Annotated[Spec, Kind("model")] = "vae",
+    def __init__(self, network: Annotated[Spec, Kind("model", NetworkFactory)] = "vae",
                  networks: Annotated[list[Spec], Kind("model")] | None = None,
                  k: int | list[int] = 500, mass: bool = True,
                  representations: Annotated[list[Spec], Kind("representation")] | None = None,

@@ -620,7 +620,7 @@ class PB(_Blend):
     name = "pb"
 
     def __init__(self, representation: Annotated[Spec, Kind("representation")] = "euclidean",
-                 network: Annotated[Spec, Kind("model")] = "vae", mode: str = "end-to-end",
+                 network: Annotated[Spec, Kind("model", NetworkFactory)] = "vae", mode: str = "end-to-end",
                  expressions: list[str] | None = None, conditional: bool = False,
                  kl_weight: float | None = None, train: dict | None = None,
                  anchor: Annotated[Spec | None, Kind("model", BlendshapeModel)] = None, bending_weight: float = 0.0):
@@ -667,7 +667,7 @@ class PBS(_Blend):
 
     def __init__(self, spatial: Annotated[Spec, Kind("representation")] = "euclidean",
                  differential: Annotated[Spec, Kind("representation")] = "dr",
-                 network: Annotated[Spec, Kind("model")] = "vae",
+                 network: Annotated[Spec, Kind("model", NetworkFactory)] = "vae",
                  assembler: Annotated[Spec, Kind("assembler")] = "spectral",
                  expressions: list[str] | None = None,
                  conditional: bool = False, k: int | dict[str, int] | None = None, ks: list[int] | None = None,
