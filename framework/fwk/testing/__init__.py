@@ -25,6 +25,16 @@ pytest.register_assert_rewrite(*(f"{__name__}.{m.name}" for m in pkgutil.iter_mo
 ICT_ENV = "FWK_ICT_PATH"
 
 
+def build(component: type, params: dict | None = None, path: str = "params"):
+    """``component`` built as a recipe builds it: ``params`` checked against its constructor and
+    nested components (``Annotated[Spec, Kind(...)]``) resolved against the plugin registry
+    (``fwk.recipes.validate_params``), so a suite hands a component what ``fwk run`` hands it."""
+    from fwk.plugins import get_registry
+    from fwk.recipes import validate_params
+
+    return component(**validate_params(component, dict(params or {}), path, get_registry()))
+
+
 def ict_path() -> Path | None:
     """The unpacked ICT-FaceKit FaceXModel folder, or None when it is not available.
 

@@ -17,6 +17,7 @@ import trimesh
 from fwk.cache import Cache
 from fwk.data import Template
 from fwk.protocols import Assembler, plays
+from fwk.testing import build
 
 
 class AssemblerContract:
@@ -28,7 +29,7 @@ class AssemblerContract:
         m = trimesh.creation.icosphere(subdivisions=2)
         V = np.asarray(m.vertices) * [1.0, 1.3, 0.8]
         t = Template(V, np.asarray(m.faces))
-        a = self.component(**self.params)
+        a = build(self.component, self.params)
         a.fit(t, V, cache=cache)
         rng = np.random.default_rng(0)
         P = np.stack([V + rng.normal(0, 0.02, V.shape) for _ in range(3)])
@@ -78,7 +79,7 @@ class AssemblerContract:
 
     def test_state_round_trip(self):
         a, P, V = self.fitted()
-        b = self.component(**self.params)
+        b = build(self.component, self.params)
         b.load_state_dict(a.state_dict(), ctx=None)
         assert np.allclose(b.assemble(b.split(P)), P, atol=1e-10)
         assert all(np.allclose(x, y) for x, y in zip(a.split(P), b.split(P)))

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fwk.testing import build
 
 from ..data.preprocess import Preprocessor
 from ..plugins import get_registry
@@ -70,7 +71,7 @@ class BlendshapeModelContract:
     # ------------------------------------------------------------------ helpers
     def _fit(self, tmp_path, seed: int = 0):
         data = tiny_blendshape_data()
-        m = self.component(**self.params)
+        m = build(self.component, self.params)
         m.fit(data, make_test_context(tmp_path, seed=seed, **self.train))
         return m, data
 
@@ -130,7 +131,7 @@ class BlendshapeModelContract:
     def test_state_round_trip(self, fitted):
         m, data = fitted
         # the run directory keeps models/<label>.safetensors like this (fwk.safeio; never a pickle)
-        m2 = self.component(**self.params)
+        m2 = build(self.component, self.params)
         m2.load_state_dict(safe_round_trip(m.state_dict()), ctx=None)
         assert list(m2.expressions) == list(m.expressions)
         a, b = self._predictions(m, data), self._predictions(m2, data)

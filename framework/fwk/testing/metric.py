@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from fwk.data import Template
 from fwk.protocols import Metric
+from fwk.testing import build
 
 
 def small_mesh():
@@ -42,7 +43,7 @@ class MetricContract:
     params: dict = {}
 
     def make(self):
-        return self.component(**self.params)
+        return build(self.component, self.params)
 
     def test_declares_name_and_units(self):
         m = self.make()

@@ -22,7 +22,7 @@ import torch
 from fwk.data.preprocess import Preprocessor
 from fwk.plugins import get_registry
 from fwk.protocols import RECONSTRUCT, FitData, GenerativeModel, ReconstructionModel, plays
-from fwk.recipes import validate_params
+from fwk.testing import build
 from fwk.runs import make_test_context
 from fwk.safeio import dumps_state, loads_state
 
@@ -90,8 +90,7 @@ class FittedModel:
 
     def make(self):
         """A fresh, unfitted instance (nested components resolved against the plugin registry)."""
-        params = validate_params(self.component, dict(self.params), "params", get_registry())
-        return self.component(**params)
+        return build(self.component, self.params)
 
     def _fit(self, tmp_path, seed=0):
         data = tiny_fit_data()

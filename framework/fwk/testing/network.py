@@ -17,9 +17,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fwk.plugins import get_registry
 from fwk.protocols import NetworkFactory, plays
-from fwk.recipes import validate_params
+from fwk.testing import build
 from fwk.runs import make_test_context
 from fwk.testing.model import tiny_fit_data
 
@@ -31,7 +30,7 @@ class NetworkFactoryContract:
 
     def make(self):
         """A fresh instance, its parameters resolved as a recipe resolves them."""
-        return self.component(**validate_params(self.component, dict(self.params), "params", get_registry()))
+        return build(self.component, self.params)
 
     @pytest.fixture(scope="class")
     @classmethod

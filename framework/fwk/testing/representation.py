@@ -24,6 +24,7 @@ import torch
 
 from fwk.protocols import Representation, plays
 from fwk.scaling import Scaler
+from fwk.testing import build
 
 from .metric import small_mesh
 
@@ -42,7 +43,7 @@ class RepresentationContract:
 
     def fitted(self, b=6):
         P, t = small_batch(b=b)
-        r = self.component(**self.params)
+        r = build(self.component, self.params)
         r.fit(P, None, t)
         return r, P, t
 
@@ -58,8 +59,8 @@ class RepresentationContract:
         assert isinstance(r, Representation) and isinstance(r.relative, bool)
         assert isinstance(r.scaler, Scaler), "scaler: the fwk.scaling.Scaler that encode applies last"
         if c.relative_option:  # the constructor takes `relative`
-            assert self.component(**{**self.params, "relative": True}).relative is True
-            assert self.component(**{**self.params, "relative": False}).relative is False
+            assert build(self.component, {**self.params, "relative": True}).relative is True
+            assert build(self.component, {**self.params, "relative": False}).relative is False
         if not r.places_rigidly:  # positions come back without a target
             assert np.allclose(r.decode(r.encode(P)), P, atol=self.atol)
 
@@ -90,13 +91,13 @@ class RepresentationContract:
         assert U.shape == F.shape
         U.sum().backward()
         assert F.grad is not None and torch.isfinite(F.grad).all()
-        r0 = self.component(**{**self.params, "scaling": "none"})
+        r0 = build(self.component, {**self.params, "scaling": "none"})
         r0.fit(P, None, t)
         assert np.allclose(U.detach().numpy(), r0.encode(P), atol=1e-4)
 
     def test_state_dict_round_trip(self):
         r, P, t = self.fitted()
-        r2 = self.component(**self.params)
+        r2 = build(self.component, self.params)
         r2.load_state_dict(r.state_dict(), ctx=None)
         assert np.allclose(r2.encode(P), r.encode(P))
         assert np.allclose(r2.decode(r.encode(P), None, P), r.decode(r.encode(P), None, P))

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from fwk.testing import build
 
 
 def two_components():
@@ -23,7 +24,7 @@ class SamplerContract:
 
     def build(self):
         t = two_components()
-        return t, self.component(**self.params).build(t)
+        return t, build(self.component, self.params).build(t)
 
     def test_levels_and_sparse_operators(self):
         t, h = self.build()
@@ -73,9 +74,9 @@ class SamplerContract:
         from fwk.cache import Cache
 
         t = two_components()
-        a = self.component(**self.params).build(t, Cache(tmp_path))
-        b = self.component(**self.params).build(t, Cache(tmp_path))
-        c = self.component(**self.params).build(t)
+        a = build(self.component, self.params).build(t, Cache(tmp_path))
+        b = build(self.component, self.params).build(t, Cache(tmp_path))
+        c = build(self.component, self.params).build(t)
         for x in (b, c):
             assert [lv.n_vertices for lv in x.levels] == [lv.n_vertices for lv in a.levels]
             for D1, D2 in zip(a.down + a.up, x.down + x.up):
