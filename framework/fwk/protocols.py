@@ -244,6 +244,17 @@ class Metric(Protocol):
 
 @runtime_checkable
 class Assembler(Protocol):
+    """Splits a mesh into frequency bands on a template and assembles bands back.
+
+    The models that take an ``assembler:`` build it with the cut(s) they need, overriding the
+    recipe's keys: ``dsm`` with ``spec.build(k=<its k>, mass=<its mass>)``, ``pbs`` with
+    ``spec.build(k=<the largest cut of its sweep>)``; so a constructor takes ``k`` (an int or a
+    list of increasing cuts, one per boundary between bands) and ``mass`` (bool: the mass-weighted
+    inner product), and gives what they mean for its own split (``docs/writing-a-plugin.md``).
+    A model keeps what it built the assembler with in its own state; ``state_dict`` holds the
+    assembler's fitted operators, plain data or arrays (``fwk.safeio``).
+    """
+
     name: str
 
     def fit(self, template: "Template", mean: np.ndarray, cache: "Cache | None" = None) -> None: ...
@@ -255,8 +266,8 @@ class Assembler(Protocol):
         """(b, n, 3) displacements -> (b, bands): each band's share of the M-weighted energy."""
     def assemble_many(self, bands: list[np.ndarray], ks: list[int]) -> np.ndarray:
         """Two bands [low source, high source], each (b, n, 3), assembled at every cut k of
-        ``ks``: (len(ks), b, n, 3), the low frequencies (k smallest eigenvectors) of the first
-        and the rest of the second; one factorisation for all k."""
+        ``ks``: (len(ks), b, n, 3), the low frequencies below cut k of the first (spectral: the
+        k smallest eigenvectors) and the rest of the second; one factorisation for all k."""
     def state_dict(self) -> dict: ...
     def load_state_dict(self, d: dict, ctx: "RunContext | None" = None) -> None: ...
 

@@ -106,6 +106,25 @@ def test_anchored_state_round_trip_keeps_the_anchor(anchored):
     assert np.array_equal(m2.refs(N, ["mouth-wide"])["mouth-wide"], _dt(data).predict(N, "mouth-wide"))
 
 
+def test_the_assembler_is_rebuilt_with_the_cut_pbs_kept(anchored):
+    """pbs keeps the cut it built its assembler with (``assembler_k``) instead of reading the
+    built-in spectral assembler's attributes; a model saved before it kept it reloads from the
+    assembler's own record of its cuts. Both predict as the fitted model does."""
+    from fwk_pb import PBS
+
+    m, data = anchored
+    N = np.asarray(data.val.positions[:, 0])
+    want = m.predict(N, "mouth-wide")
+    state = m.state_dict()
+    assert state["assembler_k"] == m.assembler_k > 0
+    old = {k: v for k, v in state.items() if k != "assembler_k"}
+    for d in (state, old):
+        m2 = PBS(network=NET, ks=[0, 5, 20, 60, 10_000], anchor=DT)
+        m2.load_state_dict(d)
+        assert m2.assembler_k == m.assembler_k
+        assert np.array_equal(m2.predict(N, "mouth-wide"), want)
+
+
 def test_anchor_must_be_a_blendshape_model():
     from fwk.errors import RecipeError
     from fwk_pb import PBS

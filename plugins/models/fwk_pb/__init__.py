@@ -687,6 +687,7 @@ class PBS(_Blend):
         self.k: dict[str, int] = {}
         self.sweep: dict = {}
         self.assembler = None
+        self.assembler_k = 0  # the largest cut the assembler was built for
 
     def describe(self) -> str:
         """A report's legend line (``fwk.protocols.Described``)."""
@@ -708,14 +709,14 @@ class PBS(_Blend):
     def _fit_assembler(self, template, kmax: int, cache=None):
         n = template.n_vertices
         kmax = int(min(kmax, n - 1))
-        if self.assembler is not None and self.assembler.proj.U.shape[1] >= kmax:
+        if self.assembler is not None and self.assembler_k >= kmax:
             return
         if kmax <= 0:
-            self.assembler = None
+            self.assembler, self.assembler_k = None, 0
             return
-        a = self.assembler_spec.build(k=kmax)
+        a = self.assembler_spec.build(k=kmax)  # the Assembler role: a constructor taking the cut k
         a.fit(template, template.vertices, cache=cache)
-        self.assembler = a
+        self.assembler, self.assembler_k = a, kmax
 
     def branches(self, N, expression: str):
         """(P'_spatial, P'_diff): both networks' predictions in positions; the differential one
@@ -846,15 +847,20 @@ class PBS(_Blend):
 
     def state_dict(self) -> dict:
         return {"kind": self.name, **self._base_state(), "k": dict(self.k), "sweep": self.sweep,
-                "assembler": None if self.assembler is None else self.assembler.state_dict()}
+                "assembler": None if self.assembler is None else self.assembler.state_dict(),
+                "assembler_k": self.assembler_k}
 
     def load_state_dict(self, d: dict, ctx=None) -> None:
         """Restore; ``ctx`` (optional) lends its cache to the network's graph hierarchy."""
         self._load_base(d, ctx)
         self.k = {str(k): int(v) for k, v in d["k"].items()}
         self.sweep = d.get("sweep", {})
+        self.assembler, self.assembler_k = None, 0
         if d.get("assembler") is not None:
-            self.assembler = self.assembler_spec.build(k=int(d["assembler"]["cuts"][-1]))
+            # the cut the assembler was built with (models saved before it was kept: the built-in
+            # spectral assembler's own record of its cuts)
+            self.assembler_k = int(d["assembler_k"]) if "assembler_k" in d else int(d["assembler"]["cuts"][-1])
+            self.assembler = self.assembler_spec.build(k=self.assembler_k)
             self.assembler.load_state_dict(d["assembler"], ctx=ctx)
 
 
