@@ -7,7 +7,9 @@ cache=...)``) on an ellipsoid of 162 vertices: the class defines every member of
 splits into copies of the mean), linear in P - mean and independent across the batch;
 ``assemble(split(P)) == P``; ``assemble_many([low, high], ks)`` has shape (len(ks), b, n, 3),
 returns the input for two equal sources and the high source at k = 0, and equals its cut points
-computed one at a time; ``state_dict`` / ``load_state_dict(d, ctx=None)`` restore the same split.
+computed one at a time; ``band_shares(D)`` of displacements is (b, bands), finite, non-negative,
+each row summing to 1 (a share of the energy); ``state_dict`` / ``load_state_dict(d, ctx=None)``
+restore the same split.
 """
 from __future__ import annotations
 
@@ -76,6 +78,14 @@ class AssemblerContract:
             assert np.allclose(out[self.ks.index(0)], Q, atol=1e-10)
         for i, k in enumerate(self.ks):
             assert np.allclose(a.assemble_many([P, Q], [k])[0], out[i], atol=1e-10)
+
+    def test_band_shares_are_shares(self):
+        a, P, V = self.fitted()
+        bands = a.split(P)
+        s = np.asarray(a.band_shares(P - V))
+        assert s.shape == (len(P), len(bands)), f"band_shares: (b, bands) = {(len(P), len(bands))}, got {s.shape}"
+        assert np.all(np.isfinite(s)) and np.all(s >= -1e-12), f"band_shares must be finite and >= 0: {s}"
+        assert np.allclose(s.sum(1), 1.0, atol=1e-6), f"each mesh's shares sum to 1, got {s.sum(1)}"
 
     def test_state_round_trip(self):
         a, P, V = self.fitted()
