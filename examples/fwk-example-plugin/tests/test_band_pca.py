@@ -1,8 +1,6 @@
 """The example model band-pca passes fwk's reconstruction and band-model contract suites, its
 bands sum back to the mesh, each band's reconstruction is a numpy PCA of that band, and it runs in
 a reconstruct recipe."""
-import json
-
 import numpy as np
 import pytest
 
@@ -12,10 +10,11 @@ from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 from fwk.protocols import BandModel
 from fwk.recipes import make_spec
-from fwk.runs import execute, make_test_context
+from fwk.runs import make_test_context
 from fwk.testing.generative import BandModelContract
 from fwk.testing.model import ModelContract, tiny_fit_data
 from fwk_example_plugin.band_pca import BandPCA
+from recipe_runs import assert_tested, run_recipe, tiny_recipe
 
 SPECTRAL = {"name": "spectral", "k": 20}
 
@@ -101,27 +100,15 @@ def test_parameters_are_checked(tmp_path):
         BandPCA(n_components=2).fit(data, ctx)
 
 
-RECIPE = """
-task: reconstruct
-seed: 0
-dataset: {name: synthetic-heads, n_vertices: 300, n_subjects: 16}
-split: {ratios: [0.7, 0.1, 0.2]}
-models:
-  band-pca: {name: band-pca, assembler: {name: spectral, k: 30}, n_components: [6, 4]}
-  pca: {name: pca, n_components: 10}
-metrics: [l1]
-renders: 0
-"""
+RECIPE = tiny_recipe("""
+band-pca: {name: band-pca, assembler: {name: spectral, k: 30}, n_components: [6, 4]}
+pca: {name: pca, n_components: 10}
+""", epochs=None)  # fitted, not trained
 
 
 def test_band_pca_in_a_reconstruct_recipe(tmp_path, monkeypatch):
-    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
-    (tmp_path / "band-pca.yaml").write_text(RECIPE)
-    run_dir = execute(str(tmp_path / "band-pca.yaml"), runs_dir=str(tmp_path / "runs"), quiet=True,
-                      cache=Cache(tmp_path / "cache"))
-    metrics = json.loads((run_dir / "metrics.json").read_text())["models"]
-    for label in ("band-pca", "pca"):
-        assert np.isfinite(metrics[label]["test"]["l1"]["mean"]) and metrics[label]["test"]["l1"]["mean"] > 0
+    run_dir = run_recipe(tmp_path, "band-pca.yaml", RECIPE, monkeypatch)
+    assert_tested(run_dir, ("band-pca", "pca"))
     model = open_run(run_dir).model("band-pca")   # reopened from models/band-pca.safetensors
     assert isinstance(model, BandModel) and model.latent_size == 10
     assert model.latent_slice("high") == slice(6, 10)

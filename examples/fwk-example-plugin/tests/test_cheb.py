@@ -1,21 +1,17 @@
 """The example conv passes fwk's conv contract suite and trains inside ae, vae (fully
 convolutional too) and dsm from a recipe, as any third-party conv should."""
-import json
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
 import torch
-from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from fwk.cache import Cache
 from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 from fwk.protocols import GenerativeModel
-from fwk.runs import execute
 from fwk.testing.conv import ConvContract
 from fwk.testing.sampler import two_components
 from fwk_example_plugin.cheb import ChebConv
+from recipe_runs import assert_tested, assert_trained, run_recipe, tiny_recipe
 
 
 class TestChebContract(ConvContract):
@@ -57,39 +53,20 @@ def test_cheb_matches_a_dense_chebyshev_recursion(k):
     assert sp.issparse(h.down[0])
 
 
-RECIPE = """
-task: reconstruct
-seed: 0
-dataset: {name: synthetic-heads, n_vertices: 300, n_subjects: 16}
-split: {ratios: [0.7, 0.1, 0.2]}
-train: {epochs: 2, batch_size: 8, lr: 1.0e-3, kl_weight: 1.0e-6}
-models:
-  ae: {name: ae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8, sampler: {name: quadric, factors: [4, 4]}}
-  vae: {name: vae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8, sampler: {name: quadric, factors: [4, 4]}}
-  vae-fc: {name: vae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8, sampler: {name: simple, levels: 2},
-           fully_convolutional: true}
-  dsm: {name: dsm, k: 30, network: {name: vae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8,
-                                    sampler: {name: quadric, factors: [4, 4]}}}
-metrics: [l1]
-renders: 0
-"""
+RECIPE = tiny_recipe("""
+ae: {name: ae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8, sampler: {name: quadric, factors: [4, 4]}}
+vae: {name: vae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8, sampler: {name: quadric, factors: [4, 4]}}
+vae-fc: {name: vae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8, sampler: {name: simple, levels: 2},
+         fully_convolutional: true}
+dsm: {name: dsm, k: 30, network: {name: vae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8,
+                                  sampler: {name: quadric, factors: [4, 4]}}}
+""")
 
 
 def test_cheb_trains_in_ae_vae_fully_convolutional_vae_and_dsm(tmp_path, monkeypatch):
-    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
-    recipe = tmp_path / "cheb.yaml"
-    recipe.write_text(RECIPE)
-    run_dir = execute(str(recipe), runs_dir=str(tmp_path / "runs"), quiet=True, cache=Cache(tmp_path / "cache"))
-    metrics = json.loads((run_dir / "metrics.json").read_text())["models"]
-    assert set(metrics) == {"ae", "vae", "vae-fc", "dsm"}
-    for label, m in metrics.items():
-        assert np.isfinite(m["test"]["l1"]["mean"]) and m["test"]["l1"]["mean"] > 0, label
-        (events,) = {p.parent for p in (run_dir / "tb" / label).rglob("events.*")}
-        ea = EventAccumulator(str(events))
-        ea.Reload()
-        val = [t for t in ea.Tags()["scalars"] if t.startswith("val_loss")]
-        assert val and all(len(ea.Scalars(t)) == 2 and np.isfinite([e.value for e in ea.Scalars(t)]).all()
-                           for t in val), label  # two epochs trained
+    run_dir = run_recipe(tmp_path, "cheb.yaml", RECIPE, monkeypatch)
+    metrics = assert_tested(run_dir, {"ae", "vae", "vae-fc", "dsm"}, only=True)
+    assert_trained(run_dir, metrics, epochs=2)  # two epochs trained
     run = open_run(run_dir)  # the trained models reopen from the run directory
     for label in metrics:
         model = run.model(label)

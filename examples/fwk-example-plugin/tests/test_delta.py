@@ -1,19 +1,16 @@
 """The example representation passes fwk's representation contract suite (absolute and
 relative), matches a dense loop-built Laplacian and a dense least-squares solve, round-trips to
 1e-8 with its anchors, and trains inside ae from a recipe."""
-import json
-
 import numpy as np
 import pytest
 
-from fwk.cache import Cache
 from fwk.errors import RecipeError
 from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
-from fwk.runs import execute
 from fwk.testing.representation import RepresentationContract
 from fwk.testing.sampler import two_components
 from fwk_example_plugin.delta import Delta
+from recipe_runs import assert_tested, run_recipe, tiny_recipe
 
 
 class TestDeltaContract(RepresentationContract):
@@ -138,27 +135,15 @@ def test_bad_parameters_are_recipe_errors(params, words):
         Delta(**params)
 
 
-RECIPE = """
-task: reconstruct
-seed: 0
-dataset: {name: synthetic-heads, n_vertices: 300, n_subjects: 16}
-split: {ratios: [0.7, 0.1, 0.2]}
-train: {epochs: 2, batch_size: 8, lr: 1.0e-3}
-models:
-  ae-delta: {name: ae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8,
-             sampler: {name: quadric, factors: [4, 4]}, representation: {name: delta, anchors: 1}}
-metrics: [l1]
-renders: 0
-"""
+RECIPE = tiny_recipe("""
+ae-delta: {name: ae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8,
+           sampler: {name: quadric, factors: [4, 4]}, representation: {name: delta, anchors: 1}}
+""", kl_weight=None)
 
 
 def test_delta_trains_as_an_ae_representation(tmp_path, monkeypatch):
-    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
-    recipe = tmp_path / "delta.yaml"
-    recipe.write_text(RECIPE)
-    run_dir = execute(str(recipe), runs_dir=str(tmp_path / "runs"), quiet=True, cache=Cache(tmp_path / "cache"))
-    m = json.loads((run_dir / "metrics.json").read_text())["models"]["ae-delta"]
-    assert np.isfinite(m["test"]["l1"]["mean"]) and m["test"]["l1"]["mean"] > 0
+    run_dir = run_recipe(tmp_path, "delta.yaml", RECIPE, monkeypatch)
+    assert_tested(run_dir, ["ae-delta"])
     model = open_run(run_dir).model("ae-delta")  # the representation's state reopens from the run
     assert isinstance(model.rep, Delta) and model.rep.anchor_index is not None
     S = model.sample(2, seed=0)  # decoded without a target: placed by the anchors

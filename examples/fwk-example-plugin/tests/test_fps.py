@@ -1,20 +1,17 @@
 """The example sampler passes fwk's sampler contract suite (both down-samplings), picks what a
 brute-force farthest-point loop picks, builds its operators and edges as naive loops do, and
 serves ae (with the example's cheb conv) and a fully convolutional vcconv vae from a recipe."""
-import json
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from fwk.cache import Cache
 from fwk.data import Template
 from fwk.errors import RecipeError
 from fwk.plugins import get_registry
-from fwk.runs import execute
 from fwk.testing.sampler import SamplerContract, two_components
 from fwk_example_plugin.fps import FarthestPointSampler, farthest_points
+from recipe_runs import assert_tested, run_recipe, tiny_recipe
 
 
 class TestFpsContract(SamplerContract):
@@ -137,29 +134,15 @@ def test_bad_parameters_are_recipe_errors():
         FarthestPointSampler(factors=[2]).build(tri)
 
 
-RECIPE = """
-task: reconstruct
-seed: 0
-dataset: {name: synthetic-heads, n_vertices: 300, n_subjects: 16}
-split: {ratios: [0.7, 0.1, 0.2]}
-train: {epochs: 2, batch_size: 8, lr: 1.0e-3, kl_weight: 1.0e-6}
-models:
-  ae-fps: {name: ae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8, sampler: {name: fps, factors: [4, 4]}}
-  ae-fps-select: {name: ae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8,
-                  sampler: {name: fps, factors: [4, 4], down: select}}
-  vae-fc: {name: vae, conv: {name: vcconv}, channels: [8, 16], latent: 8, sampler: {name: fps, factors: [4, 4]},
-           fully_convolutional: true}
-metrics: [l1]
-renders: 0
-"""
+RECIPE = tiny_recipe("""
+ae-fps: {name: ae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8, sampler: {name: fps, factors: [4, 4]}}
+ae-fps-select: {name: ae, conv: {name: cheb, k: 3}, channels: [8, 16], latent: 8,
+                sampler: {name: fps, factors: [4, 4], down: select}}
+vae-fc: {name: vae, conv: {name: vcconv}, channels: [8, 16], latent: 8, sampler: {name: fps, factors: [4, 4]},
+         fully_convolutional: true}
+""")
 
 
 def test_fps_serves_ae_and_a_fully_convolutional_vae(tmp_path, monkeypatch):
-    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
-    recipe = tmp_path / "fps.yaml"
-    recipe.write_text(RECIPE)
-    run_dir = execute(str(recipe), runs_dir=str(tmp_path / "runs"), quiet=True, cache=Cache(tmp_path / "cache"))
-    metrics = json.loads((run_dir / "metrics.json").read_text())["models"]
-    assert set(metrics) == {"ae-fps", "ae-fps-select", "vae-fc"}
-    for label, m in metrics.items():
-        assert np.isfinite(m["test"]["l1"]["mean"]) and m["test"]["l1"]["mean"] > 0, label
+    run_dir = run_recipe(tmp_path, "fps.yaml", RECIPE, monkeypatch)
+    assert_tested(run_dir, {"ae-fps", "ae-fps-select", "vae-fc"}, only=True)

@@ -1,7 +1,6 @@
 """The wrapped PyG conv passes fwk's conv contract suite, equals the bare PyG layer run on each
 sample and GATv2's attention written out by hand, and trains inside ae, vae (fully convolutional
 too) and dsm from a recipe; the shipped gatv2 recipes validate."""
-import json
 from pathlib import Path
 
 import numpy as np
@@ -10,16 +9,15 @@ import torch
 import torch.nn.functional as F
 from torch_geometric.nn import GATv2Conv
 
-from fwk.cache import Cache
 from fwk.errors import RecipeError
 from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 from fwk.protocols import GenerativeModel, Hierarchy, Level, NetworkFactory
 from fwk.recipes import load_recipe, resolve
-from fwk.runs import execute
 from fwk.testing.conv import ConvContract
 from fwk.testing.sampler import two_components
 from fwk_example_plugin.gatv2 import GATv2, BatchedMessagePassing
+from recipe_runs import assert_tested, assert_trained, run_recipe, tiny_recipe
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
@@ -162,41 +160,20 @@ def test_heads_concatenate_where_they_divide_and_average_otherwise():
     assert GATv2(3, 3, h, 0, heads=4)(torch.randn(1, h.levels[0].n_vertices, 3)).shape[-1] == 3
 
 
-RECIPE = """
-task: reconstruct
-seed: 0
-dataset: {name: synthetic-heads, n_vertices: 300, n_subjects: 16}
-split: {ratios: [0.7, 0.1, 0.2]}
-train: {epochs: 2, batch_size: 8, lr: 1.0e-3, kl_weight: 1.0e-6}
-models:
-  ae: {name: ae, conv: {name: gatv2, heads: 2}, channels: [8, 16], latent: 8, sampler: {name: quadric, factors: [4, 4]}}
-  vae: {name: vae, conv: {name: gatv2, heads: 2}, channels: [8, 16], latent: 8, sampler: {name: quadric, factors: [4, 4]}}
-  vae-fc: {name: vae, conv: {name: gatv2, heads: 2}, channels: [8, 16], latent: 8, sampler: {name: simple, levels: 2},
-           fully_convolutional: true}
-  dsm: {name: dsm, k: 30, network: {name: vae, conv: {name: gatv2, heads: 2}, channels: [8, 16], latent: 8,
-                                    sampler: {name: quadric, factors: [4, 4]}}}
-metrics: [l1]
-renders: 0
-"""
+RECIPE = tiny_recipe("""
+ae: {name: ae, conv: {name: gatv2, heads: 2}, channels: [8, 16], latent: 8, sampler: {name: quadric, factors: [4, 4]}}
+vae: {name: vae, conv: {name: gatv2, heads: 2}, channels: [8, 16], latent: 8, sampler: {name: quadric, factors: [4, 4]}}
+vae-fc: {name: vae, conv: {name: gatv2, heads: 2}, channels: [8, 16], latent: 8, sampler: {name: simple, levels: 2},
+         fully_convolutional: true}
+dsm: {name: dsm, k: 30, network: {name: vae, conv: {name: gatv2, heads: 2}, channels: [8, 16], latent: 8,
+                                  sampler: {name: quadric, factors: [4, 4]}}}
+""")
 
 
 def test_gatv2_trains_in_ae_vae_fully_convolutional_vae_and_dsm(tmp_path, monkeypatch):
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
-    recipe = tmp_path / "gatv2.yaml"
-    recipe.write_text(RECIPE)
-    run_dir = execute(str(recipe), runs_dir=str(tmp_path / "runs"), quiet=True, cache=Cache(tmp_path / "cache"))
-    metrics = json.loads((run_dir / "metrics.json").read_text())["models"]
-    assert set(metrics) == {"ae", "vae", "vae-fc", "dsm"}
-    for label, m in metrics.items():
-        assert np.isfinite(m["test"]["l1"]["mean"]) and m["test"]["l1"]["mean"] > 0, label
-        (events,) = {p.parent for p in (run_dir / "tb" / label).rglob("events.*")}
-        ea = EventAccumulator(str(events))
-        ea.Reload()
-        val = [t for t in ea.Tags()["scalars"] if t.startswith("val_loss")]
-        assert val and all(len(ea.Scalars(t)) == 2 and np.isfinite([e.value for e in ea.Scalars(t)]).all()
-                           for t in val), label  # two epochs trained
+    run_dir = run_recipe(tmp_path, "gatv2.yaml", RECIPE, monkeypatch)
+    metrics = assert_tested(run_dir, {"ae", "vae", "vae-fc", "dsm"}, only=True)
+    assert_trained(run_dir, metrics, epochs=2)  # two epochs trained
     run = open_run(run_dir)  # the trained models reopen from the run directory, gatv2 layers and all
     for label in metrics:
         model = run.model(label)

@@ -9,17 +9,16 @@ import pytest
 import scipy.linalg as la
 import trimesh
 
-from fwk.cache import Cache
 from fwk.data import Template
 from fwk.errors import RecipeError
 from fwk.geometry.operators import mass_matrix
 from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 from fwk.protocols import Assembler, BandModel
-from fwk.runs import execute
 from fwk.testing.assembler import AssemblerContract
 from fwk.testing.sampler import two_components
 from fwk_example_plugin.heat import Heat
+from recipe_runs import assert_tested, run_recipe, tiny_recipe
 
 
 @pytest.fixture(autouse=True)
@@ -255,38 +254,25 @@ def test_used_before_fit_says_so():
 
 # ---------------------------------------------------------------- in a model
 
-RECIPE = """
-task: reconstruct
-seed: 0
-dataset: {name: synthetic-heads, n_vertices: 300, n_subjects: 16}
-split: {ratios: [0.7, 0.1, 0.2]}
-train: {epochs: 2, batch_size: 8, lr: 1.0e-3, kl_weight: 1.0e-6}
-models:
-  dsm-heat:
-    name: dsm
-    k: 30
-    assembler: heat
-    network: {name: vae, conv: {name: spiral++, length: 9}, channels: [8, 16], latent: 8,
-              sampler: {name: quadric, factors: [4, 4]}}
-  dsm-heat-times:
-    name: dsm
-    k: [10, 60]
-    assembler: {name: heat, t: [0.002, 0.02]}
-    network: {name: vae, conv: {name: spiral++, length: 9}, channels: [8, 16], latent: 8,
-              sampler: {name: quadric, factors: [4, 4]}}
-metrics: [l1]
-renders: 0
-"""
+RECIPE = tiny_recipe("""
+dsm-heat:
+  name: dsm
+  k: 30
+  assembler: heat
+  network: {name: vae, conv: {name: spiral++, length: 9}, channels: [8, 16], latent: 8,
+            sampler: {name: quadric, factors: [4, 4]}}
+dsm-heat-times:
+  name: dsm
+  k: [10, 60]
+  assembler: {name: heat, t: [0.002, 0.02]}
+  network: {name: vae, conv: {name: spiral++, length: 9}, channels: [8, 16], latent: 8,
+            sampler: {name: quadric, factors: [4, 4]}}
+""")
 
 
 def test_heat_splits_deep_spectral_meshes_bands(tmp_path):
-    recipe = tmp_path / "heat.yaml"
-    recipe.write_text(RECIPE)
-    run_dir = execute(str(recipe), runs_dir=str(tmp_path / "runs"), quiet=True, cache=Cache(tmp_path / "cache"))
-    metrics = json.loads((run_dir / "metrics.json").read_text())["models"]
-    assert set(metrics) == {"dsm-heat", "dsm-heat-times"}
-    for m in metrics.values():
-        assert np.isfinite(m["test"]["l1"]["mean"]) and m["test"]["l1"]["mean"] > 0
+    run_dir = run_recipe(tmp_path, "heat.yaml", RECIPE)  # FWK_CACHE stays _own_cache's
+    assert_tested(run_dir, {"dsm-heat", "dsm-heat-times"}, only=True)
     run = open_run(run_dir)  # reopened: the assembler's state restores the same bands
     for label, n_bands in (("dsm-heat", 2), ("dsm-heat-times", 3)):
         model = run.model(label)
@@ -298,29 +284,19 @@ def test_heat_splits_deep_spectral_meshes_bands(tmp_path):
         assert np.allclose(model.band_shares(P - model.assembler.mean).sum(-1), 1.0)
 
 
-PBS_RECIPE = """
-task: blendshapes
-seed: 0
-dataset: {name: synthetic-heads, n_vertices: 300, n_subjects: 16, shapes: [neutral, mouth-wide]}
-split: {ratios: [0.7, 0.1, 0.2]}
-train: {epochs: 2, batch_size: 8, lr: 1.0e-3}
-models:
-  pbs-heat:
-    name: pbs
-    assembler: heat
-    ks: [0, 5, 20, 60, 400]
-    network: {name: vae, conv: {name: spiral++, length: 9}, channels: [8, 16], latent: 8,
-              sampler: {name: quadric, factors: [4, 4]}}
-metrics: [l1]
-renders: 0
-"""
+PBS_RECIPE = tiny_recipe("""
+pbs-heat:
+  name: pbs
+  assembler: heat
+  ks: [0, 5, 20, 60, 400]
+  network: {name: vae, conv: {name: spiral++, length: 9}, channels: [8, 16], latent: 8,
+            sampler: {name: quadric, factors: [4, 4]}}
+""", task="blendshapes", shapes=["neutral", "mouth-wide"], kl_weight=None)
 
 
 def test_heat_assembles_personalised_blendshapes_at_every_k_of_the_sweep(tmp_path):
     """pbs's Pareto k sweep calls assemble_many over its ks (0 and >= n included)."""
-    recipe = tmp_path / "pbs.yaml"
-    recipe.write_text(PBS_RECIPE)
-    run_dir = execute(str(recipe), runs_dir=str(tmp_path / "runs"), quiet=True, cache=Cache(tmp_path / "cache"))
+    run_dir = run_recipe(tmp_path, "pbs.yaml", PBS_RECIPE)
     m = json.loads((run_dir / "metrics.json").read_text())
     assert "pbs-heat" in json.dumps(m)
     run = open_run(run_dir)

@@ -1,23 +1,20 @@
 """The example model linear-net passes fwk's network-factory contract suite (variational or not),
 the reconstruction and generative suites as a model of its own, computes exactly its affine maps,
 and trains as the ``network:`` of dsm from a recipe."""
-import json
-
 import numpy as np
 import pytest
 import torch
 
-from fwk.cache import Cache
 from fwk.errors import RecipeError
 from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 from fwk.protocols import BandModel, NetworkFactory
-from fwk.runs import execute
 from fwk.testing.blendshapes import BlendshapeModelContract
 from fwk.testing.generative import GenerativeModelContract
 from fwk.testing.model import ModelContract, tiny_fit_data
 from fwk.testing.network import NetworkFactoryContract
 from fwk_example_plugin.linear_net import LinearNet
+from recipe_runs import assert_tested, run_recipe, tiny_recipe
 
 
 class TestLinearVAENetworks(NetworkFactoryContract):
@@ -89,28 +86,15 @@ def test_parameters_are_checked():
     assert isinstance(LinearNet(), NetworkFactory) and LinearNet(variational=False).variational is False
 
 
-RECIPE = """
-task: reconstruct
-seed: 0
-dataset: {name: synthetic-heads, n_vertices: 300, n_subjects: 16}
-split: {ratios: [0.7, 0.1, 0.2]}
-train: {epochs: 2, batch_size: 8, lr: 1.0e-3, kl_weight: 1.0e-6}
-models:
-  dsm-linear: {name: dsm, k: 30, network: {name: linear-net, latent: 8}}
-  linear: {name: linear-net, latent: 8, variational: false}
-metrics: [l1]
-renders: 0
-"""
+RECIPE = tiny_recipe("""
+dsm-linear: {name: dsm, k: 30, network: {name: linear-net, latent: 8}}
+linear: {name: linear-net, latent: 8, variational: false}
+""")
 
 
 def test_linear_net_as_the_network_of_dsm(tmp_path, monkeypatch):
-    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
-    (tmp_path / "linear.yaml").write_text(RECIPE)
-    run_dir = execute(str(tmp_path / "linear.yaml"), runs_dir=str(tmp_path / "runs"), quiet=True,
-                      cache=Cache(tmp_path / "cache"))
-    metrics = json.loads((run_dir / "metrics.json").read_text())["models"]
-    for label in ("dsm-linear", "linear"):
-        assert np.isfinite(metrics[label]["test"]["l1"]["mean"]) and metrics[label]["test"]["l1"]["mean"] > 0
+    run_dir = run_recipe(tmp_path, "linear.yaml", RECIPE, monkeypatch)
+    assert_tested(run_dir, ("dsm-linear", "linear"))
     dsm = open_run(run_dir).model("dsm-linear")   # the borrowed networks reload from the run directory
     assert isinstance(dsm, BandModel) and dsm.latent_size == 16  # two bands x latent 8
     S = dsm.sample(2, seed=0)

@@ -10,9 +10,9 @@ import pytest
 from fwk.cache import Cache
 from fwk.errors import DataError, RecipeError
 from fwk.plugins import get_registry
-from fwk.runs import execute
 from fwk.testing.dataset import DatasetContract
 from fwk_example_plugin.npz_meshes import NpzMeshes, write_npz_meshes
+from recipe_runs import assert_tested, run_recipe
 
 
 def grid(nx=6, ny=5):
@@ -219,12 +219,7 @@ def test_npz_meshes_feed_a_reconstruct_run(tmp_path, monkeypatch):
     t = heads.template
     path = write_npz_meshes(tmp_path / "heads.npz", heads.positions, t.triangles, heads.subjects, heads.shape_names,
                             landmarks=t.landmarks, regions=t.regions)
-    recipe = tmp_path / "npz.yaml"
-    recipe.write_text(RECIPE.format(path=path))
-    run_dir = execute(str(recipe), runs_dir=str(tmp_path / "runs"), quiet=True, cache=Cache(tmp_path / "cache"))
-    metrics = json.loads((run_dir / "metrics.json").read_text())["models"]
-    assert set(metrics) == {"pca", "ae"}
-    for label, m in metrics.items():
-        assert np.isfinite(m["test"]["l1"]["mean"]) and m["test"]["l1"]["mean"] > 0, label
+    run_dir = run_recipe(tmp_path, "npz.yaml", RECIPE.format(path=path))
+    assert_tested(run_dir, {"pca", "ae"}, only=True)
     split = json.loads((run_dir / "split.json").read_text())  # the file's subject ids, split by subject
     assert sorted(split["train"] + split["val"] + split["test"]) == sorted(heads.subjects)

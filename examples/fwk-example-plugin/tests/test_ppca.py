@@ -1,20 +1,17 @@
 """The example model ppca passes fwk's reconstruction and generative contract suites, matches
 Tipping & Bishop's ML solution computed densely, maximises the likelihood, and runs in a
 reconstruct recipe."""
-import json
-
 import numpy as np
 import pytest
 
-from fwk.cache import Cache
 from fwk.errors import RecipeError
 from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 from fwk.protocols import GenerativeModel, ReconstructionModel
-from fwk.runs import execute
 from fwk.testing.generative import GenerativeModelContract
 from fwk.testing.model import ModelContract, tiny_fit_data
 from fwk_example_plugin.ppca import PPCA, log_likelihood
+from recipe_runs import assert_tested, run_recipe, tiny_recipe
 
 
 class TestPPCAContract(ModelContract):
@@ -116,27 +113,15 @@ def test_component_count_is_checked():
     assert m.latent_size == 11 and m.sigma2 > 0
 
 
-RECIPE = """
-task: reconstruct
-seed: 0
-dataset: {name: synthetic-heads, n_vertices: 300, n_subjects: 16}
-split: {ratios: [0.7, 0.1, 0.2]}
-models:
-  ppca: {name: ppca, n_components: 6}
-  pca: {name: pca, n_components: 6}
-metrics: [l1]
-renders: 0
-"""
+RECIPE = tiny_recipe("""
+ppca: {name: ppca, n_components: 6}
+pca: {name: pca, n_components: 6}
+""", epochs=None)  # fitted, not trained
 
 
 def test_ppca_in_a_reconstruct_recipe(tmp_path, monkeypatch):
-    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
-    (tmp_path / "ppca.yaml").write_text(RECIPE)
-    run_dir = execute(str(tmp_path / "ppca.yaml"), runs_dir=str(tmp_path / "runs"), quiet=True,
-                      cache=Cache(tmp_path / "cache"))
-    metrics = json.loads((run_dir / "metrics.json").read_text())["models"]
-    l1 = {k: metrics[k]["test"]["l1"]["mean"] for k in ("ppca", "pca")}
-    assert all(np.isfinite(v) and v > 0 for v in l1.values())
+    run_dir = run_recipe(tmp_path, "ppca.yaml", RECIPE, monkeypatch)
+    assert_tested(run_dir, ("ppca", "pca"))
     model = open_run(run_dir).model("ppca")
     assert isinstance(model, ReconstructionModel) and isinstance(model, GenerativeModel)
     S = model.sample(2, seed=0)

@@ -6,14 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from fwk.cache import Cache
 from fwk.errors import DataError, RecipeError
 from fwk.lifecycle import open_run
 from fwk.plugins import get_registry
 from fwk.protocols import BlendshapeModel
-from fwk.runs import execute
 from fwk.testing.blendshapes import EXPRESSIONS, BlendshapeModelContract, tiny_blendshape_data
 from fwk_example_plugin.ridge_bs import RidgeBlendshapes
+from recipe_runs import run_recipe
 
 
 class TestRidgeBlendshapesContract(BlendshapeModelContract):
@@ -115,10 +114,7 @@ renders: 0
 
 
 def test_ridge_bs_in_a_blendshapes_recipe_beside_dt(tmp_path, monkeypatch):
-    monkeypatch.setenv("FWK_CACHE", str(tmp_path / "cache"))
-    (tmp_path / "ridge.yaml").write_text(RECIPE)
-    run_dir = execute(str(tmp_path / "ridge.yaml"), runs_dir=str(tmp_path / "runs"), quiet=True,
-                      cache=Cache(tmp_path / "cache"))
+    run_dir = run_recipe(tmp_path, "ridge.yaml", RECIPE, monkeypatch)
     metrics = json.loads((run_dir / "metrics.json").read_text())
     for e in EXPRESSIONS:
         rows = metrics["blendshapes"][e]

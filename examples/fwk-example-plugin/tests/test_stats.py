@@ -5,14 +5,14 @@ import json
 import numpy as np
 import pytest
 
-from fwk.cache import Cache
 from fwk.data import MeshCollection
 from fwk.data.split import SplitConfig, split_subjects
 from fwk.errors import DataError
 from fwk.plugins import get_registry
-from fwk.runs import execute, make_test_context
+from fwk.runs import make_test_context
 from fwk.testing.task import TaskContract
 from fwk_example_plugin.stats import DatasetStats, summarise
+from recipe_runs import run_recipe
 
 SMALL = {"name": "synthetic-heads", "n_vertices": 300, "n_subjects": 12}
 
@@ -120,9 +120,7 @@ split: {ratios: [0.8, 0.1, 0.1]}
 
 
 def test_fwk_run_of_a_dataset_stats_recipe(tmp_path):
-    recipe = tmp_path / "stats.yaml"
-    recipe.write_text(RECIPE)
-    run_dir = execute(str(recipe), runs_dir=str(tmp_path / "runs"), quiet=True, cache=Cache(tmp_path / "cache"))
+    run_dir = run_recipe(tmp_path, "stats.yaml", RECIPE)
     assert run_dir.name.startswith("heads-stats")
     m = json.loads((run_dir / "metrics.json").read_text())
     assert m["dataset"]["subjects"] == {"train": 8, "val": 1, "test": 1}
