@@ -10,7 +10,7 @@ from .core import evaluate
 from .curves import training_section, training_summary
 from .legend import legend_table
 from .plots import scatter_pareto
-from .presentation import axis_unit, display, figure_metrics, format_value
+from .presentation import axis_unit, display, figure_metrics
 from .render import colour_limits, render_grid
 from .seeds import mean_sd, seeds_note, seeds_sections
 from .tables import markdown_table  # noqa: F401  (imported from here by tasks)
