@@ -18,7 +18,10 @@ picks seed S (``fwk.lifecycle.seed_sub_run``).
 ``--format`` (comma-separated) adds rig files beside the OBJs (``fwk.rig``): ``gltf`` writes
 ``<neutral>.glb`` (glTF 2.0 binary, one morph target per expression), ``usd`` ``<neutral>.usdc``
 (``usda`` for text; a UsdSkel rig, one BlendShape per expression). ``--naming arkit`` renames
-ICT-FaceKit's shapes to Apple ARKit's names in every format (``fwk.rig.arkit``).
+ICT-FaceKit's shapes to Apple ARKit's names in every format (``fwk.rig.arkit``); with
+``--only-mapped`` every format and the OBJs hold exactly the shapes with an ARKit name (for
+ICT-FaceKit 51 of the 52: it has no ``tongueOut``), in Apple's order, and one line on stderr says
+what was left out.
 
 The model's topology is the run's ``template.obj`` (with its UVs). A neutral with another vertex
 count is refused with both counts and that file named; one exception: a neutral whose first n
@@ -65,7 +68,7 @@ from .lifecycle import choose_model, open_run
 from .safeio import load_npz
 from .paths import check_dir
 from .protocols import BlendshapeModel, CutSelectingModel
-from .rig.arkit import NAMINGS, rename
+from .rig.arkit import NAMINGS, check_only_mapped, only_mapped_note, rename
 from .rig.gltf import write_glb
 from .rig.usd import write_usd
 
@@ -100,6 +103,8 @@ def add_apply_parser(subparsers):
                    "one morph target per expression), usd (.usdc UsdSkel rig; usda for text); default obj")
     p.add_argument("--naming", default="source", choices=NAMINGS, help="shape names: the run's (source) or Apple "
                    "ARKit's for ICT-FaceKit's shapes (arkit; table in docs/rig-quickstart.md)")
+    p.add_argument("--only-mapped", action="store_true", help="with --naming arkit: only the shapes with an ARKit "
+                   "name, in Apple's order (ICT-FaceKit: 51 of the 52, no tongueOut), in every format and the OBJs")
     p.add_argument("--units", default=None, help="the neutral's units when they are not the run's: a unit (mm, cm, "
                    "m, um, in, ft; the run's must be stated) or a factor (0.1: one of the neutral's units is 0.1 of "
                    "the run's); the neutral is scaled into the run's units and the outputs written back in its own")
@@ -295,17 +300,20 @@ def parse_formats(text) -> list[str]:
 
 def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str] | None = None,
           log=print, registry=None, formats="obj", naming: str = "source", units: str | float | None = None,
-          seed_run: int | None = None, say=_stderr) -> list[Path]:
+          seed_run: int | None = None, say=_stderr, only_mapped: bool = False) -> list[Path]:
     """Write the blendshapes of one neutral (``out/<expression>.obj``, ``out/<neutral>.glb``,
     ``out/<neutral>.usdc`` as ``formats`` asks) or of a folder of neutrals (the same in
     ``out/<stem>/``); returns the written files. ``units``: the neutrals' units or a factor into
     the run's (``--units``; the outputs are written back in the neutrals' units). ``seed_run``:
     of a run with ``seeds:``, the seed whose models to use (default its first, named by ``say``:
-    one line on stderr; None: silent)."""
+    one line on stderr; None: silent). ``only_mapped``: only the shapes the naming maps
+    (``--only-mapped``; ``say`` names what was left out)."""
     t0 = time.perf_counter()
     fmts = parse_formats(formats)
     if naming not in NAMINGS:
         raise FwkError(f"--naming {naming}: unknown naming (namings: {', '.join(NAMINGS)})")
+    if only_mapped:
+        check_only_mapped(naming)  # before any work
     neutral, out = Path(neutral), Path(out)
     check_dir(out, "--out", min_free_mb=0)  # before any work (fwk.paths)
     app = Applier(run_dir, model, registry, seed_run=seed_run, say=say)
@@ -335,6 +343,10 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
                 full = V.copy()
                 full[region] = P[e]
                 P[e] = full
+    # every neutral's shapes under the naming, before anything is written (--only-mapped may find none)
+    renamed = [rename(P, V, naming, only_mapped) for (_, V, _, _), P in zip(meshes, preds)]
+    if only_mapped and renamed and say is not None:
+        say(f"fwk apply {only_mapped_note(list(preds[0]), list(renamed[0]), naming)}")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
@@ -342,10 +354,9 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
         raise FwkError(f"--out {out}: cannot write there ({exc.strerror or exc})") from None
     written, mode = [], file_mode()
     try:
-        for (f, V, tpl, region), P in zip(meshes, preds):
+        for (f, V, tpl, region), shapes in zip(meshes, renamed):
             sub = tmp if not neutral.is_dir() else tmp / f.stem
             sub.mkdir(parents=True, exist_ok=True)
-            shapes = rename(P, V, naming)
             for fmt in fmts:
                 if fmt == "obj":
                     writer = ObjWriter(tpl)
@@ -379,5 +390,6 @@ def run_apply(args) -> int:
     apply(args.run_dir, args.neutral, args.out, getattr(args, "model", None), getattr(args, "expressions", None),
           log=(lambda *_: None) if quiet else print, formats=getattr(args, "format", "obj"),
           naming=getattr(args, "naming", "source"), units=getattr(args, "units", None),
-          seed_run=getattr(args, "seed_run", None), say=None if quiet else _stderr)
+          seed_run=getattr(args, "seed_run", None), say=None if quiet else _stderr,
+          only_mapped=getattr(args, "only_mapped", False))
     return 0

@@ -21,11 +21,15 @@ top colour and its title gives that value; a rig whose jaw moves 4 cm and whose 
 both).
 
 open3d is in the optional extra ``rig`` (``pip install 'fwk[rig]'``); it is imported when a
-picture or a window is made (0.9 s of import time, and absent without the extra).
+picture or a window is made (0.9 s of import time, and absent without the extra). Its Linux wheels
+also load system libraries that a fresh machine may lack (libusb-1.0 above all: Debian's
+``libusb-1.0-0``); when one is missing, the error names it and the package that holds it
+(``open3d_error``), rather than saying that open3d is not installed.
 """
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +41,15 @@ from .evaluation.plots import save_figure
 from .rig import missing
 
 RIG_SUFFIXES = (".glb", ".usdc", ".usda", ".usd")
+#: the system libraries open3d's Linux wheel (0.20: ``ldd open3d/pybind*.so``) loads that a minimal Debian or
+#: Ubuntu may lack, and the package of each (``dpkg -S`` on Debian 12)
+SYSTEM_PACKAGES = {
+    "libusb-1.0.so.0": "libusb-1.0-0", "libEGL.so.1": "libegl1", "libGL.so.1": "libgl1", "libGLX.so.0": "libglx0",
+    "libGLdispatch.so.0": "libglvnd0", "libX11.so.6": "libx11-6", "libxcb.so.1": "libxcb1",
+    "libudev.so.1": "libudev1", "libgomp.so.1": "libgomp1", "libXau.so.6": "libxau6", "libXdmcp.so.6": "libxdmcp6",
+}
+#: how the dynamic loader names a shared library it cannot open (glibc's dlopen message)
+_NO_LIBRARY = re.compile(r"([\w.+-]+\.so(?:\.[\w]+)*): cannot open shared object file")
 
 
 @dataclasses.dataclass
@@ -218,11 +231,30 @@ def _truth(rig: Rig, folder: Path) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- drawing
+def open3d_error(exc: BaseException) -> FwkError:
+    """The one-line error for a failed ``import open3d``: the system library that could not be
+    loaded and its Debian/Ubuntu package (open3d is installed: only the library is missing), open3d
+    not installed, or open3d failing to import for another reason (its own message's first line)."""
+    text = str(exc)
+    m = _NO_LIBRARY.search(text)
+    if m:
+        lib = m.group(1)
+        pkg = SYSTEM_PACKAGES.get(lib)
+        how = (f"install the Debian/Ubuntu package {pkg} (sudo apt-get install {pkg})" if pkg else
+               f"install the system package that holds it (Debian/Ubuntu: apt-file search {lib})")
+        return FwkError(f"fwk view: open3d is installed, but the system library {lib} that it loads is "
+                        f"missing: {how}")
+    if isinstance(exc, ModuleNotFoundError) and (exc.name == "open3d" or text == "No module named 'open3d'"):
+        return missing("open3d", "fwk view")
+    first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
+    return FwkError(f"fwk view: open3d is installed but cannot be imported ({type(exc).__name__}: {first[:200]})")
+
+
 def _o3d():
     try:
         import open3d  # deferred: optional extra `rig`, 0.9 s of import time
-    except ImportError:
-        raise missing("open3d", "fwk view") from None
+    except (ImportError, OSError) as exc:  # OSError: a library loaded with ctypes
+        raise open3d_error(exc) from None
     return open3d
 
 

@@ -6,7 +6,16 @@ of ARKit's symmetric shapes in halves (``browInnerUp_L``/``_R``, ``cheekPuff_L``
 halves keep their names and ARKit's whole shape is added as their sum (``COMBINED``: blendshape
 deltas add, so the sum is exact). Shapes with no ARKit name (``cheekRaiser_L``/``_R``,
 ``PupilDilate_L``/``_R``, any other name) keep theirs. ARKit's ``tongueOut`` has no ICT-FaceKit
-shape. With every ICT-FaceKit expression trained, the rig has 51 of ARKit's 52 names.
+shape (ICT-FaceKit's expression blendshapes move no tongue). With every ICT-FaceKit expression
+trained, the rig has 51 of ARKit's 52 names.
+
+``only_mapped`` (``fwk apply --only-mapped``): exactly the shapes with an ARKit name, in Apple's
+order; the halves and the shapes with no ARKit name are left out.
+
+Left and right: ARKit's are the face's own (Apple: "the eyeBlinkRight coefficient refers to the
+face's right eye"), not the viewer's. ICT-FaceKit's ``_L``/``_R`` are the same: its head looks
+along +z with y up, and ``eyeBlink_L`` closes the eye at +x, the face's own left. The renaming is
+a renaming: ``_L`` becomes ``Left`` and no shape is mirrored.
 """
 from __future__ import annotations
 
@@ -51,14 +60,30 @@ ICT_TO_ARKIT = {
 COMBINED = {"browInnerUp": ("browInnerUp_L", "browInnerUp_R"), "cheekPuff": ("cheekPuff_L", "cheekPuff_R")}
 
 NAMINGS = ("source", "arkit")
+#: the namings that map names to a standard set: naming -> the standard's names, in its order
+MAPPED = {"arkit": ARKIT_NAMES}
+#: the standard's name in messages
+STANDARD = {"arkit": "ARKit"}
 
 
-def rename(shapes: dict[str, np.ndarray], neutral: np.ndarray, naming: str = "source") -> dict[str, np.ndarray]:
+def check_only_mapped(naming: str) -> None:
+    """The one-line error for ``--only-mapped`` under a naming that maps no names."""
+    if naming not in MAPPED:
+        raise FwkError(f"--only-mapped keeps the shapes a naming maps: use it with --naming "
+                       f"{' or '.join(MAPPED)} (--naming {naming} maps no names)")
+
+
+def rename(shapes: dict[str, np.ndarray], neutral: np.ndarray, naming: str = "source",
+           only_mapped: bool = False) -> dict[str, np.ndarray]:
     """The shapes (name -> positions) under ``naming``: ``source`` keeps the names; ``arkit``
     renames ICT-FaceKit's names to ARKit's and adds ARKit's symmetric shapes whose halves are
-    present (their deltas from ``neutral`` summed). Order: the input's, the added shapes last."""
+    present (their deltas from ``neutral`` summed). Order: the input's, the added shapes last.
+    ``only_mapped``: only the shapes named by the naming's standard (``MAPPED``), in its order
+    (a one-line error when there are none, or under ``source``)."""
     if naming not in NAMINGS:
         raise FwkError(f"--naming {naming}: unknown naming (namings: {', '.join(NAMINGS)})")
+    if only_mapped:
+        check_only_mapped(naming)
     if naming == "source":
         return dict(shapes)
     out = {}
@@ -71,4 +96,25 @@ def rename(shapes: dict[str, np.ndarray], neutral: np.ndarray, naming: str = "so
     for whole, (left, right) in COMBINED.items():
         if left in shapes and right in shapes and whole not in out:
             out[whole] = shapes[left] + shapes[right] - neutral
+    if only_mapped:
+        kept = {n: out[n] for n in MAPPED[naming] if n in out}
+        if not kept:
+            listed = ", ".join(list(shapes)[:6]) + (", ..." if len(shapes) > 6 else "")
+            raise FwkError(f"--only-mapped: no shape has an {STANDARD[naming]} name (the shapes: {listed}); leave "
+                           "--only-mapped out to keep them under their own names")
+        return kept
     return out
+
+
+def only_mapped_note(source: list[str], kept: list[str], naming: str) -> str:
+    """One line on what ``--only-mapped`` kept and left out: ``source``, the run's names;
+    ``kept``, the names written."""
+    std, label = MAPPED[naming], STANDARD[naming]
+    absent = [n for n in std if n not in kept]
+    dropped = [n for n in source if ICT_TO_ARKIT.get(n, n) not in kept]
+    text = f"--only-mapped: {len(kept)} of {label}'s {len(std)} shapes"
+    if absent:
+        text += f" (none for {', '.join(absent)})" if len(absent) <= 5 else f" (none for {len(absent)} of them)"
+    if dropped:
+        text += f"; left out, with no {label} name: {', '.join(dropped)}"
+    return text
