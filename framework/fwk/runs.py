@@ -442,16 +442,13 @@ def fix_threads(ctx: RunContext, created: bool) -> tuple[int, str]:
     if recorded is not None and n != recorded[0]:
         ctx.log(f"threads: this run started with {recorded[0]} and resumes with {n} ({why}): its numbers "
                 f"now come from two thread counts (fwk run --resume --threads {recorded[0]} keeps one)")
-    path = ctx.path("versions.json")
-    try:
-        stored = json.loads(path.read_text())
-    except (OSError, ValueError):
-        stored = {}
-    if not isinstance(stored, dict):
-        stored = {}
-    if created or recorded is None:
-        stored.update(threads=n, threads_why=why)
-        ctx.write_json("versions.json", stored)
+    if created or recorded is None:  # a resume keeps the start's record (record_resume adds its own count)
+        try:
+            stored = json.loads(ctx.path("versions.json").read_text())
+        except (OSError, ValueError):
+            stored = {}
+        stored = stored if isinstance(stored, dict) else {}
+        ctx.write_json("versions.json", {**stored, "threads": n, "threads_why": why})
     return n, why
 
 

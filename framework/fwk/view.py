@@ -36,7 +36,7 @@ import numpy as np
 
 from .data.io import fan_triangulate, read_obj
 from .data.template import METRES_PER_UNIT
-from .errors import DataError, FwkError
+from .errors import DataError, FwkError, cut
 from .evaluation.plots import save_figure
 from .rig import missing
 
@@ -247,7 +247,7 @@ def open3d_error(exc: BaseException) -> FwkError:
     if isinstance(exc, ModuleNotFoundError) and (exc.name == "open3d" or text == "No module named 'open3d'"):
         return missing("open3d", "fwk view")
     first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
-    return FwkError(f"fwk view: open3d is installed but cannot be imported ({type(exc).__name__}: {first[:200]})")
+    return FwkError(f"fwk view: open3d is installed but cannot be imported ({type(exc).__name__}: {cut(first)})")
 
 
 def _o3d():
