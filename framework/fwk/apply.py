@@ -17,7 +17,9 @@ picks seed S (``fwk.lifecycle.seed_sub_run``).
 
 ``--format`` (comma-separated) adds rig files beside the OBJs (``fwk.rig``): ``gltf`` writes
 ``<neutral>.glb`` (glTF 2.0 binary, one morph target per expression), ``usd`` ``<neutral>.usdc``
-(``usda`` for text; a UsdSkel rig, one BlendShape per expression). ``--naming arkit`` renames
+(``usda`` for text; a UsdSkel rig, one BlendShape per expression), ``fbx`` ``<neutral>.fbx`` (one
+shape key per expression, centimetres; Blender's own exporter through ``bpy``, the extra ``fbx``:
+``fwk.rig.fbx``). ``--naming arkit`` renames
 ICT-FaceKit's shapes to Apple ARKit's names in every format (``fwk.rig.arkit``); with
 ``--only-mapped`` every format and the OBJs hold exactly the shapes with an ARKit name (for
 ICT-FaceKit 51 of the 52: it has no ``tongueOut``), in Apple's order, and one line on stderr says
@@ -69,12 +71,14 @@ from .safeio import load_npz
 from .paths import check_dir
 from .protocols import BlendshapeModel, CutSelectingModel
 from .rig.arkit import NAMINGS, check_only_mapped, only_mapped_note, rename
+from .rig.fbx import import_bpy, write_fbx
 from .rig.gltf import write_glb
 from .rig.usd import write_usd
 
 MESH_SUFFIXES = (".obj",)
 #: --format values -> the file suffix written (``obj``: one OBJ per expression)
-FORMATS = {"obj": ".obj", "gltf": ".glb", "glb": ".glb", "usd": ".usdc", "usdc": ".usdc", "usda": ".usda"}
+FORMATS = {"obj": ".obj", "gltf": ".glb", "glb": ".glb", "usd": ".usdc", "usdc": ".usdc", "usda": ".usda",
+           "fbx": ".fbx"}
 TEMPLATE_OBJ = "template.obj"  # the run directory's topology with UVs (written by the blendshapes task)
 #: the most a neutral's size may differ from the training neutrals' (either way), in the run's units
 MAX_SCALE_RATIO = 2.0
@@ -100,7 +104,8 @@ def add_apply_parser(subparsers):
                         "RUN/seed-S does the same)")
     p.add_argument("--expressions", nargs="*", default=None, help="only these expressions (default: all trained)")
     p.add_argument("--format", default="obj", help="comma-separated: obj (one OBJ per expression), gltf (.glb with "
-                   "one morph target per expression), usd (.usdc UsdSkel rig; usda for text); default obj")
+                   "one morph target per expression), usd (.usdc UsdSkel rig; usda for text), fbx (.fbx, one shape key "
+                   "per expression, cm; needs the extra fbx: bpy); default obj")
     p.add_argument("--naming", default="source", choices=NAMINGS, help="shape names: the run's (source) or Apple "
                    "ARKit's for ICT-FaceKit's shapes (arkit; table in docs/rig-quickstart.md)")
     p.add_argument("--only-mapped", action="store_true", help="with --naming arkit: only the shapes with an ARKit "
@@ -310,6 +315,8 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     (``--only-mapped``; ``say`` names what was left out)."""
     t0 = time.perf_counter()
     fmts = parse_formats(formats)
+    if "fbx" in fmts:
+        import_bpy()  # a missing bpy is said before any work
     if naming not in NAMINGS:
         raise FwkError(f"--naming {naming}: unknown naming (namings: {', '.join(NAMINGS)})")
     if only_mapped:
@@ -364,6 +371,8 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
                         writer.write(sub / f"{e}.obj", X)
                 elif FORMATS[fmt] == ".glb":
                     write_glb(sub / f"{f.stem}.glb", V, tpl, shapes, units=out_units, name=f.stem)
+                elif FORMATS[fmt] == ".fbx":
+                    write_fbx(sub / f"{f.stem}.fbx", V, tpl, shapes, units=out_units, name=f.stem)
                 else:
                     write_usd(sub / f"{f.stem}{FORMATS[fmt]}", V, tpl, shapes, units=out_units, name=f.stem)
         out.mkdir(parents=True, exist_ok=True)

@@ -244,8 +244,8 @@ def test_a_region_model_on_its_full_mesh(grid_run, tmp_path):
 def test_unknown_format_and_naming(grid_run, tmp_path):
     from fwk.apply import apply
 
-    with pytest.raises(FwkError, match="--format fbx: unknown format"):
-        apply(grid_run, tmp_path / "x.obj", tmp_path / "o", formats="obj,fbx")
+    with pytest.raises(FwkError, match="--format abc: unknown format"):
+        apply(grid_run, tmp_path / "x.obj", tmp_path / "o", formats="obj,abc")
     with pytest.raises(FwkError, match="--naming maya: unknown naming"):
         apply(grid_run, tmp_path / "x.obj", tmp_path / "o", naming="maya")
 

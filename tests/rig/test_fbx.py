@@ -379,3 +379,36 @@ def test_bpy_without_its_system_libraries_names_the_packages(monkeypatch, tmp_pa
     V, t = _grid(tmp_path)
     with pytest.raises(FwkError, match=r"bpy is installed but does not load \(libXi\.so\.6.*apt-get install .*libxi6"):
         write_fbx(tmp_path / "x.fbx", V, t, {"a": V + 1}, units="cm")
+
+
+def test_fwk_apply_writes_an_fbx_equal_to_its_objs(clean, grid_run, tmp_path):
+    """``fwk apply --format obj,fbx --naming arkit``: the FBX beside the OBJs holds every OBJ as a
+    shape key under its name, to 1e-4 cm through Blender's importer."""
+    from fwk.apply import apply
+    from fwk.data.io import read_obj
+
+    V = neutral(np.random.default_rng(5)) * 1.05 + np.array([1.0, 2.0, -3.0])
+    src = tmp_path / "bo.obj"
+    src.write_text(grid_obj(V))
+    files = apply(grid_run, src, tmp_path / "out", formats="obj,fbx", naming="arkit", log=lambda *_: None,
+                  say=None)
+    fbx = tmp_path / "out" / "bo.fbx"
+    assert fbx in files
+    objs = {p.stem: read_obj(p)[0] for p in files if p.suffix == ".obj"}
+    back = reimport(clean, fbx)
+    assert back.name == "bo" and list(back.keys)[0] == "Basis" and sorted(back.keys)[1:] == sorted(objs)
+    assert np.abs(back.keys["Basis"] - V).max() < TOL_CM  # the run is in cm: the file's cm are the OBJ's
+    for name, P in objs.items():
+        assert np.abs(back.keys[name] - P).max() < TOL_CM, name
+
+
+def test_fwk_apply_without_bpy_fails_before_any_work(monkeypatch, grid_run, tmp_path):
+    """A missing bpy is one line, said before the run is loaded, and --out is not created."""
+    from fwk.apply import apply
+
+    monkeypatch.setitem(sys.modules, "bpy", None)
+    src = tmp_path / "bo.obj"
+    src.write_text(grid_obj(neutral(np.random.default_rng(5))))
+    with pytest.raises(FwkError, match=r"^--format fbx needs the Python package bpy"):
+        apply(grid_run, src, tmp_path / "out", formats="obj,fbx", log=lambda *_: None, say=None)
+    assert not (tmp_path / "out").exists()

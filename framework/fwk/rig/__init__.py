@@ -28,9 +28,11 @@ from ..data.template import METRES_PER_UNIT  # noqa: F401 (the writers' scale, r
 from ..errors import FwkError
 
 
-def missing(package: str, what: str) -> FwkError:
-    """The one-line error for a missing optional dependency of the ``rig`` extra."""
-    return FwkError(f"{what} needs the Python package {package}: pip install 'fwk[rig]' (or pip install {package})")
+def missing(package: str, what: str, extra: str = "rig", spec: str | None = None, note: str = "") -> FwkError:
+    """The one-line error for a missing optional dependency of the extra ``extra`` (``spec``: the pip
+    requirement, default ``package``; ``note``: said after the package, e.g. which Pythons it has)."""
+    how = "pip install 'fwk[rig]'" if extra == "rig" else f"pip install -e '.[{extra}]'"
+    return FwkError(f"{what} needs the Python package {package}{note}: {how} (or pip install {spec or package})")
 
 
 def vertex_normals(V: np.ndarray, triangles: np.ndarray) -> np.ndarray:

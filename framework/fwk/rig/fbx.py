@@ -51,7 +51,7 @@ import numpy as np
 
 from ..data import Template
 from ..errors import FwkError
-from . import METRES_PER_UNIT
+from . import METRES_PER_UNIT, missing
 
 #: the ``bpy`` the extra ``fbx`` installs (its wheels are for CPython 3.11 only)
 BPY = "bpy==4.2.0"
@@ -80,8 +80,7 @@ def missing_bpy() -> FwkError:
     """The one-line error for a missing ``bpy`` (the extra ``fbx``, not ``rig``)."""
     py = "" if sys.version_info[:2] == (3, 11) else (
         f"; its wheels are for Python 3.11 only, this is {sys.version_info[0]}.{sys.version_info[1]}")
-    return FwkError(f"--format fbx needs the Python package bpy (Blender 4.2 as a module{py}): "
-                    f"pip install -e '.[fbx]' (or pip install {BPY})")
+    return missing("bpy", "--format fbx", extra="fbx", spec=BPY, note=f" (Blender 4.2 as a module{py})")
 
 
 def import_bpy():
