@@ -32,7 +32,11 @@ identity, (ii) f_{e,s}(v) = 1 + 0.2 tanh(sum_r c_{e,s,r} phi_r(v)), c_{e,s} = w_
 smooth spatial field (Gaussian bumps phi_r at 8 seeded points of the region, a quarter of its
 extent wide) that makes some parts of a face move more than others depending on the identity,
 and (iii) J_s rescales the delta per axis by the ratio of the subject's face extent to the
-generic face's (a wider face makes a wider expression). k_e and C_e are seeded per expression. ``personalise: false`` adds D_e unchanged to every neutral.
+generic face's (a wider face makes a wider expression). k_e and C_e are seeded per expression.
+The points, width and extents are the region's; for ``full`` they are face-head's (the field is
+evaluated on every vertex), so that full's first 11,248 vertices equal face-head's in every shape
+and the parts outside move with the same personalisation as the face next to them (a blendshapes
+run's ``follow: {region: full}`` relies on it). ``personalise: false`` adds D_e unchanged to every neutral.
 
 Regions: ``face-head`` (default: the first 11,248 vertices and 11,144 quads), ``face``
 (the polygons of material ``M_Face``), ``narrow-face`` (``face`` restricted to ICT's fitting
@@ -201,7 +205,7 @@ class ICTFaceKit:
                        units="cm", name=f"ict-facekit-{self.region}", uv_lines=t.uv_lines)
         return verts, sub
 
-    def _personalised(self, D, N0, W, neutrals, ext0, j):
+    def _personalised(self, D, N0, W, neutrals, ext0, j, ref=slice(None)):
         """(S, n, 3) the expression delta D personalised per identity (synthetic model, see the
         module docstring): amplitude a_s = 1 + 0.1 k_e . w_s, a smooth spatial field
         f_s(v) = 1 + 0.2 tanh(sum_r c_sr phi_r(v)) with c_s = w_s C_e / 10 and phi_r Gaussian
@@ -210,7 +214,7 @@ class ICTFaceKit:
         rng = np.random.default_rng([self.seed, j, 17])
         k = rng.normal(size=100) / 10.0  # |k| ~ 1
         amp = 1.0 + 0.1 * (W @ k)  # about 1 +- 0.1 sigma
-        centres = N0[rng.choice(len(N0), 8, replace=False)]
+        centres = N0[ref][rng.choice(len(N0[ref]), 8, replace=False)]
         width = 0.25 * float(np.linalg.norm(ext0))
         phi = np.exp(-0.5 * ((N0[None] - centres[:, None]) ** 2).sum(-1) / width ** 2)  # (8, n)
         C = rng.normal(size=(100, 8))
@@ -237,14 +241,18 @@ class ICTFaceKit:
         neutrals = N0 + (W @ modes.reshape(100, -1)).reshape(self.n_subjects, len(verts), 3)  # BLAS, not einsum
         out = np.empty((self.n_subjects, len(self.shapes), len(verts), 3))
         out[:, 0] = neutrals
-        ext0 = N0.max(0) - N0.min(0)
-        self._extent = neutrals.max(1) - neutrals.min(1)
+        # the personalisation's reference vertices: the region's own, but for ``full`` the
+        # face-head's, so that full's first 11,248 vertices are face-head's exactly (the face a
+        # face-head model learned, continued onto the teeth, eyes, ...: a blendshapes run's follow:)
+        ref = slice(0, FACE_HEAD[0]) if self.region == "full" else slice(None)
+        ext0 = N0[ref].max(0) - N0[ref].min(0)
+        self._extent = neutrals[:, ref].max(1) - neutrals[:, ref].min(1)
         for j, e in enumerate(self.shapes[1:], start=1):
             D = np.zeros_like(N0)
             for b, a in self.expressions[e].items():
                 D += a * (np.asarray(data[100 + blend.index(b)])[verts] - N0)
             if self.personalise:
-                out[:, j] = neutrals + self._personalised(D, N0, W, neutrals, ext0, j)
+                out[:, j] = neutrals + self._personalised(D, N0, W, neutrals, ext0, j, ref)
             else:
                 out[:, j] = neutrals + D
         template.vertices = neutrals[0].copy()
