@@ -29,7 +29,11 @@ The model's topology is the run's ``template.obj`` (with its UVs). A neutral wit
 count is refused with both counts and that file named; one exception: a neutral whose first n
 vertices and first polygons are the run's n vertices and polygons (the full mesh a region such
 as ICT-FaceKit's face-head was cut from, 11,248 of 26,719 vertices) is accepted: the region is
-predicted, the rest of the mesh is left as it is, and the full mesh is written back.
+predicted, the rest of the mesh is left as it is, and the full mesh is written back. When the
+run has followers for that mesh (``stats/followers.npz``, from the recipe's ``follow:``; same
+vertex count), the rest moves instead: each part outside the region (a tooth, the gums and tongue,
+an eye's lashes) by the training subjects' mean motion of it for that expression, scaled by the
+predicted face's motion next to it (``fwk.rig.follow``); one line on stderr says so.
 
 Every neutral is also checked against the training neutrals' size (``check_scale``): the
 median distance of its vertices from its median point, over the same of the run's mean training
@@ -72,6 +76,7 @@ from .paths import check_dir
 from .protocols import BlendshapeModel, CutSelectingModel
 from .rig.arkit import NAMINGS, check_only_mapped, only_mapped_note, rename
 from .rig.fbx import import_bpy, write_fbx
+from .rig.follow import Followers, follow
 from .rig.gltf import write_glb
 from .rig.usd import write_usd
 
@@ -156,6 +161,8 @@ class Applier:
             raise FwkError(f"{run.run_dir / 'stats' / 'preprocess.npz'}: the mean training neutral has shape "
                            f"{ref.shape} or non-finite values, the model's topology {self.template.vertices.shape}")
         self.ref_size, self.ref_extent = _size(ref)
+        fol = run.run_dir / "stats" / "followers.npz"  # a run with follow: moves a full mesh's other parts
+        self.followers = Followers.from_state(load_npz(fol), str(fol)) if fol.exists() else None
 
     def factor(self, units: str | float | None) -> float:
         """``--units`` as the factor that takes a neutral into the run's units (1 when None)."""
@@ -341,7 +348,14 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     t1 = time.perf_counter()
     preds = app.predict([k * (V if r is None else V[r]) for _, V, _, r in meshes], expressions)
     t2 = time.perf_counter()
+    fol = app.followers
+    if fol is not None and say is not None and any(r is not None and len(V) == fol.n_full for _, V, _, r in meshes):
+        say(f"fwk apply: the {fol.n_full - fol.n} vertices outside the model's {fol.n} move with the face "
+            f"(the run's followers: {len(fol.summary())} of {len(fol.expressions)} expressions move parts of them)")
     for (f, V, _, region), P in zip(meshes, preds):
+        if region is not None and fol is not None and len(V) == fol.n_full:  # the outside follows, in run units
+            P.update(follow(app.pre, fol, k * V, P))  # P is in run units here
+            region = None  # P holds full meshes now
         for e in list(P):
             P[e] = P[e] / k  # back into the neutral's units
             if not np.all(np.isfinite(P[e])):

@@ -168,19 +168,21 @@ class Followers:
         a = np.einsum("bmk,mk->b", D[:, anchors], GA) / float((GA * GA).sum())
         return np.clip(a, A_MIN, A_MAX)
 
-    def deltas(self, X_region: np.ndarray, D_region: np.ndarray, expression: str) -> np.ndarray:
+    def deltas(self, X_region: np.ndarray, D_region: np.ndarray, expression: str,
+               fixed: float | None = None) -> np.ndarray:
         """(B, n_full - n, 3) registered deltas of the outside vertices for ``expression``, from
         registered region neutrals ``X_region`` (B, n, 3) and predicted registered region deltas
-        ``D_region`` (B, n, 3)."""
+        ``D_region`` (B, n, 3); ``fixed``: every part's a instead (1: the training mean's motion,
+        a baseline)."""
         X, D = np.asarray(X_region, dtype=np.float64), np.asarray(D_region, dtype=np.float64)
         if X.ndim == 2:
-            return self.deltas(X[None], D[None], expression)[0]
+            return self.deltas(X[None], D[None], expression, fixed)[0]
         if X.shape[1:] != (self.n, 3) or D.shape != X.shape:
             raise DataError(f"followers: region of shape {X.shape[1:]} / {D.shape[1:]}, expected ({self.n}, 3)")
         rho = _size(X) / self.ref_size
         out = np.zeros((len(X), self.n_full - self.n, 3))
         for p, G, A, GA in self.entries(expression):
-            a = self.amplitude(D, A, GA, rho)
+            a = self.amplitude(D, A, GA, rho) if fixed is None else np.full(len(X), float(fixed))
             out[:, self._members[p]] = a[:, None, None] * G[None]
         return out
 

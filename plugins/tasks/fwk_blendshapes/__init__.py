@@ -34,6 +34,22 @@ and the summary plot the registered metrics' distance against their perceptual m
 (``fwk.evaluation.figure_metrics``: L1 against DAME and FMPD). ``fwk apply RUN_DIR
 NEUTRAL.obj`` reuses the saved model (``apply_model``; default: the first cut-selecting model,
 else the first model).
+
+``follow:`` (default none) makes a region model move a whole head: a mapping of dataset
+parameters that override the run's own dataset's (``follow: {region: full}``) and give the full
+mesh the region was cut from. It is loaded like the dataset and checked (the same subjects in
+the same order, every trained shape, more vertices, its first n vertices and triangles the
+training data's, each shape to 1e-6 of the heads' extent: one-line errors otherwise), registered
+with each subject's own transform of the preprocessing, and the followers
+(``fwk.rig.follow``: each connected part outside the region moves for an expression by the
+training subjects' mean registered delta G, times a = the least-squares amplitude of the
+predicted face on region vertices next to the part) are fitted on the training subjects only and
+saved as ``stats/followers.npz`` (arrays). The log says how many parts move for which
+expressions; metrics.json's ``followers`` section holds, per expression, the validation
+subjects' relative error ||pred - true|| / ||true|| of the outside vertices (all moving parts
+together and each part, keyed by its vertex range) with the followers driven by the true region
+deltas (``truth``), by the apply model's predictions (``model``), and the training mean unscaled
+(``mean``, a = 1). ``fwk apply RUN FULL.obj`` then moves those parts too.
 """
 from __future__ import annotations
 
@@ -55,7 +71,8 @@ from fwk.evaluation.render import colour_limits, render_grid
 from fwk.hookspecs import hookimpl
 from fwk.lifecycle import build_models, fit_or_resume
 from fwk.protocols import BLENDSHAPES, BlendshapeModel, CompositeModel, CutSelectingModel, FitData, TrainingModes
-from fwk.recipes import Kind, Spec
+from fwk.recipes import Kind, Spec, make_spec
+from fwk.rig.follow import Followers
 
 #: metrics.json sections (their names are kept from before the roles; they name no component)
 PER_EXPRESSION = "blendshapes"  # name-ok: metrics.json section {expression: {row: metrics}}
@@ -81,6 +98,7 @@ class Blendshapes:
         apply_model: str | None = None,
         write_obj: int = 0,
         render_expressions: int | None = None,
+        follow: dict | None = None,
     ):
         if not models:
             raise RecipeError("models: a blendshapes recipe needs at least one model")
@@ -94,6 +112,13 @@ class Blendshapes:
         if render_expressions is not None and render_expressions < 0:
             raise RecipeError(f"render_expressions: {render_expressions} must be >= 0 (None renders every expression)")
         self.render_expressions = render_expressions
+        if follow is not None and not isinstance(follow, dict):
+            raise RecipeError(f"follow: expected a mapping of dataset parameters (e.g. {{region: full}}), got "
+                              f"{type(follow).__name__}")
+        if follow and "name" in follow:
+            raise RecipeError("follow.name: follow overrides the dataset's parameters (e.g. {region: full}); the "
+                              "dataset is the run's own")
+        self.follow = follow
 
     # ------------------------------------------------------------------ data
     def _prepare(self, col, ctx):
@@ -118,6 +143,8 @@ class Blendshapes:
             col.shape_index(e)
         split, pre, cols, transforms = self._prepare(col, ctx)
         template = col.template.with_vertices(pre.mean_neutral)
+        followers = self._fit_followers(col, split, pre, transforms, expressions, ctx) if self.follow is not None \
+            else None
         data = FitData(template, cols["train"], cols["val"], ["neutral", *expressions])
         metrics = [ctx.build("metric", m) for m in (self.metrics or default_metrics(ctx.registry))]
         shown = {m.name: display(m) for m in metrics}
@@ -186,6 +213,16 @@ class Blendshapes:
         apply_label = self.apply_model or next((lb for lb, m in fitted.items() if isinstance(m, CutSelectingModel)),
                                                next(iter(fitted)))
         results["apply_model"] = apply_label
+        if followers is not None:
+            results["followers"] = self._follower_errors(followers, fitted[apply_label], apply_label, cols["val"],
+                                                         expressions)
+            rows = results["followers"]["expressions"]
+            if rows:
+                ctx.log("follow (validation, relative error of the outside vertices, driven by the true region / "
+                        f"by {apply_label} / the training mean unscaled): " + "; ".join(
+                            f"{e} {r['all']['truth']:.3g} / {r['all']['model']:.3g} / {r['all']['mean']:.3g}"
+                            for e, r in rows.items()
+                            if r["all"]["truth"] is not None and r["all"]["model"] is not None))
         # renders: every expression, or the worst render_expressions by the apply model's distance metric
         shown_e = list(expressions)
         if self.render_expressions is not None and dist is not None:
@@ -234,6 +271,107 @@ class Blendshapes:
                  f"`fwk apply {ctx.run_dir} NEUTRAL.obj --out DIR` uses model `{apply_label}`"]
         write_report(ctx, f"Personalised blendshapes: {ctx.recipe.get('name', 'run')}", results, figures, notes,
                      sections, lead_sections=lead, results_title="Results pooled over the expressions")
+
+    # ------------------------------------------------------------------ followers
+    def _fit_followers(self, col, split, pre, transforms, expressions, ctx):
+        """``follow:``: the run's dataset with these parameters overridden (a larger mesh whose first
+        n vertices and polygons are the training region), checked against the training data,
+        registered with each subject's own transform, and the followers (``fwk.rig.follow``)
+        fitted on the training subjects; saved as ``stats/followers.npz``. Returns the followers
+        and the validation subjects' registered full neutrals and outside deltas (for
+        ``_follower_errors``)."""
+        base = self.dataset if isinstance(self.dataset, Spec) else make_spec("dataset", self.dataset, "dataset",
+                                                                              ctx.registry)
+        spec = make_spec("dataset", {**base.to_dict(), **self.follow}, "follow", ctx.registry)
+        over = ", ".join(f"{k}: {v}" for k, v in self.follow.items()) or "no overrides"
+        ctx.log(f"follow: loading dataset {spec.name} with {over}")
+        full = ctx.build("dataset", spec).load(ctx.cache)
+        n, m = col.template.n_vertices, len(col.template.triangles)
+        n_full = full.template.n_vertices
+        if full.subjects != col.subjects:
+            raise DataError(f"follow: the dataset with {over} gives other subjects ({len(full.subjects)}, first "
+                            f"{full.subjects[:1]}) than the training dataset ({len(col.subjects)}, first "
+                            f"{col.subjects[:1]})")
+        names = ["neutral", *expressions]
+        missing = [e for e in names if e not in full.shape_names]
+        if missing:
+            raise DataError(f"follow: the dataset with {over} has no shape {missing[0]!r} (it has "
+                            f"{', '.join(full.shape_names)})")
+        if n_full <= n or len(full.template.triangles) <= m or not np.array_equal(full.template.triangles[:m],
+                                                                                  col.template.triangles):
+            raise DataError(f"follow: the dataset with {over} ({n_full} vertices) is not a larger mesh whose first "
+                            f"{n} vertices and {m} triangles are the training region's")
+        extent = float(np.ptp(np.asarray(col.positions[:, col.shape_index("neutral")]), axis=1).max())
+        for e in names:
+            a, b = col.positions[:, col.shape_index(e)], full.positions[:, full.shape_index(e), :n]
+            d = float(np.nanmax(np.abs(np.asarray(a) - np.asarray(b))))
+            if not d <= 1e-6 * extent:
+                raise DataError(f"follow: the dataset with {over} differs from the training data in its first {n} "
+                                f"vertices: {e} by up to {d:.3g} {col.units} (at most 1e-6 of the heads' extent)")
+        index = {s: i for i, s in enumerate(full.subjects)}
+        j0 = full.shape_index("neutral")
+
+        def registered(which):
+            idx = np.array([index[s] for s in split[which]], dtype=np.int64)
+            T = transforms[which]
+            N = pre.apply(np.asarray(full.positions[idx, j0]), T)
+
+            def delta(e):
+                je = full.shape_index(e)
+                D = pre.apply(np.asarray(full.positions[idx, je]), T) - N
+                D[~full.present[idx, je]] = np.nan
+                return D
+            return N, delta
+
+        N, delta = registered("train")
+        f = Followers.fit(full.template.edges, n, N.mean(axis=0), delta, expressions)
+        ctx.save_npz("stats/followers.npz", **f.state_dict())
+        moving = f.summary()
+        n_parts = int(f.parts.max()) + 1
+        ctx.log(f"follow: {n_full - n} vertices outside the region in {n_parts} parts; parts that move per expression: "
+                + (", ".join(f"{e} {moving[e]}" for e in expressions if e in moving) or "none")
+                + (f"; still for {', '.join(e for e in expressions if e not in moving)}"
+                   if any(e not in moving for e in expressions) else ""))
+        Nv, dv = registered("val")
+        return f, Nv, {e: dv(e)[:, n:] for e in expressions}
+
+    @staticmethod
+    def _follower_errors(followers, model, label, val, expressions) -> dict:
+        """metrics.json ``followers``: per expression the validation subjects' relative error of the
+        outside vertices, ||pred - true|| / ||true|| (totals over subjects and vertices), of all
+        moving parts together and of each part (keyed ``first-last`` vertex), with the followers
+        driven by the true region deltas (``truth``) and by model ``label``'s predictions
+        (``model``), and, for comparison, the training mean's motion unscaled (``mean``: a = 1)."""
+        f, Nv, Dout = followers
+        n = f.n
+        out = {"split": "val", "model": label, "subjects": int(len(Nv)), "parts": int(f.parts.max()) + 1,
+               "expressions": {}}
+        if not len(Nv):
+            return out
+        X = Nv[:, :n]
+        jn = val.shape_index("neutral")
+        preds = model.predict_all(np.asarray(val.positions[:, jn]), list(expressions))
+        for e in expressions:
+            true_region = np.asarray(val.positions[:, val.shape_index(e)]) - np.asarray(val.positions[:, jn])
+            by = {"truth": f.deltas(X, true_region, e),
+                  "model": f.deltas(X, np.asarray(preds[e], dtype=np.float64) - np.asarray(val.positions[:, jn]), e),
+                  "mean": f.deltas(X, true_region, e, fixed=1.0)}
+            T = Dout[e]
+            ok = np.all(np.isfinite(T), axis=(1, 2))
+            parts = [p for p, *_ in f.entries(e)]
+            if not parts or not ok.any():
+                continue
+
+            def rel(idx, P):
+                den = float(np.linalg.norm(T[ok][:, idx]))
+                return float(np.linalg.norm(P[ok][:, idx] - T[ok][:, idx]) / den) if den > 0 else None
+            every = np.flatnonzero(np.isin(f.parts, parts))
+            row = {"all": {k: rel(every, P) for k, P in by.items()}, "per_part": {}}
+            for p in parts:
+                idx = np.flatnonzero(f.parts == p)
+                row["per_part"][f"{idx[0] + n}-{idx[-1] + n}"] = {k: rel(idx, P) for k, P in by.items()}
+            out["expressions"][e] = row
+        return out
 
     def _legend(self, fitted, rows) -> dict:
         """{row label: what it is}: each model as it describes itself (``fwk.evaluation.legend``:
