@@ -78,6 +78,7 @@ from .rig.arkit import NAMINGS, check_only_mapped, only_mapped_note, rename
 from .rig.fbx import import_bpy, write_fbx
 from .rig.follow import Followers, follow
 from .rig.gltf import write_glb
+from .rig.register import FADE, FIT_TOLERANCE, Registration, read_landmarks, register
 from .rig.usd import write_usd
 
 MESH_SUFFIXES = (".obj",)
@@ -118,6 +119,9 @@ def add_apply_parser(subparsers):
     p.add_argument("--units", default=None, help="the neutral's units when they are not the run's: a unit (mm, cm, "
                    "m, um, in, ft; the run's must be stated) or a factor (0.1: one of the neutral's units is 0.1 of "
                    "the run's); the neutral is scaled into the run's units and the outputs written back in its own")
+    p.add_argument("--landmarks", default=None, metavar="L.json", help="a neutral of another topology: register "
+                   "the run's template to it with these landmark pairs (fwk register) and write the rig on its own "
+                   "vertices, polygons and UVs (docs/rig-quickstart.md, 'Your own head, any mesh')")
     # fwk --quiet (moved first by fwk.cli.main) must not be reset by this parser default
     p.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS, help="no messages")
     return p
@@ -235,7 +239,8 @@ class Applier:
                 and np.array_equal(tpl.triangles[:m], self.template.triangles)):
             return slice(0, n)
         raise TopologyError(f"{path}: {tpl.n_vertices} vertices, the model expects {n}: wrap your head to the "
-                            f"model's topology, {self.template_obj} (its polygons and UVs)")
+                            f"model's topology, {self.template_obj} (its polygons and UVs), or give --landmarks "
+                            f"L.json to register it (fwk register)")
 
     def predict(self, neutrals: list[np.ndarray], expressions: list[str] | None = None, batch: int = 16) -> list[dict]:
         """For each neutral (n, 3) in its own units and place: {expression: (n, 3)} likewise."""
@@ -312,14 +317,16 @@ def parse_formats(text) -> list[str]:
 
 def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str] | None = None,
           log=print, registry=None, formats="obj", naming: str = "source", units: str | float | None = None,
-          seed_run: int | None = None, say=_stderr, only_mapped: bool = False) -> list[Path]:
+          seed_run: int | None = None, say=_stderr, only_mapped: bool = False, landmarks=None) -> list[Path]:
     """Write the blendshapes of one neutral (``out/<expression>.obj``, ``out/<neutral>.glb``,
     ``out/<neutral>.usdc`` as ``formats`` asks) or of a folder of neutrals (the same in
     ``out/<stem>/``); returns the written files. ``units``: the neutrals' units or a factor into
     the run's (``--units``; the outputs are written back in the neutrals' units). ``seed_run``:
     of a run with ``seeds:``, the seed whose models to use (default its first, named by ``say``:
     one line on stderr; None: silent). ``only_mapped``: only the shapes the naming maps
-    (``--only-mapped``; ``say`` names what was left out)."""
+    (``--only-mapped``; ``say`` names what was left out). ``landmarks``: a landmark file
+    (``fwk.rig.register``): ``neutral`` (one OBJ) may have any topology; the run's template is
+    registered to it, predicted on, and every expression carried back onto its own vertices."""
     t0 = time.perf_counter()
     fmts = parse_formats(formats)
     if "fbx" in fmts:
@@ -337,16 +344,30 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
                                               np.isclose(METRES_PER_UNIT[u], k * METRES_PER_UNIT[app.units])), "unit"))
     t_load = time.perf_counter() - t0
     files = _inputs(neutral)
-    meshes = []
+    if landmarks is not None and (neutral.is_dir() or len(files) != 1):
+        raise FwkError(f"--landmarks: one neutral OBJ at a time, not the folder {neutral}")
+    meshes, reg = [], None
     for f in files:  # read and check everything before writing anything
         V, tpl = read_obj(f)
-        region = app.check(f, tpl)
         if not np.all(np.isfinite(V)):
             raise DataError(f"{f}: vertex positions contain NaN or infinite values")
+        if landmarks is not None:  # any topology: the template registered to it (fwk.rig.register)
+            reg = register_neutral(app, f, V, tpl, landmarks, units, say=say)
+            app.check_scale(f, reg.neutral, units)
+            if units is None and reg.unit_name:
+                out_units = reg.unit_name
+            meshes.append((f, V, tpl, None))
+            continue
+        region = app.check(f, tpl)
         app.check_scale(f, k * (V if region is None else V[region]), units)
         meshes.append((f, V, tpl, region))
     t1 = time.perf_counter()
-    preds = app.predict([k * (V if r is None else V[r]) for _, V, _, r in meshes], expressions)
+    if reg is not None:
+        preds = app.predict([reg.neutral], expressions)
+        preds = [{e: reg.carry(P) for e, P in preds[0].items()}]  # on the neutral's own vertices, its units
+        k = 1.0
+    else:
+        preds = app.predict([k * (V if r is None else V[r]) for _, V, _, r in meshes], expressions)
     t2 = time.perf_counter()
     fol = app.followers
     if fol is not None and say is not None and any(r is not None and len(V) == fol.n_full for _, V, _, r in meshes):
@@ -407,6 +428,95 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     return written
 
 
+def register_neutral(app: Applier, path, V: np.ndarray, tpl: Template, landmarks, units=None,
+                     say=_stderr) -> Registration:
+    """The run's template registered to a neutral of any topology (``fwk.rig.register``) with the
+    landmark file ``landmarks``; ``units``: the neutral's (``--units``), else detected."""
+    ids, points = read_landmarks(landmarks, app.template.n_vertices, V)
+    u = None if units is None else app.factor(units)
+    if len(tpl.triangles) == 0:
+        raise DataError(f"{path}: no polygons (a point cloud cannot be registered)")
+    ref = np.asarray(app.pre.mean_centred, dtype=np.float64)  # the mean training neutral in the run's units
+    return register(ref, app.template.triangles, V, tpl.triangles, ids, points, units=u,
+                    template_units=app.units, say=say)
+
+
+def add_register_parser(subparsers):
+    p = subparsers.add_parser(
+        "register", help="register a run's template to a head of any topology (landmark-guided non-rigid ICP)",
+        description="Fit the template of a blendshapes run to SCAN.obj (any vertex count, order, units and "
+                    "placement) guided by landmark pairs; write the neutral in the template's topology, the "
+                    "correspondence of the scan's vertices and a report.")
+    p.add_argument("scan", help="the head, an .obj of any topology")
+    p.add_argument("--template", required=True, metavar="RUN", help="a finished `fwk run` directory of task blendshapes")
+    p.add_argument("--landmarks", required=True, metavar="L.json", help='pairs {"landmarks": [{"template": ID, '
+                   '"scan": ID or [x, y, z]}, ...]}, 0-based vertex ids, at least 5 (docs/rig-quickstart.md)')
+    p.add_argument("--out", required=True, help="output folder: neutral.obj, correspondence.npz, report.md")
+    p.add_argument("--units", default=None, help="the scan's units (mm, cm, m, um, in, ft; or a factor into the "
+                   "run's units); default: detected from the landmarks' size against the template's")
+    p.add_argument("--seed-run", type=int, default=None, metavar="S", help="of a run with seeds: the seed's template")
+    p.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS, help="no messages")
+    return p
+
+
+def register_scan(run_dir, scan, landmarks, out, units=None, seed_run: int | None = None, log=print,
+                  say=_stderr) -> list[Path]:
+    """``fwk register``: writes ``out/neutral.obj`` (the run's template topology and UVs, in the
+    scan's frame and units), ``out/correspondence.npz`` (``Registration.arrays``) and
+    ``out/report.md``; returns them."""
+    scan, out = Path(scan), Path(out)
+    check_dir(out, "--out", min_free_mb=0)
+    (f,) = _inputs(scan) if not scan.is_dir() else (None,)
+    if f is None:
+        raise DataError(f"{scan}: fwk register takes one .obj, not a folder")
+    V, tpl = read_obj(f)
+    if not np.all(np.isfinite(V)):
+        raise DataError(f"{f}: vertex positions contain NaN or infinite values")
+    app = Applier(run_dir, None, None, seed_run=seed_run, say=say)
+    reg = register_neutral(app, f, V, tpl, landmarks, units, say=say)
+    app.check_scale(f, reg.neutral, units)
+    obj = Path(app.template_obj)
+    tt = read_obj(obj)[1] if obj.suffix == ".obj" else app.template
+    sm = reg.summary()
+    unit = reg.unit_name or (units if isinstance(units, str) and units.strip() in METRES_PER_UNIT else "scan units")
+    lines = [f"# Registration of {f.name} to {Path(run_dir).name}", "",
+             f"- scan: {len(V)} vertices, {len(tpl.triangles)} triangles; template: {app.template.n_vertices} "
+             f"vertices ({obj})",
+             f"- units: one scan unit = {reg.unit:.4g} {app.units}" + (f" ({reg.unit_name}, detected from the "
+             f"landmarks' size)" if units is None and reg.unit_name else " (given)" if units is not None else
+             " (no named unit fits: the scan was brought to the template's landmark size)"),
+             f"- landmarks: {len(reg.template_landmarks)} pairs",
+             f"- residual (scan vertex to the registered template's surface), fitted vertices: mean "
+             f"{sm['residual_mean']:.4g}, max {sm['residual_max']:.4g} {unit}; all vertices: mean "
+             f"{sm['residual_mean_all']:.4g}, max {sm['residual_max_all']:.4g}",
+             f"- not fitted: {sm['not_fitted']} of {sm['scan_vertices']} scan vertices farther than "
+             f"{sm['tolerance']:.4g} {unit} ({FIT_TOLERANCE:g} median template edges) from the registered template: "
+             f"they move with a weight falling linearly to 0 at {FADE:g}x that distance; {sm['still']} stay still "
+             f"(`fitted`, `weight` in correspondence.npz)",
+             f"- template vertices with no scan within that distance: {sm['template_missing']} "
+             f"(`template_missing`)",
+             f"- time: {sm['seconds']:.1f} s", ""]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        written = [ObjWriter(tt).write(out / "neutral.obj", reg.to_scan(reg.neutral))]
+        np.savez(out / "correspondence.npz", **reg.arrays())
+        (out / "report.md").write_text("\n".join(lines))
+        written += [out / "correspondence.npz", out / "report.md"]
+    except OSError as exc:
+        raise FwkError(f"--out {out}: writing failed ({exc.strerror or exc})") from None
+    log(f"fwk register: {f} -> {out} (residual mean {sm['residual_mean']:.4g}, max {sm['residual_max']:.4g} {unit}; "
+        f"{sm['not_fitted']} vertices not fitted; {sm['seconds']:.1f} s)")
+    return written
+
+
+def run_register(args) -> int:
+    """``fwk register``'s entry (cli.EXTRA_COMMANDS)."""
+    quiet = getattr(args, "quiet", False)
+    register_scan(args.template, args.scan, args.landmarks, args.out, units=args.units, seed_run=args.seed_run,
+                  log=(lambda *_: None) if quiet else print, say=None if quiet else _stderr)
+    return 0
+
+
 def run_apply(args) -> int:
     """``fwk apply``'s entry (cli.EXTRA_COMMANDS)."""
     quiet = getattr(args, "quiet", False)
@@ -414,5 +524,5 @@ def run_apply(args) -> int:
           log=(lambda *_: None) if quiet else print, formats=getattr(args, "format", "obj"),
           naming=getattr(args, "naming", "source"), units=getattr(args, "units", None),
           seed_run=getattr(args, "seed_run", None), say=None if quiet else _stderr,
-          only_mapped=getattr(args, "only_mapped", False))
+          only_mapped=getattr(args, "only_mapped", False), landmarks=getattr(args, "landmarks", None))
     return 0

@@ -1,4 +1,4 @@
-"""The ``fwk`` command: list | show | run | eval | report | sample | apply | view.
+"""The ``fwk`` command: list | show | run | eval | report | sample | apply | register | view.
 
 A user's mistake (an FwkError) prints one line and exits 2; ``--debug`` shows the traceback.
 The folders a command writes into (``--runs-dir``, ``$FWK_RUNS_DIR``, ``$FWK_CACHE``) are
@@ -13,7 +13,7 @@ import select
 import sys
 import textwrap
 
-from .apply import add_apply_parser, run_apply
+from .apply import add_apply_parser, add_register_parser, run_apply, run_register
 from .convert import add_convert_parser, run_convert
 from .engine.threads import ENV_THREADS, register
 from .errors import FwkError, Terminated
@@ -32,6 +32,7 @@ EXTRA_COMMANDS = {
     "report": (add_report_parser, run_report),
     "sample": (add_sample_parser, run_sample),
     "apply": (add_apply_parser, run_apply),
+    "register": (add_register_parser, run_register),
     "view": (add_view_parser, run_view),
     "convert": (add_convert_parser, run_convert),
 }
@@ -39,7 +40,7 @@ EXTRA_COMMANDS = {
 
 #: Subcommands that compute: their processes register, so that concurrent fwk processes share
 #: the cores (fwk.engine.threads) instead of oversubscribing them.
-COMPUTING = ("run", "eval", "sample", "apply")
+COMPUTING = ("run", "eval", "sample", "apply", "register")
 
 
 def _threads(value: str) -> str:
