@@ -77,6 +77,7 @@ from .protocols import BlendshapeModel, CutSelectingModel
 from .rig.arkit import NAMINGS, check_only_mapped, only_mapped_note, rename
 from .rig.fbx import import_bpy, write_fbx
 from .rig.follow import Followers, follow
+from .rig.carry import DeformationCarry
 from .rig.gltf import write_glb
 from .rig.register import FADE, FIT_TOLERANCE, Registration, read_landmarks, register
 from .rig.usd import write_usd
@@ -85,6 +86,8 @@ MESH_SUFFIXES = (".obj",)
 #: --format values -> the file suffix written (``obj``: one OBJ per expression)
 FORMATS = {"obj": ".obj", "gltf": ".glb", "glb": ".glb", "usd": ".usdc", "usdc": ".usdc", "usda": ".usda",
            "fbx": ".fbx"}
+#: --landmarks: how expressions are carried onto a neutral of another topology (the first: default)
+CARRIES = ("dt", "barycentric")
 TEMPLATE_OBJ = "template.obj"  # the run directory's topology with UVs (written by the blendshapes task)
 #: the most a neutral's size may differ from the training neutrals' (either way), in the run's units
 MAX_SCALE_RATIO = 2.0
@@ -122,6 +125,10 @@ def add_apply_parser(subparsers):
     p.add_argument("--landmarks", default=None, metavar="L.json", help="a neutral of another topology: register "
                    "the run's template to it with these landmark pairs (fwk register) and write the rig on its own "
                    "vertices, polygons and UVs (docs/rig-quickstart.md, 'Your own head, any mesh')")
+    p.add_argument("--carry", default=CARRIES[0], choices=CARRIES, help="with --landmarks: how each expression is "
+                   "carried from the registered template onto the neutral's vertices: dt (Deformation Transfer onto "
+                   "its triangles, fwk.rig.carry; default: measured lower DAME, the same L1) or barycentric (each "
+                   "vertex takes the displacement of its closest registered point)")
     # fwk --quiet (moved first by fwk.cli.main) must not be reset by this parser default
     p.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS, help="no messages")
     return p
@@ -317,7 +324,8 @@ def parse_formats(text) -> list[str]:
 
 def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str] | None = None,
           log=print, registry=None, formats="obj", naming: str = "source", units: str | float | None = None,
-          seed_run: int | None = None, say=_stderr, only_mapped: bool = False, landmarks=None) -> list[Path]:
+          seed_run: int | None = None, say=_stderr, only_mapped: bool = False, landmarks=None,
+          carry: str = "dt") -> list[Path]:
     """Write the blendshapes of one neutral (``out/<expression>.obj``, ``out/<neutral>.glb``,
     ``out/<neutral>.usdc`` as ``formats`` asks) or of a folder of neutrals (the same in
     ``out/<stem>/``); returns the written files. ``units``: the neutrals' units or a factor into
@@ -326,8 +334,12 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     one line on stderr; None: silent). ``only_mapped``: only the shapes the naming maps
     (``--only-mapped``; ``say`` names what was left out). ``landmarks``: a landmark file
     (``fwk.rig.register``): ``neutral`` (one OBJ) may have any topology; the run's template is
-    registered to it, predicted on, and every expression carried back onto its own vertices."""
+    registered to it, predicted on, and every expression carried back onto its own vertices by
+    ``carry`` (``--carry``: dt, Deformation Transfer onto its triangles, ``fwk.rig.carry``; or
+    barycentric, ``Registration.carry``)."""
     t0 = time.perf_counter()
+    if carry not in CARRIES:
+        raise FwkError(f"--carry {carry}: unknown carry (carries: {', '.join(CARRIES)})")
     fmts = parse_formats(formats)
     if "fbx" in fmts:
         import_bpy()  # a missing bpy is said before any work
@@ -364,7 +376,7 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     t1 = time.perf_counter()
     if reg is not None:
         preds = app.predict([reg.neutral], expressions)
-        preds = [{e: reg.carry(P) for e, P in preds[0].items()}]  # on the neutral's own vertices, its units
+        preds = [carry_expressions(reg, meshes[0][2], preds[0], carry, say)]  # the neutral's vertices and units
         k = 1.0
     else:
         preds = app.predict([k * (V if r is None else V[r]) for _, V, _, r in meshes], expressions)
@@ -426,6 +438,20 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
         f"({', '.join(fmts)}; loading the run {t_load:.2f} s; per neutral: reading {(t1 - t0 - t_load) / max(n, 1):.2f} s, "
         f"predicting {(t2 - t1) / max(n, 1):.2f} s, writing {(t3 - t2) / max(n, 1):.2f} s; total {t3 - t0:.2f} s)")
     return written
+
+
+def carry_expressions(reg: Registration, tpl: Template, expressions: dict, carry: str = "dt", say=_stderr) -> dict:
+    """Expressions of the registered neutral (template frame) on the neutral's own vertices and
+    units: ``dt`` (``fwk.rig.carry.DeformationCarry`` on its triangles) or ``barycentric``."""
+    if carry == "barycentric":
+        return {e: reg.carry(P) for e, P in expressions.items()}
+    t0 = time.perf_counter()
+    dc = DeformationCarry(reg, tpl.triangles)
+    out = {e: dc.carry(P) for e, P in expressions.items()}
+    if say:
+        say(f"fwk apply: {len(out)} expression(s) carried by Deformation Transfer onto the neutral's "
+            f"{len(tpl.triangles)} triangles in {time.perf_counter() - t0:.1f} s (set-up {dc.seconds:.1f} s)")
+    return out
 
 
 def register_neutral(app: Applier, path, V: np.ndarray, tpl: Template, landmarks, units=None,
@@ -524,5 +550,6 @@ def run_apply(args) -> int:
           log=(lambda *_: None) if quiet else print, formats=getattr(args, "format", "obj"),
           naming=getattr(args, "naming", "source"), units=getattr(args, "units", None),
           seed_run=getattr(args, "seed_run", None), say=None if quiet else _stderr,
-          only_mapped=getattr(args, "only_mapped", False), landmarks=getattr(args, "landmarks", None))
+          only_mapped=getattr(args, "only_mapped", False), landmarks=getattr(args, "landmarks", None),
+          carry=getattr(args, "carry", CARRIES[0]))
     return 0

@@ -75,6 +75,27 @@ def test_a_rotation_and_scale_is_reproduced_exactly_on_the_template(scale):
     assert err_dt < err_bary
 
 
+def test_the_sharp_field_reproduces_any_expression_on_the_template_subdivided_and_permuted():
+    """Each scan triangle's centroid lies in its parent template triangle, whose gradient is the
+    subdivided expression's there: exact. The smooth field blends neighbours: close, not exact."""
+    rng = np.random.default_rng(5)
+    Y, F = _grid(6)
+    X, SF = _subdivide(Y, F)
+    perm = rng.permutation(len(X))
+    inv = np.argsort(perm)
+    X, SF = X[perm], inv[SF]
+    reg = _registration(Y, F, X, SF, rng)
+    E = Y + 0.05 * rng.standard_normal(Y.shape)
+    want = reg.to_scan(_subdivide(E, F)[0][perm])
+    assert np.allclose(DeformationCarry(reg, SF, field="sharp").carry(E), want, atol=1e-9)
+    smooth = DeformationCarry(reg, SF).carry(E)
+    assert not np.allclose(smooth, want, atol=1e-6)
+    moved = np.linalg.norm(want - reg.scan, axis=1).mean()
+    assert np.linalg.norm(smooth - want, axis=1).mean() < 0.5 * moved
+    with pytest.raises(DataError, match="unknown"):
+        DeformationCarry(reg, SF, field="blurry")
+
+
 def _naive(reg: Registration, SF: np.ndarray, E: np.ndarray) -> np.ndarray:
     """The carry by loops: Sumner gradients per template triangle, their area-weighted mean per
     template vertex, the barycentric blend per scan vertex, the mean per scan triangle, faded, in

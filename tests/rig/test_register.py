@@ -197,21 +197,33 @@ def test_template_permuted_in_mm_and_moved_registers_back_exactly(grid_run, move
 
 
 def test_apply_with_landmarks_equals_the_direct_rig_and_keeps_the_scan(grid_run, moved_template, tmp_path):
+    """The barycentric carry gives the direct rig exactly; Deformation Transfer (the default)
+    blends each triangle's gradient with its neighbours' (fwk.rig.carry): close, not exact."""
     from fwk.apply import apply
     from fwk.data.io import read_obj
 
     tmp, scan, lm, perm, R, t = moved_template
     apply(grid_run, grid_run / "template.obj", tmp_path / "direct", log=lambda *_: None, say=None)
-    apply(grid_run, scan, tmp_path / "reg", landmarks=lm, formats="obj,gltf", log=lambda *_: None, say=None)
+    apply(grid_run, scan, tmp_path / "reg", landmarks=lm, formats="obj,gltf", log=lambda *_: None, say=None,
+          carry="barycentric")
+    apply(grid_run, scan, tmp_path / "dt", landmarks=lm, log=lambda *_: None, say=None)
     V, tin = read_obj(scan)
     for e in EXPRESSIONS:
         direct = read_obj(tmp_path / "direct" / f"{e}.obj")[0]
+        want = 10.0 * direct[perm] @ R.T + t  # mm, moved, permuted
         got, tout = read_obj(tmp_path / "reg" / f"{e}.obj")
-        assert np.allclose(got, 10.0 * direct[perm] @ R.T + t, atol=1e-4), e  # mm, moved, permuted
+        assert np.allclose(got, want, atol=1e-4), e
         assert len(got) == len(V)
         for k in ("poly_vertices", "poly_offsets", "poly_uvs", "uvs", "triangles"):
             assert np.array_equal(getattr(tout, k), getattr(tin, k)), k
         assert tout.uv_lines == tin.uv_lines and tout.obj_extra == tin.obj_extra
+        dt, tdt = read_obj(tmp_path / "dt" / f"{e}.obj")
+        moved = np.linalg.norm(want - V, axis=1).mean()
+        off = np.linalg.norm(dt - want, axis=1).mean()
+        # measured 15-18% of the motion on these 8 x 8 grids: the smooth gradient field blends each
+        # triangle's gradient with its neighbours' (fwk.rig.carry; exact with field="sharp", tested there)
+        assert 0.0 < off < 0.25 * moved, (e, off, moved)
+        assert np.array_equal(tdt.poly_vertices, tin.poly_vertices)
     assert (tmp_path / "reg" / "scan.glb").exists()
 
 
@@ -265,19 +277,24 @@ ICT = ict_path()
 ICT_EXPRESSIONS = ["jawOpen", "mouthSmile_L", "eyeBlink_L"]
 
 
-def test_ict_held_out_identity_remeshed(tmp_path_factory):
+def test_ict_held_out_identity_remeshed(tmp_path_factory, monkeypatch):
     """A test identity of a DT run on 10 ICT-FaceKit subjects (6 trained), midpoint-subdivided,
-    permuted, in mm and rotated and moved, rigged from 10 landmarks: per expression, L1 and DAME
-    against its true expression carried by the same remeshing at most 1.5x those of rigging it in
-    ICT topology directly; registration under 60 s. L1 passes; DAME does not yet (xfail, with the
-    numbers)."""
+    permuted, in mm and rotated and moved, rigged from 10 landmarks with the default carry
+    (Deformation Transfer, fwk.rig.carry) and, on the same registration, the barycentric one: per
+    expression, L1 and DAME against its true expression carried by the same remeshing, over those
+    of rigging it in ICT topology directly (the issue's ratio, at most 1.5x) and over the direct rig
+    remeshed alike; registration and carry under 60 s. Also measured: the true expression carried
+    through the same correspondence (what the carry alone costs). L1 passes; DAME does not yet
+    (xfail, with the numbers)."""
     if ICT is None:
         pytest.skip(ICT_SKIP_REASON)
     import trimesh
 
-    from fwk.apply import apply
+    import fwk.apply as fwk_apply
+    from fwk.apply import Applier, apply
     from fwk.data.io import read_obj, write_obj
     from fwk.plugins import get_registry
+    from fwk.rig.carry import DeformationCarry
 
     from .conftest import _execute
 
@@ -320,46 +337,66 @@ def test_ict_held_out_identity_remeshed(tmp_path_factory):
     picks = rng.choice(len(P[0]), 10, replace=False)  # 10 template vertices, spread by chance
     lm = tmp / "lm.json"
     lm.write_text(json.dumps({"landmarks": [{"template": int(i), "scan": int(inv[i])} for i in picks]}))
+    regs = []  # the registration apply makes, kept to carry the same predictions barycentrically
+    real_register = fwk_apply.register_neutral
+    monkeypatch.setattr(fwk_apply, "register_neutral", lambda *a, **k: regs.append(real_register(*a, **k)) or regs[-1])
     t0 = time.perf_counter()
     said = []
     apply(run, scan, tmp / "reg", landmarks=lm, log=lambda *_: None, say=said.append)
     seconds = time.perf_counter() - t0
     fit_line = next(x for x in said if "fitted in" in x)
-    reg = get_registry()
-    l1, dame = reg.get("metric", "l1")(), reg.get("metric", "dame")()
+    carry_line = next(x for x in said if "carried by Deformation Transfer" in x)
+    reg_seconds = float(fit_line.split("fitted in ")[1].split(" s")[0])
+    reg_seconds += float(fit_line.split("correspondence ")[1].split(" s")[0])
+    carry_seconds = float(carry_line.split(" triangles in ")[1].split(" s")[0])
+    (reg,) = regs
+    preds = Applier(run, say=None).predict([reg.neutral], ICT_EXPRESSIONS)[0]
+    dc = DeformationCarry(reg, Fs)
+
+    def truth_on_registered(i):  # the true expression as an expression of the registered neutral
+        return reg.neutral + (P[i] - P[0]) @ R.T @ reg.rotation  # template frame = R_reg^T (R x) up to a shift
+
+    metrics = get_registry()
+    l1, dame = metrics.get("metric", "l1")(), metrics.get("metric", "dame")()
     from fwk.data import Template
 
     sub = Template(trimesh.remesh.subdivide(P[0], F)[0], F2)
-    rows, bad = [], []
+    table, rows, bad = {}, [], []
     for i, e in enumerate(ICT_EXPRESSIONS, start=1):
         truth = trimesh.remesh.subdivide(P[i], F)[0]
-        direct = trimesh.remesh.subdivide(read_obj(tmp / "direct" / f"{e}.obj")[0], F)[0]
+        direct_ict = read_obj(tmp / "direct" / f"{e}.obj")[0]
+        direct = trimesh.remesh.subdivide(direct_ict, F)[0]
         got, tout = read_obj(tmp / "reg" / f"{e}.obj")
         assert len(got) == len(perm) and np.array_equal(tout.triangles, Fs)
-        got = back(got)
-        r = {}
-        direct_ict = read_obj(tmp / "direct" / f"{e}.obj")[0]
+        assert np.allclose(got, dc.carry(preds[e]), atol=1e-4)  # apply's default carry is Deformation Transfer
+        carried = {"dt": back(got), "barycentric": back(reg.carry(preds[e])),
+                   "dt(truth)": back(dc.carry(truth_on_registered(i))),
+                   "barycentric(truth)": back(reg.carry(truth_on_registered(i)))}
+        parts = []
         for name, m in (("L1", l1), ("DAME", dame)):
             # the issue's ratio: the registered rig against the remeshed truth, on the remeshed topology,
             # over the direct rig's error in ICT topology; also quoted: the direct rig remeshed alike
-            er = float(m(got[None], truth[None], sub)[0][0])
             ed = float(m(direct_ict[None], P[i][None], tT)[0][0])
             es = float(m(direct[None], truth[None], sub)[0][0])
-            r[name] = (er, ed, er / ed, es, er / es)
-            if er > 1.5 * ed:
+            for carry, X in carried.items():
+                er = float(m(X[None], truth[None], sub)[0][0])
+                table[e, name, carry] = er / ed
+                parts.append(f"{name} {carry} {er:.5f} = {er / ed:.2f}x (remeshed direct {es:.5f}: {er / es:.2f}x)")
+            if table[e, name, "dt"] > 1.5:
                 bad.append(f"{e} {name}")
-        rows.append(f"{e}: L1 {r['L1'][0]:.4f}/{r['L1'][1]:.4f} cm = {r['L1'][2]:.2f}x (remeshed direct "
-                    f"{r['L1'][3]:.4f}: {r['L1'][4]:.2f}x), DAME {r['DAME'][0]:.5f}/{r['DAME'][1]:.5f} = "
-                    f"{r['DAME'][2]:.2f}x (remeshed direct {r['DAME'][3]:.5f}: {r['DAME'][4]:.2f}x)")
-    msg = f"registered/direct ({seconds:.1f} s for apply --landmarks; {fit_line}): " + "; ".join(rows)
+        rows.append(f"{e}: " + ", ".join(parts))
+    msg = (f"over the direct rig ({seconds:.1f} s for apply --landmarks; {fit_line}; {carry_line}): "
+           + "; ".join(rows))
     print(msg)
-    reg_seconds = float(fit_line.split("fitted in ")[1].split(" s")[0])
-    assert reg_seconds < 60, msg
+    assert reg_seconds + carry_seconds < 60, msg
     assert not [b for b in bad if b.endswith("L1")], f"L1 over 1.5x: {bad}; {msg}"
-    # a regression guard, not the issue's target: measured DAME 2.0-3.2x on 2026-12-03 (below)
-    worst = max(float(r.split("DAME ")[1].split(" = ")[1].split("x")[0]) for r in rows)
-    assert worst < 4.0, f"DAME ratio {worst:.2f}x, worse than the 2.0-3.2x measured when the carry was built; {msg}"
-    if bad:  # measured: DAME 2.0-3.2x (the barycentric carry bends the scan's triangles where the
-        # registered template's edges cross them; Deformation Transfer onto the scan's triangles is not
-        # built yet): the issue's criterion is not met for DAME, recorded here until it is
+    for e in ICT_EXPRESSIONS:  # why Deformation Transfer is the default: lower DAME, L1 not lost
+        assert table[e, "DAME", "dt"] < table[e, "DAME", "barycentric"], msg
+        assert table[e, "L1", "dt"] < 1.05 * table[e, "L1", "barycentric"], msg
+    # a regression guard, not the issue's target: measured DAME 1.3-2.4x with dt (2.0-3.2x barycentric)
+    worst = max(table[e, "DAME", "dt"] for e in ICT_EXPRESSIONS)
+    assert worst < 3.0, f"DAME ratio {worst:.2f}x, worse than the 1.3-2.4x measured when the carry was built; {msg}"
+    if bad:  # measured: the true expression carried through the same correspondence already has DAME
+        # 1.1-2.4x (dt) and 1.8-3.2x (barycentric) the direct rig's: the registration's tangential error
+        # (0.2 cm, most at the mouth corners) misplaces the expression's creases, whatever the carry
         pytest.xfail(f"DAME over 1.5x: {bad}; {msg}")

@@ -10,15 +10,23 @@ scan's vertices in least squares, anchored softly to the barycentric carry:
    Q_t = W~_t W_t^-1 with W_t = [y2 - y1, y3 - y1, n / sqrt|n|] on Y and W~_t the same on E
    (Sumner's fourth vertex; Q_t is exact for a rotation and a uniform scale, which map n/sqrt|n|
    alike).
-2. A smooth gradient field on the scan. Each template vertex gets the area-weighted mean of the
-   Q_t around it, each scan vertex the barycentric blend of those at its closest point (triangle
-   tau_j, coordinates b_j), each scan triangle s the mean over its three corners:
-   Q_s = (1/3) sum_{j in s} sum_k b_jk Qv[T[tau_j, k]] (template frame), taken into the scan's
-   frame as R Q_s R^T (the similarity's rotation; a gradient has no units), and faded like the
-   barycentric carry: Q_s <- I + wbar_s (Q_s - I), wbar_s the mean weight w_j of its corners (a
-   part the template lacks keeps the identity). Measured: a gradient per scan triangle from one
-   template triangle (its centroid's closest) or from its corners' triangles without the vertex
-   blend gave a higher DAME (below).
+2. A smooth gradient field on the scan (``field="smooth"``, the default). Each template vertex
+   gets the area-weighted mean of the Q_t around it, each scan vertex the barycentric blend of
+   those at its closest point (triangle tau_j, coordinates b_j), each scan triangle s the mean
+   over its three corners: Q_s = (1/3) sum_{j in s} sum_k b_jk Qv[T[tau_j, k]] (template
+   frame), taken into the scan's frame as R Q_s R^T (the similarity's rotation; a gradient has
+   no units), and faded like the barycentric carry: Q_s <- I + wbar_s (Q_s - I), wbar_s the
+   mean weight w_j of its corners (a part the template lacks keeps the identity).
+   ``field="sharp"``: Q_s is the Q_t of the template triangle holding the closest point of the
+   scan triangle's centroid (then faded and rotated alike).
+   Measured, a held-out ICT-FaceKit head midpoint-subdivided (tests/rig/test_register.py), DAME
+   over the direct rig's for jawOpen / mouthSmile_L / eyeBlink_L: smooth 2.03x / 2.44x / 1.27x,
+   sharp 2.51x / 3.03x / 1.64x, the barycentric carry 2.54x / 3.24x / 2.05x; L1 within 0.02x of
+   each other. The smooth field is not exact where the sharp one is: on a scan that is the
+   template itself (permuted, moved) sharp gives the direct rig exactly, smooth blends each
+   triangle's gradient with its neighbours' (on the rig tests' 8 x 8 grid heads, whose
+   expressions span a few triangles, 15-18% of the motion off; on an 11k-vertex template the
+   blend spans about a millimetre).
 3. The solve. The scan's displacement d (p, 3) minimises
 
        sum_s a_s |grad_s d - (Q_s - I) P_s|_F^2  +  mu sum_j m_j |d_j - c_j|^2
@@ -37,8 +45,9 @@ scan's vertices in least squares, anchored softly to the barycentric carry:
 
 Properties (tests/rig/test_carry.py): a zero deformation gives the scan exactly; a rotation and
 uniform scale of the template (about any point) is reproduced exactly when the scan lies on the
-registered template (both terms vanish); the sparse solve equals a dense least squares built
-triangle by triangle in an orthonormal tangent basis.
+registered template (both terms vanish); with ``field="sharp"`` any expression is reproduced
+exactly on a scan that is the template re-ordered; the sparse solve equals a dense least squares
+built triangle by triangle in an orthonormal tangent basis.
 
 Measured (tests/rig/test_register.py, a held-out ICT-FaceKit head midpoint-subdivided, 44,786
 vertices, 2 cores shared with a training): setting up 0.5 s, 0.05 s per expression.
@@ -53,13 +62,16 @@ from scipy.sparse.linalg import splu
 
 from ..errors import DataError
 from ..geometry import mass_matrix
-from .register import Registration, median_edge
+from .register import Registration, closest_points, median_edge
 
-#: the anchor's length l, in median template edges: mu = 1 / l^2 (measured on the ICT held-out
-#: head: 0.3, 1 and 3 edges gave DAME 2.18x / 2.03x / 2.01x of the direct rig for jawOpen, L1 the
-#: same within 0.01x; 10 and 100 edges let the long wavelengths drift: eyeBlink_L L1 0.83x, 0.98x
-#: against 0.75x)
-ANCHOR_LENGTH = 3.0
+#: the anchor's length l, in median template edges: mu = 1 / l^2. Measured on the ICT held-out
+#: head (smooth field): 0.3, 1 and 3 edges gave DAME 2.18x / 2.03x / 2.01x of the direct rig for
+#: jawOpen, L1 the same within 0.01x; 10 and 100 edges (sharp field) let the long wavelengths
+#: drift: eyeBlink_L L1 0.84x, 1.00x against 0.75x. On the 8 x 8 grid heads the smooth field is
+#: off by 15-18% of the motion with 1 edge, 22-26% with 3: 1.
+ANCHOR_LENGTH = 1.0
+#: how a scan triangle's gradient is taken from the template's (step 2; the first: default)
+FIELDS = ("smooth", "sharp")
 #: a scan triangle with area at most this fraction of the mean carries no gradient term
 DEGENERATE = 1e-14
 
@@ -96,10 +108,14 @@ def gradient_operator(V: np.ndarray, F: np.ndarray) -> tuple[sp.csr_matrix, np.n
 
 class DeformationCarry:
     """A registration's expressions carried onto the scan's triangles by Deformation Transfer
-    (module docstring); ``carry(E)`` has ``Registration.carry``'s signature and units."""
+    (module docstring); ``carry(E)`` has ``Registration.carry``'s signature and units.
+    ``field``: ``smooth`` (default) or ``sharp`` (step 2)."""
 
-    def __init__(self, reg: Registration, scan_triangles: np.ndarray, anchor_length: float = ANCHOR_LENGTH):
+    def __init__(self, reg: Registration, scan_triangles: np.ndarray, anchor_length: float = ANCHOR_LENGTH,
+                 field: str = "smooth"):
         t0 = time.perf_counter()
+        if field not in FIELDS:
+            raise DataError(f"Deformation Transfer field {field!r}: unknown (fields: {', '.join(FIELDS)})")
         SF = np.asarray(scan_triangles, dtype=np.int64)
         if SF.ndim != 2 or SF.shape[1] != 3 or not len(SF):
             raise DataError("the scan has no triangles: Deformation Transfer needs them (use the barycentric carry)")
@@ -125,7 +141,12 @@ class DeformationCarry:
                              shape=(p, len(Y)))
         corners = sp.csr_matrix((np.full(SF.size, 1.0 / 3), (np.repeat(np.arange(len(SF)), 3), SF.reshape(-1))),
                                 shape=(len(SF), p))
-        self.blend = (corners @ bary @ vt).tocsr()                # (m_s, m_t)
+        if field == "smooth":
+            self.blend = (corners @ bary @ vt).tocsr()                # (m_s, m_t)
+        else:  # sharp: the template triangle holding the closest point of the scan triangle's centroid
+            X = (V - reg.translation) @ reg.rotation * reg.unit
+            tri, _, _ = closest_points(Y, Ft, X[SF].mean(1))
+            self.blend = sp.csr_matrix((np.ones(len(SF)), (np.arange(len(SF)), tri)), shape=(len(SF), len(Ft)))
         self.wbar = reg.weight[SF].mean(1)
         self.W0inv = np.linalg.inv(sumner_frames(Y, Ft))
         self.seconds = time.perf_counter() - t0
