@@ -87,7 +87,7 @@ MESH_SUFFIXES = (".obj",)
 FORMATS = {"obj": ".obj", "gltf": ".glb", "glb": ".glb", "usd": ".usdc", "usdc": ".usdc", "usda": ".usda",
            "fbx": ".fbx"}
 #: --landmarks: how expressions are carried onto a neutral of another topology (the first: default)
-CARRIES = ("dt", "barycentric")
+CARRIES = ("transfer", "barycentric")
 TEMPLATE_OBJ = "template.obj"  # the run directory's topology with UVs (written by the blendshapes task)
 #: the most a neutral's size may differ from the training neutrals' (either way), in the run's units
 MAX_SCALE_RATIO = 2.0
@@ -126,7 +126,7 @@ def add_apply_parser(subparsers):
                    "the run's template to it with these landmark pairs (fwk register) and write the rig on its own "
                    "vertices, polygons and UVs (docs/rig-quickstart.md, 'Your own head, any mesh')")
     p.add_argument("--carry", default=CARRIES[0], choices=CARRIES, help="with --landmarks: how each expression is "
-                   "carried from the registered template onto the neutral's vertices: dt (Deformation Transfer onto "
+                   "carried from the registered template onto the neutral's vertices: transfer (Deformation Transfer onto "
                    "its triangles, fwk.rig.carry; default: measured lower DAME, the same L1) or barycentric (each "
                    "vertex takes the displacement of its closest registered point)")
     # fwk --quiet (moved first by fwk.cli.main) must not be reset by this parser default
@@ -325,7 +325,7 @@ def parse_formats(text) -> list[str]:
 def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str] | None = None,
           log=print, registry=None, formats="obj", naming: str = "source", units: str | float | None = None,
           seed_run: int | None = None, say=_stderr, only_mapped: bool = False, landmarks=None,
-          carry: str = "dt") -> list[Path]:
+          carry: str = CARRIES[0]) -> list[Path]:
     """Write the blendshapes of one neutral (``out/<expression>.obj``, ``out/<neutral>.glb``,
     ``out/<neutral>.usdc`` as ``formats`` asks) or of a folder of neutrals (the same in
     ``out/<stem>/``); returns the written files. ``units``: the neutrals' units or a factor into
@@ -335,7 +335,7 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     (``--only-mapped``; ``say`` names what was left out). ``landmarks``: a landmark file
     (``fwk.rig.register``): ``neutral`` (one OBJ) may have any topology; the run's template is
     registered to it, predicted on, and every expression carried back onto its own vertices by
-    ``carry`` (``--carry``: dt, Deformation Transfer onto its triangles, ``fwk.rig.carry``; or
+    ``carry`` (``--carry``: transfer, Deformation Transfer onto its triangles, ``fwk.rig.carry``; or
     barycentric, ``Registration.carry``)."""
     t0 = time.perf_counter()
     if carry not in CARRIES:
@@ -440,9 +440,9 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     return written
 
 
-def carry_expressions(reg: Registration, tpl: Template, expressions: dict, carry: str = "dt", say=_stderr) -> dict:
+def carry_expressions(reg: Registration, tpl: Template, expressions: dict, carry: str = CARRIES[0], say=_stderr) -> dict:
     """Expressions of the registered neutral (template frame) on the neutral's own vertices and
-    units: ``dt`` (``fwk.rig.carry.DeformationCarry`` on its triangles) or ``barycentric``."""
+    units: ``transfer`` (``fwk.rig.carry.DeformationCarry`` on its triangles) or ``barycentric``."""
     if carry == "barycentric":
         return {e: reg.carry(P) for e, P in expressions.items()}
     t0 = time.perf_counter()

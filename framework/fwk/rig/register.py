@@ -48,13 +48,17 @@ points finite: else one line naming the file and the entry.
    (``FADE``), 0 beyond: a scan part the template lacks stays still, with no seam where it joins.
    Template vertices farther than 3h from the scan (the scan lacks them: a neck cut off higher)
    are registered by the stiffness term alone and reported.
-6. Carrying an expression: given the model's expression E (n, 3) on Y (template frame), the
-   displacement Delta = E - Y is interpolated barycentrically at each scan vertex and taken back
-   to the scan's frame and units: V_e(j) = V(j) + w_j R (sum_k b_jk Delta[T[tau_j, k]]) / u.
-   Deformation Transfer onto the scan's triangles (the issue's alternative) was not built or
-   measured. Measured shortfall: where the registered template's edges cross the scan's triangles,
-   the interpolated displacement bends them; on a midpoint-subdivided held-out ICT-FaceKit head the
-   carried rig's DAME is 2-3x the direct rig's, its L1 0.7-1.2x (tests/rig/test_register.py).
+6. Carrying an expression (``Registration.carry``, ``fwk apply --carry barycentric``): given the
+   model's expression E (n, 3) on Y (template frame), the displacement Delta = E - Y is
+   interpolated barycentrically at each scan vertex and taken back to the scan's frame and units:
+   V_e(j) = V(j) + w_j R (sum_k b_jk Delta[T[tau_j, k]]) / u. The default carry is Deformation
+   Transfer onto the scan's triangles (``fwk.rig.carry``), anchored to this one. Measured on a
+   midpoint-subdivided held-out ICT-FaceKit head (tests/rig/test_register.py): this carry's DAME
+   is 2.0-3.2x the direct rig's, Deformation Transfer's 1.3-2.4x, L1 the same (0.7-1.2x); the
+   true expression carried through the same correspondence already has DAME 1.8-3.2x
+   (barycentric), 1.1-2.4x (Deformation Transfer): the registration's tangential error (0.2 cm
+   mean) misplaces the expression's creases whatever the carry (jawOpen: the 1% of scan vertices
+   with the largest error, at the mouth corners, hold 38% of the barycentric carry's).
 
 The registration's state is arrays only (``arrays()``, written as ``correspondence.npz``; read
 with ``fwk.safeio.load_npz``).
