@@ -25,8 +25,8 @@ scan's vertices in least squares, anchored softly to the barycentric carry:
    each other. The smooth field is not exact where the sharp one is: on a scan that is the
    template itself (permuted, moved) sharp gives the direct rig exactly, smooth blends each
    triangle's gradient with its neighbours' (on the rig tests' 8 x 8 grid heads, whose
-   expressions span a few triangles, 15-18% of the motion off; on an 11k-vertex template the
-   blend spans about a millimetre).
+   expressions span a few triangles, 15-18% of the motion off; the blend spans one to two
+   template edges, 3-6 mm on the 11k-vertex ICT-FaceKit template).
 3. The solve. The scan's displacement d (p, 3) minimises
 
        sum_s a_s |grad_s d - (Q_s - I) P_s|_F^2  +  mu sum_j m_j |d_j - c_j|^2
