@@ -103,7 +103,7 @@ def _naive(reg: Registration, SF: np.ndarray, E: np.ndarray) -> np.ndarray:
     sum a_s sum_k |(J_s - M_s) t_k|^2 + mu sum_j m_j |d_j - c_j|^2, J_s t_k from the edges; dense
     least squares."""
     Y, Ft, V = reg.neutral, reg.triangles, reg.scan
-    p, ms = len(V), len(SF)
+    p = len(V)
 
     def frame(X, f):
         e1, e2 = X[f[1]] - X[f[0]], X[f[2]] - X[f[0]]
