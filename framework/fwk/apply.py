@@ -79,7 +79,7 @@ from .rig.fbx import import_bpy, write_fbx
 from .rig.follow import Followers, follow
 from .rig.carry import DeformationCarry
 from .rig.gltf import write_glb
-from .rig.register import FADE, FIT_TOLERANCE, Registration, read_landmarks, register
+from .rig.register import FADE, FIT_TOLERANCE, Registration, read_landmarks, register, render_residual
 from .rig.usd import write_usd
 
 MESH_SUFFIXES = (".obj",)
@@ -526,8 +526,18 @@ def register_scan(run_dir, scan, landmarks, out, units=None, seed_run: int | Non
         out.mkdir(parents=True, exist_ok=True)
         written = [ObjWriter(tt).write(out / "neutral.obj", reg.to_scan(reg.neutral))]
         np.savez(out / "correspondence.npz", **reg.arrays())
+        written.append(out / "correspondence.npz")
+        try:  # the scan coloured by its residual; a machine that cannot draw keeps the numbers
+            written.append(render_residual(reg, tpl.triangles, out / "residual.png", unit))
+            lines += ["Your vertices coloured by their residual (`distance` in correspondence.npz; in the "
+                      "template's frame, front and side; the colour bar ends at the 99th percentile, ≥ where "
+                      "larger ones saturate):", "", "![residual](residual.png)", ""]
+        except OSError:
+            raise
+        except Exception as exc:  # any renderer failure (no OpenGL, a broken VTK) is not the registration's
+            lines += [f"No residual render ({type(exc).__name__}: {str(exc)[:160]}).", ""]
         (out / "report.md").write_text("\n".join(lines))
-        written += [out / "correspondence.npz", out / "report.md"]
+        written.append(out / "report.md")
     except OSError as exc:
         raise FwkError(f"--out {out}: writing failed ({exc.strerror or exc})") from None
     log(f"fwk register: {f} -> {out} (residual mean {sm['residual_mean']:.4g}, max {sm['residual_max']:.4g} {unit}; "

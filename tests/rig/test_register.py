@@ -242,6 +242,13 @@ def test_fwk_register_writes_neutral_correspondence_and_report(grid_run, moved_t
     assert z["triangle"].shape == (len(T0),) and z["fitted"].all() and z["distance"].max() < 1e-4
     report = (out / "report.md").read_text()
     assert "residual" in report and "(mm, detected" in report and "not fitted: 0 of" in report
+    # the residual render: linked from the report, a picture with the scan in colour (not only white and grey)
+    import matplotlib.image as mpimg
+
+    assert "![residual](residual.png)" in report, report
+    img = mpimg.imread(out / "residual.png")[..., :3]
+    assert img.shape[0] > 100 and img.shape[1] > 200
+    assert (np.ptp(img, axis=-1) > 0.2).mean() > 0.01  # coloured pixels: the residual map and its bar
 
 
 def test_fwk_register_refuses_bad_landmarks_in_one_line(grid_run, moved_template, tmp_path, capsys):

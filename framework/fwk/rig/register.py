@@ -75,8 +75,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..data.template import METRES_PER_UNIT
+from ..data.template import METRES_PER_UNIT, Template
 from ..errors import DataError
+from ..evaluation.render import colour_limits, render_grid
 
 MIN_LANDMARKS = 5
 #: a named unit is taken when the landmarks' size ratio lies within this factor of it
@@ -295,6 +296,19 @@ class Registration:
                 "neutral": self.to_scan(self.neutral), "template_triangles": self.triangles,
                 "template_missing": self.template_missing, "template_landmarks": self.template_landmarks,
                 "scan_landmarks": self.scan_landmarks, "tolerance": np.float64(self.tolerance)}
+
+
+def render_residual(reg: Registration, scan_triangles: np.ndarray, path, unit: str) -> Path:
+    """``path`` (PNG): the scan, taken into the template's frame (where the head looks along +z,
+    y up), from the front and the side, coloured by its residual ``reg.distance`` (scan units,
+    ``unit`` names them) on one colour bar from 0 to the 99th percentile
+    (``fwk.evaluation.render.colour_limits``); a larger residual saturates, its bar end marked ≥."""
+    X = (reg.scan - reg.translation) @ reg.rotation * reg.unit
+    clim = colour_limits([reg.distance])
+    bar = f"residual ({unit})"
+    cells = [[{"V": X, "scalars": reg.distance, "clim": clim, "bar": bar, "cmap": "inferno", "label": label,
+               "view": view} for label, view in (("front", "front"), ("side", "side"))]]
+    return render_grid(cells, Template(X, scan_triangles), path)
 
 
 def median_edge(V: np.ndarray, F: np.ndarray) -> float:
