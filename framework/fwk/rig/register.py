@@ -53,12 +53,14 @@ points finite: else one line naming the file and the entry.
    interpolated barycentrically at each scan vertex and taken back to the scan's frame and units:
    V_e(j) = V(j) + w_j R (sum_k b_jk Delta[T[tau_j, k]]) / u. The default carry is Deformation
    Transfer onto the scan's triangles (``fwk.rig.carry``), anchored to this one. Measured on a
-   midpoint-subdivided held-out ICT-FaceKit head (tests/rig/test_register.py): this carry's DAME
-   is 2.0-3.2x the direct rig's, Deformation Transfer's 1.3-2.4x, L1 the same (0.7-1.2x); the
-   true expression carried through the same correspondence already has DAME 1.8-3.2x
-   (barycentric), 1.1-2.4x (Deformation Transfer): the registration's tangential error (0.2 cm
-   mean) misplaces the expression's creases whatever the carry (jawOpen: the 1% of scan vertices
-   with the largest error, at the mouth corners, hold 38% of the barycentric carry's).
+   midpoint-subdivided held-out ICT-FaceKit head rigged from 10 landmarks at the eye and mouth
+   corners, nose tip, lips and chin (tests/rig/test_register.py): this carry's DAME is 2.0-2.9x
+   the direct rig's, Deformation Transfer's 1.3-2.4x, L1 the same (0.8-1.2x). Through an exact
+   correspondence (the registered template on the subject's own vertices) this carry gives the
+   direct rig remeshed (0.6x) and Deformation Transfer still 1.1-2.2x: the registration's
+   tangential error (0.25 cm mean vertex error) costs this carry most of its DAME, while
+   Deformation Transfer's is mostly its own smooth field. Where the landmarks sit (these 10, 10
+   random vertices, 15) moves DAME by under 0.05x.
 
 The registration's state is arrays only (``arrays()``, written as ``correspondence.npz``; read
 with ``fwk.safeio.load_npz``).
