@@ -27,6 +27,12 @@ class TestDT(BlendshapeModelContract):
     params = {"sources": 0}
 
 
+class TestDTFromTheMeanSubject(BlendshapeModelContract):
+    """Beyond the thesis: the mean training subject as the source (``sources: mean``)."""
+    component = DeformationTransfer
+    params = {"sources": "mean"}
+
+
 class TestPBSAnchoredOnDT(BlendshapeModelContract):
     """Beyond the thesis: both networks learn the residual from Deformation Transfer's output."""
     component = PBS

@@ -99,3 +99,49 @@ def test_predict_all_one_neutral_at_a_time_equals_each_neutral_alone():
         assert np.array_equal(got[e], want)
     with pytest.raises(Exception, match="no source"):
         m.predict_all(N, ["nope"])
+
+
+def test_sources_mean_is_dt_from_the_mean_subject():
+    """``sources: mean``: the same as DT from a subject whose neutral and expression are the
+    training subjects' means (built here by hand, a loop over subjects), and the state holds those
+    means only (no subject's own mesh)."""
+    col = _collection(n_subjects=4)
+    P = np.asarray(col.positions)
+    m = _fit(col, "mean")
+    N, E = np.zeros_like(P[0, 0]), np.zeros_like(P[0, 1])
+    for s in range(len(P)):  # the naive means
+        N += P[s, 0] / len(P)
+        E += P[s, 1] / len(P)
+    ref_col = MeshCollection(col.template, ["mean", *col.subjects], col.shape_names,
+                             np.concatenate([np.stack([N, E])[None], P]))
+    ref = _fit(ref_col, 0)
+    out, want = m.predict(P[:, 0], "mouth-wide"), ref.predict(P[:, 0], "mouth-wide")
+    assert np.abs(out - want).max() < 1e-12
+    S0, S1 = m.state_dict()["src"]["mouth-wide"]
+    assert S0.shape == (1, *N.shape) and np.allclose(S0[0], N) and np.allclose(S1[0], E)
+    for s in range(len(P)):  # no subject's own neutral is kept
+        assert not np.allclose(S0[0], P[s, 0])
+    assert "mean training subject" in m.describe()
+
+
+def test_sources_mean_survives_the_safe_format(tmp_path):
+    from fwk.safeio import load_state, save_state
+
+    col = _collection()
+    m = _fit(col, "mean")
+    save_state(tmp_path / "dt.safetensors", m.state_dict())
+    back = DeformationTransfer()
+    back.load_state_dict(load_state(tmp_path / "dt.safetensors"))
+    assert back.sources == "mean" and back.expressions == ["mouth-wide"]
+    P = np.asarray(col.positions)
+    assert np.array_equal(back.predict(P[:2, 0], "mouth-wide"), m.predict(P[:2, 0], "mouth-wide"))
+
+
+def test_sources_mean_is_a_recipe_value_and_other_words_are_refused():
+    from fwk.errors import RecipeError
+    from fwk.testing import build
+
+    assert build(DeformationTransfer, {"sources": "mean"}).sources == "mean"
+    assert build(DeformationTransfer, {"sources": [0, 2]}).sources == [0, 2]
+    with pytest.raises(RecipeError):
+        build(DeformationTransfer, {"sources": "median"})

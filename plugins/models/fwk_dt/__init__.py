@@ -19,6 +19,14 @@ centroid displacement (in fwk's registered, centred space the two agree with an 
 transfer). Several sources (``sources: [0, 1, 2]``) average their per-triangle maps Q_j; the
 thesis reports each source separately (one ``dt`` per source in a recipe).
 
+``sources: mean`` (beyond the thesis) takes as the one source the mean training subject: the
+neutral N = mean over the training subjects s of N_s and, per expression e, E = mean over the
+subjects that have e of E_s (in fwk's registered, centred, scaled space, where the subjects are
+aligned). The state then holds only these means (statistics of the training set, as a PCA
+model's mean), no subject's own meshes: the form of anchor a model that ships without its
+training data can carry. It is not the average of the subjects' maps (``sources: [0, 1, ...]``):
+the maps of the mean meshes.
+
 Properties (tested): with source = target the source expression comes back exactly; a global
 rigid or similarity source deformation of a centred mesh is transferred exactly to any centred
 target. A general affine map (a shear) is transferred exactly only onto the source mesh itself:
@@ -27,6 +35,8 @@ normals), so Q_j equals the map only on the source triangle's plane; onto anothe
 error stays within 2% of the head's size (tested), as in every Sumner-style implementation.
 """
 from __future__ import annotations
+
+from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
@@ -45,6 +55,10 @@ def frames(V: np.ndarray, F: np.ndarray) -> np.ndarray:
     n = np.cross(e1, e2)
     e3 = n / np.sqrt(np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300))
     return np.stack([e1, e2, e3], axis=-1)
+
+
+#: ``sources: mean``: the mean training subject as the one source
+MEAN = "mean"
 
 
 class TargetSystem:
@@ -91,8 +105,8 @@ class DeformationTransfer:
     task_family = BLENDSHAPES
     expressions: list[str] | None = None  # the blendshape role's member, declared on the class; set per instance
 
-    def __init__(self, sources: int | list[int] = 0):
-        self.sources = [sources] if isinstance(sources, int) else list(sources)
+    def __init__(self, sources: int | list[int] | Literal["mean"] = 0):
+        self.sources = MEAN if sources == MEAN else ([sources] if isinstance(sources, int) else list(sources))
         if not self.sources:
             raise RecipeError("sources: at least one source subject index")
         self.expressions = None
@@ -102,6 +116,9 @@ class DeformationTransfer:
 
     def describe(self) -> str:
         """A report's legend line (``fwk.protocols.Described``): the source subject(s)."""
+        if self.sources == MEAN:
+            return ("Deformation Transfer (Sumner & Popović 2004) from the mean training subject (the training "
+                    "neutrals' mean and each expression's mean) as the source: no training")
         if len(self.sources) == 1:
             return (f"Deformation Transfer (Sumner & Popović 2004) from training subject {self.sources[0]} "
                     "as the source: no training")
@@ -114,10 +131,21 @@ class DeformationTransfer:
         source."""
         col = data.train
         self.F = np.asarray(data.template.triangles)
+        wanted = None if self.expressions is None else set(self.expressions)
+        if self.sources == MEAN:
+            self.src = {}
+            N = np.asarray(col.positions[:, 0]).mean(axis=0)[None]
+            for j, e in enumerate(col.shape_names):
+                ok = col.present[:, j]
+                if e == "neutral" or (wanted is not None and e not in wanted) or not ok.any():
+                    continue
+                self.src[e] = (N, np.asarray(col.positions[ok, j]).mean(axis=0)[None])
+            self.expressions = list(self.src)
+            self._maps = {}
+            return
         if max(self.sources) >= len(col.subjects):
             raise RecipeError(f"sources: index {max(self.sources)} but the training split has {len(col.subjects)} subjects")
         N = np.asarray(col.positions[self.sources, 0])
-        wanted = None if self.expressions is None else set(self.expressions)
         self.src = {}
         for j, e in enumerate(col.shape_names):
             if e == "neutral" or (wanted is not None and e not in wanted):
@@ -176,7 +204,8 @@ class DeformationTransfer:
 
     def load_state_dict(self, d: dict, ctx=None) -> None:
         """Restore (``ctx`` is not needed: DT keeps arrays only)."""
-        self.sources, self.F, self.src = list(d["sources"]), np.asarray(d["F"]), dict(d["src"])
+        self.sources = MEAN if d["sources"] == MEAN else list(d["sources"])
+        self.F, self.src = np.asarray(d["F"]), dict(d["src"])
         self.expressions = list(self.src)
         self._maps = {}
 
