@@ -9,6 +9,8 @@ vertices) when ICT-FaceKit is present, else a synthetic head of the same size (p
 
 * ``vcconv VAE``: the fully convolutional VAE, channels [3, 32, 64, 128, 128, 8], 8 latent
   vertices, weight_num 35, residual rate 0.5, ``simple`` sampler with 4 levels;
+* ``vcconv ch5``: the same VAE at the chapter 5 study's and the ICT rig's width, channels
+  [3, 8, 16, 32, 32, 2] (``recipes/thesis/ch5/base.yaml``), today's code only;
 * ``spiral++ AE``: channels [3, 16, 32, 64, 128], latent 64, ``quadric`` sampler, factors
   [4, 4, 4, 4], spirals of length 9 (today: each pooling fused into its conv, spiral++ playing
   ``fwk.protocols.FusedPoolingConv``).
@@ -57,6 +59,9 @@ VCCONV_VAE = {"name": "vae", "conv": {"name": "vcconv", "weight_num": 35}, "chan
 SPIRALPP_AE = {"name": "ae", "conv": {"name": "spiral++", "length": 9}, "channels": [16, 32, 64, 128],
                "latent": 64, "sampler": {"name": "quadric", "factors": [4, 4, 4, 4]}}
 FEAST_AE = {**SPIRALPP_AE, "conv": {"name": "feast", "heads": 8}}
+#: the chapter 5 study's and the ICT rig's network (recipes/thesis/ch5/base.yaml): 1/16 of the thesis's width
+VCCONV_VAE_CH5 = {**VCCONV_VAE, "channels": [8, 16, 32, 32, 2], "sampler": {"name": "simple", "levels": 4,
+                                                                           "stride": 2, "radius": 2}}
 OTHER_CONVS = {"spiral": {"name": "spiral"}, "feast": {"name": "feast", "heads": 8}, "lsa": {"name": "lsa"}}
 
 
@@ -208,6 +213,15 @@ def main():
                   f"per-step loss deviation (relative) max {max(dev):.2e}, "
                   f"steps {', '.join(f'{d:.1e}' for d in dev)}")
         result[key] = r
+    # the width the chapter 5 study and the rig train (issue 28's first target), today's code only
+    torch.manual_seed(0)
+    enc, dec, _ = networks(VCCONV_VAE_CH5, t)
+    g = gflop(enc, dec, x)
+    ts = alternate({"after": stepper(enc, dec, x)}, a.steps)["after"]
+    r = {"after_ms": 1e3 * ts, "gflop_after": g, "gflops_after": g / ts, "of_matmul": g / ts / rate}
+    print(f"{'vcconv ch5':<13} {'':>10} {r['after_ms']:>9.0f} {'':>6} {'':>13} {g:>12.1f} {r['gflops_after']:>14.1f} "
+          f"{100 * r['of_matmul']:>9.0f}%   (channels [8, 16, 32, 32, 2]: the chapter 5 study's and the rig's)")
+    result["vcconv_vae_ch5"] = r
     if a.feast:
         result["feast_ae"] = feast_row(t, x, a.steps, rate)
     if a.all:
