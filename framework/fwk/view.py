@@ -25,11 +25,23 @@ picture or a window is made (0.9 s of import time, and absent without the extra)
 also load system libraries that a fresh machine may lack (libusb-1.0 above all: Debian's
 ``libusb-1.0-0``); when one is missing, the error names it and the package that holds it
 (``open3d_error``), rather than saying that open3d is not installed.
+
+``fwk view SCAN.obj --pick LM.json --template RUN`` writes the landmark file of ``fwk register``
+and ``fwk apply --landmarks`` (``fwk.rig.register.read_landmarks``'s schema): open3d's editing
+window (``pick_points``, ``VisualizerWithEditing``: the mesh's vertices as a lit point cloud, as
+it picks points of a point cloud only) opens on the run's ``template.obj``, where the user
+shift-clicks 5-15 points (the instructions suggest ``RIGGER_POINTS``), and then on the scan, where
+the same points are picked in the same order; pairs in pick order, read back with
+``read_landmarks``. ``--template-landmarks T.json`` gives the template's ids instead of the first
+window. Too few picks, a vertex twice, counts that differ, no display: one line, nothing written.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +50,8 @@ from .data.io import fan_triangulate, read_obj
 from .data.template import METRES_PER_UNIT
 from .errors import DataError, FwkError, cut
 from .evaluation.plots import save_figure
-from .rig import missing
+from .paths import check_dir
+from .rig import missing, vertex_normals
 
 RIG_SUFFIXES = (".glb", ".usdc", ".usda", ".usd")
 #: the system libraries open3d's Linux wheel (0.20: ``ldd open3d/pybind*.so``) loads that a minimal Debian or
@@ -473,6 +486,191 @@ def open_window(rig: Rig, ticks: int | None = None, set_weights: dict[str, float
     return state
 
 
+# --------------------------------------------------------------------------- picking landmarks
+#: the points a rigger marks on a face, in the order ``--pick`` suggests (right and left: the
+#: face's own, so its right is on your left as it looks at you), each easy to find on any head
+RIGGER_POINTS = (
+    ("eye inner right", "the inner corner of the right eye (where the eyelids meet, by the nose)"),
+    ("eye outer right", "the outer corner of the right eye"),
+    ("eye inner left", "the inner corner of the left eye"),
+    ("eye outer left", "the outer corner of the left eye"),
+    ("mouth corner right", "the right corner of the mouth (where the lips meet)"),
+    ("mouth corner left", "the left corner of the mouth"),
+    ("nose tip", "the most forward point of the nose"),
+    ("upper lip", "the middle of the upper lip (on the midline, its most forward point)"),
+    ("lower lip", "the middle of the lower lip (on the midline, its most forward point)"),
+    ("chin", "the chin (on the midline, its most forward point below the fold under the lower lip)"),
+)
+#: how many points --pick asks for (read_landmarks needs 5; more than 15 add little)
+PICK_RANGE = (5, 15)
+PICK_HOW = ("shift + left click a point to pick it (a sphere marks it), shift + right click removes the last "
+            "pick; turn the head with the left mouse button, zoom with the wheel, + / - make the points larger or "
+            "smaller (a click between points picks nothing); close the window (q or Esc) when done")
+
+
+def pick_points(mesh_path, title: str) -> list[int]:
+    """The vertex ids (0-based, the OBJ's ``v`` order) a user shift-clicks, in order, on the OBJ
+    at ``mesh_path`` in open3d's ``VisualizerWithEditing`` window titled ``title``; returns when
+    the window is closed. The vertices are shown as a lit point cloud (the editing window picks
+    points of a point cloud only, not of a mesh). Needs a display: under ``xvfb-run`` nobody can
+    click, and without one open3d falls back to an offscreen context, so it is refused first."""
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise FwkError("fwk view --pick: no display (DISPLAY is not set): picking needs a window you can click "
+                       "on a real display (a desktop session, or ssh -X); xvfb-run is not enough for picking")
+    V, tpl = read_obj(mesh_path)
+    o3d = _o3d()
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(V))
+    cloud.normals = o3d.utility.Vector3dVector(vertex_normals(V, tpl.triangles))
+    cloud.paint_uniform_color([0.75, 0.72, 0.68])
+    vis = o3d.visualization.VisualizerWithEditing()
+    if not vis.create_window(window_name=title, width=1280, height=900):
+        raise FwkError("fwk view --pick: open3d could not open a window on this display (an OpenGL window "
+                       "is needed; xvfb-run is not enough for picking: run it on a real display)")
+    try:
+        if not vis.add_geometry(cloud):
+            raise FwkError(f"fwk view --pick: open3d could not show {mesh_path}")
+        opt = vis.get_render_option()
+        opt.point_size = 8.0  # under Xvfb, on an 80 x 80 grid: at open3d's default no click picked, at 8 each did
+        opt.light_on = True
+        vis.run()
+    finally:
+        vis.destroy_window()
+    return [int(i) for i in vis.get_picked_points()]
+
+
+def read_template_landmarks(path, n_template: int) -> tuple[list[int], list[str] | None]:
+    """(template vertex ids, their names or None) of ``--template-landmarks``: a JSON list of
+    ids ``[i, ...]``, an object of names to ids ``{"nose tip": i, ...}`` (in its order), or a
+    landmark file ``{"landmarks": [{"template": i, ...}, ...]}`` (its template side); 0-based,
+    in range, each once, at least 5. One line naming the file otherwise."""
+    where = f"--template-landmarks {path}"
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise FwkError(f"{where}: no such file") from None
+    except OSError as exc:
+        raise FwkError(f"{where}: cannot be read ({exc.strerror or exc})") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise FwkError(f"{where}: not JSON ({cut(str(exc))})") from None
+    names = None
+    if isinstance(data, dict) and isinstance(data.get("landmarks"), list):
+        items = data["landmarks"]
+        if not all(isinstance(it, dict) and "template" in it for it in items):
+            raise FwkError(f'{where}: expected {{"landmarks": [{{"template": ID, ...}}, ...]}}')
+        ids = [it["template"] for it in items]
+    elif isinstance(data, dict):
+        names, ids = [str(k) for k in data], list(data.values())
+    elif isinstance(data, list):
+        ids = data
+    else:
+        raise FwkError(f'{where}: expected a list of template vertex ids, {{"name": ID, ...}} or a landmark file')
+    for k, i in enumerate(ids):
+        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < n_template:
+            raise FwkError(f"{where}: landmark {k + 1}: {cut(str(i), 40)} is not a template vertex id "
+                           f"(0-based, 0..{n_template - 1})")
+    _check_picks(ids, "in " + where)
+    return ids, names
+
+
+def _check_picks(ids: list[int], where: str) -> None:
+    """At least PICK_RANGE[0] picks, each vertex once."""
+    if not ids:
+        raise FwkError(f"fwk view --pick: no point picked {where} ({PICK_HOW})")
+    if len(ids) < PICK_RANGE[0]:
+        raise FwkError(f"fwk view --pick: {len(ids)} point(s) picked {where}, at least {PICK_RANGE[0]} needed "
+                       f"({PICK_RANGE[0]}-{PICK_RANGE[1]} well spread ones)")
+    seen = {}
+    for k, i in enumerate(ids):
+        if i in seen:
+            raise FwkError(f"fwk view --pick: points {seen[i] + 1} and {k + 1} {where} are the same vertex {i}: "
+                           f"pick each point once")
+        seen[i] = k
+
+
+def template_obj(template) -> Path:
+    """The template OBJ of ``--template``: an .obj itself, or a blendshapes run's
+    ``template.obj`` (of its first seed's sub-run for a run with ``seeds:``)."""
+    p = Path(template)
+    if p.is_file():
+        if p.suffix.lower() != ".obj":
+            raise FwkError(f"--template {p}: a run directory or a template .obj, not a {p.suffix or 'suffixless'} "
+                           f"file")
+        return p
+    if not p.is_dir():
+        raise FwkError(f"--template {p}: no such run directory or .obj")
+    if not (p / "template.obj").exists() and (p / "recipe.yaml").exists():
+        from .lifecycle import seed_sub_run  # deferred: 40 ms of import time, only for a run with seeds
+
+        p = seed_sub_run(p)
+    if not (p / "template.obj").exists():
+        raise FwkError(f"--template {template}: no template.obj in it (not a finished blendshapes run, or one "
+                       f"from before template.obj); give the template .obj itself")
+    return p / "template.obj"
+
+
+def _numbered(names) -> str:
+    return "\n".join(f"  {k + 1:2d}. {n}" for k, n in enumerate(names))
+
+
+def pick_landmarks(scan, out, template, template_landmarks=None, say=print) -> Path:
+    """``fwk view SCAN --pick OUT --template RUN``: the user picks landmarks on the template
+    (skipped with ``template_landmarks``) and then the same ones, in the same order, on the scan
+    (``pick_points``); writes ``OUT`` in ``fwk.rig.register.read_landmarks``'s schema (template
+    id, scan id pairs in pick order) and reads it back with it. ``say``: the instructions."""
+    from .rig.register import read_landmarks  # deferred: 70 ms of import time (scipy.spatial), only here
+
+    scan, out = Path(scan), Path(out)
+    if scan.suffix.lower() != ".obj" or not scan.is_file():
+        raise FwkError(f"fwk view --pick: {scan}: {'not an .obj' if scan.is_file() else 'no such file'} "
+                       f"(the scan to pick on: an .obj, whose vertex ids the landmarks name)")
+    if out.is_dir():
+        raise FwkError(f"--pick {out}: a folder; give the landmark file to write, e.g. {out / 'lm.json'}")
+    check_dir(out.parent, f"--pick {out}: its folder", min_free_mb=0)
+    tpl_path = template_obj(template)
+    n_template = read_obj(tpl_path)[1].n_vertices
+    V_scan = read_obj(scan)[0]
+    suggested = [f"{n}: {d}" for n, d in RIGGER_POINTS]
+    if template_landmarks is not None:
+        ids, names = read_template_landmarks(template_landmarks, n_template)
+        say(f"fwk view --pick: {len(ids)} template landmarks from {template_landmarks}")
+    else:
+        say(f"fwk view --pick, window 1 of 2: the template {tpl_path}.\nPick {PICK_RANGE[0]}-{PICK_RANGE[1]} "
+            f"well spread points that are easy to find on both heads, in an order you will repeat on the scan; "
+            f"suggested, these {len(RIGGER_POINTS)} in this order:\n{_numbered(suggested)}\n{PICK_HOW}.")
+        ids, names = pick_points(tpl_path, f"fwk view --pick: template {tpl_path.name}: pick the landmarks, "
+                                           f"then close"), None
+        _check_picks(ids, "on the template")
+    n = len(ids)
+    order = names if names is not None else (
+        [n_ for n_, _ in RIGGER_POINTS] if n == len(RIGGER_POINTS) and template_landmarks is None else None)
+    if order is not None:
+        which = (f"the same {n} points in the same order" + (" (if you picked the suggested ones)"
+                 if names is None else "") + f":\n{_numbered(order)}")
+    else:
+        which = (f"the same {n} points in the same order as on the template" if template_landmarks is None else
+                 f"the {n} points of {template_landmarks}, in its order")
+    say(f"fwk view --pick, {'window 2 of 2' if template_landmarks is None else 'the window'}: the scan {scan}.\n"
+        f"Pick {which}\n{PICK_HOW}.")
+    picks = pick_points(scan, f"fwk view --pick: {scan.name}: pick the same {n} points in order, then close")
+    if not picks:
+        raise FwkError(f"fwk view --pick: no point picked on the scan {scan} ({PICK_HOW})")
+    if len(picks) != n:
+        raise FwkError(f"fwk view --pick: {n} points on the template but {len(picks)} on the scan {scan} "
+                       f"(scan ids {', '.join(map(str, picks))}): pick the same points on both, in the same order")
+    _check_picks(picks, "on the scan")
+    text = '{"landmarks": [\n' + ",\n".join(
+        f'  {{"template": {t}, "scan": {s}}}' for t, s in zip(ids, picks)) + "\n]}\n"
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise FwkError(f"--pick {out}: cannot be written ({exc.strerror or exc})") from None
+    read_landmarks(out, n_template, V_scan)  # the file as fwk register and fwk apply --landmarks read it
+    say(f"fwk view --pick: wrote {out} ({n} landmarks); next: fwk register {scan} --template {template} "
+        f"--landmarks {out} --out reg/")
+    return out
+
+
 # --------------------------------------------------------------------------- command
 def _weights(args) -> dict[str, float]:
     out = {e: 1.0 for e in (args.expression or [])}
@@ -488,11 +686,14 @@ def _weights(args) -> dict[str, float]:
 def add_view_parser(subparsers):
     """``fwk view``'s arguments (cli.EXTRA_COMMANDS)."""
     p = subparsers.add_parser(
-        "view", help="look at a rig (.glb, USD, a folder from fwk apply) with a slider per expression",
+        "view", help="look at a rig (.glb, USD, a folder from fwk apply) with a slider per expression; "
+                     "--pick: landmarks for fwk register",
         description="Open a rig in an open3d window with a slider per expression, coloured by displacement (or by "
-                    "error against --truth); --screenshot renders a picture without a window.")
+                    "error against --truth); --screenshot renders a picture without a window; --pick LM.json "
+                    "--template RUN picks landmark pairs on the template and on a head of any topology "
+                    "(the file fwk register and fwk apply --landmarks read).")
     p.add_argument("path", help="a .glb, .usda/.usdc, a folder holding one (fwk apply --out), a folder of OBJs "
-                   "(with --neutral), or an .obj")
+                   "(with --neutral), or an .obj (with --pick: the head to pick landmarks on)")
     p.add_argument("--neutral", help="the neutral OBJ, for a folder of expression OBJs")
     p.add_argument("--truth", help="a folder of ground-truth OBJs named by expression: colour by error")
     p.add_argument("--screenshot", metavar="PNG", help="write a picture instead of opening a window")
@@ -504,11 +705,34 @@ def add_view_parser(subparsers):
                    "included (default 12)")
     p.add_argument("--scale", choices=SCALES, default="shared",
                    help="with --screenshot: one colour scale for all tiles (default), or each tile's own")
+    p.add_argument("--pick", metavar="LM.json", help="pick landmarks for fwk register / fwk apply --landmarks: PATH "
+                   "is your head's .obj; a window on the template (--template) and then one on your head, where you "
+                   "shift-click the same 5-15 points in the same order (eye corners, mouth corners, nose tip, lip "
+                   "midpoints, chin: the list is printed), closing each; writes LM.json as "
+                   '{"landmarks": [{"template": ID, "scan": ID}, ...]}. Needs a real display (not xvfb-run)')
+    p.add_argument("--template", metavar="RUN", help="with --pick: a finished blendshapes run (its template.obj) or "
+                   "a template .obj")
+    p.add_argument("--template-landmarks", metavar="T.json", help="with --pick: the template's vertex ids from this "
+                   'file ([id, ...], {"name": id, ...} or an earlier landmark file) instead of the first window: you '
+                   "pick on your head only")
     return p
 
 
 def run_view(args) -> int:
     """``fwk view``'s entry (cli.EXTRA_COMMANDS)."""
+    pick = getattr(args, "pick", None)
+    if pick is None and (getattr(args, "template", None) or getattr(args, "template_landmarks", None)):
+        raise FwkError("--template and --template-landmarks go with --pick LM.json (picking landmarks)")
+    if pick is not None:
+        if not args.template:
+            raise FwkError("--pick: give the run (or template .obj) to pick on with --template RUN")
+        used = [f for f, v in (("--screenshot", args.screenshot), ("--neutral", args.neutral), ("--truth", args.truth),
+                               ("--expression", args.expression), ("--weights", args.weights), ("--tiles", args.tiles))
+                if v]
+        if used:
+            raise FwkError(f"--pick picks landmarks; {', '.join(used)} belong to viewing a rig")
+        pick_landmarks(args.path, pick, args.template, args.template_landmarks)
+        return 0
     rig = load_rig(args.path, args.neutral, args.truth)
     if args.screenshot:
         tiles = [t.strip() for t in args.tiles.split(",") if t.strip()] if args.tiles else None
