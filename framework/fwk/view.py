@@ -38,7 +38,6 @@ window. Too few picks, a vertex twice, counts that differ, no display: one line,
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import re
 import sys
@@ -51,7 +50,7 @@ from .data.template import METRES_PER_UNIT
 from .errors import DataError, FwkError, cut
 from .evaluation.plots import save_figure
 from .paths import check_dir
-from .rig import missing, vertex_normals
+from .rig import missing, read_json_file, vertex_normals
 
 RIG_SUFFIXES = (".glb", ".usdc", ".usda", ".usd")
 #: the system libraries open3d's Linux wheel (0.20: ``ldd open3d/pybind*.so``) loads that a minimal Debian or
@@ -544,14 +543,7 @@ def read_template_landmarks(path, n_template: int) -> tuple[list[int], list[str]
     landmark file ``{"landmarks": [{"template": i, ...}, ...]}`` (its template side); 0-based,
     in range, each once, at least 5. One line naming the file otherwise."""
     where = f"--template-landmarks {path}"
-    try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise FwkError(f"{where}: no such file") from None
-    except OSError as exc:
-        raise FwkError(f"{where}: cannot be read ({exc.strerror or exc})") from None
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise FwkError(f"{where}: not JSON ({cut(str(exc))})") from None
+    data = read_json_file(path, where)
     names = None
     if isinstance(data, dict) and isinstance(data.get("landmarks"), list):
         items = data["landmarks"]

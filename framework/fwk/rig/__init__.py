@@ -21,11 +21,28 @@ install it when it is missing.
 """
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 from scipy import sparse
 
 from ..data.template import METRES_PER_UNIT  # noqa: F401 (the writers' scale, re-exported)
-from ..errors import FwkError
+from ..errors import FwkError, cut
+
+
+def read_json_file(path, where: str, error: type[FwkError] = FwkError):
+    """A user's JSON file (a landmark file), parsed; one line ``where: ...`` as ``error`` when it
+    is missing, unreadable or not UTF-8 JSON (the reader of ``fwk apply --landmarks`` and of
+    ``fwk view --pick --template-landmarks``)."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise error(f"{where}: no such file") from None
+    except OSError as exc:
+        raise error(f"{where}: cannot be read ({exc.strerror or exc})") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise error(f"{where}: not JSON ({cut(str(exc))})") from None
 
 
 def missing(package: str, what: str, extra: str = "rig", spec: str | None = None, note: str = "") -> FwkError:

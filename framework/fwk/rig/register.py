@@ -67,7 +67,6 @@ with ``fwk.safeio.load_npz``).
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -80,6 +79,7 @@ from scipy.spatial import cKDTree
 from ..data.template import METRES_PER_UNIT, Template
 from ..errors import DataError
 from ..evaluation.render import colour_limits, render_grid
+from . import read_json_file
 
 MIN_LANDMARKS = 5
 #: a named unit is taken when the landmarks' size ratio lies within this factor of it
@@ -115,14 +115,7 @@ def read_landmarks(path, n_template: int, scan_vertices: np.ndarray) -> tuple[np
     """(template ids (k,), scan points (k, 3)) of a landmark file (schema in the module
     docstring); one-line ``DataError`` naming the file for anything else."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise DataError(f"--landmarks {path}: no such file") from None
-    except OSError as exc:
-        raise DataError(f"--landmarks {path}: cannot be read ({exc.strerror or exc})") from None
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise DataError(f"--landmarks {path}: not JSON ({str(exc)[:120]})") from None
+    data = read_json_file(path, f"--landmarks {path}", DataError)
     items = data.get("landmarks") if isinstance(data, dict) else None
     if not isinstance(items, list):
         raise DataError(f'--landmarks {path}: expected {{"landmarks": [{{"template": ID, "scan": ID or [x, y, z]}}, '
