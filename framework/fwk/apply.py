@@ -62,6 +62,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -76,11 +77,11 @@ from .paths import check_dir
 from .protocols import BlendshapeModel, CutSelectingModel
 from .rig.arkit import NAMINGS, check_only_mapped, only_mapped_note, rename
 from .rig.fbx import import_bpy, write_fbx
-from .rig.follow import Followers, follow
-from .rig.carry import DeformationCarry
 from .rig.gltf import write_glb
-from .rig.register import FADE, FIT_TOLERANCE, Registration, read_landmarks, register, render_residual
 from .rig.usd import write_usd
+
+if TYPE_CHECKING:  # the rig modules import scipy.spatial: loaded where they run, not at fwk's start-up
+    from .rig.register import Registration
 
 MESH_SUFFIXES = (".obj",)
 #: --format values -> the file suffix written (``obj``: one OBJ per expression)
@@ -173,7 +174,11 @@ class Applier:
                            f"{ref.shape} or non-finite values, the model's topology {self.template.vertices.shape}")
         self.ref_size, self.ref_extent = _size(ref)
         fol = run.run_dir / "stats" / "followers.npz"  # a run with follow: moves a full mesh's other parts
-        self.followers = Followers.from_state(load_npz(fol), str(fol)) if fol.exists() else None
+        self.followers = None
+        if fol.exists():
+            from .rig.follow import Followers  # deferred, as every rig module: scipy.spatial off fwk's start-up
+
+            self.followers = Followers.from_state(load_npz(fol), str(fol))
 
     def factor(self, units: str | float | None) -> float:
         """``--units`` as the factor that takes a neutral into the run's units (1 when None)."""
@@ -307,6 +312,14 @@ def _list_inputs(path: Path) -> list[Path]:
     return [path]
 
 
+def _read_neutral(f: Path) -> tuple[np.ndarray, Template]:
+    """A neutral OBJ's positions and topology; a DataError naming it when a position is not finite."""
+    V, tpl = read_obj(f)
+    if not np.all(np.isfinite(V)):
+        raise DataError(f"{f}: vertex positions contain NaN or infinite values")
+    return V, tpl
+
+
 def parse_formats(text) -> list[str]:
     """``obj,gltf,usd`` -> the distinct formats in order (a one-line error for an unknown one)."""
     items = [f.strip().lower() for f in (text.split(",") if isinstance(text, str) else text) if f.strip()]
@@ -360,9 +373,7 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
         raise FwkError(f"--landmarks: one neutral OBJ at a time, not the folder {neutral}")
     meshes, reg = [], None
     for f in files:  # read and check everything before writing anything
-        V, tpl = read_obj(f)
-        if not np.all(np.isfinite(V)):
-            raise DataError(f"{f}: vertex positions contain NaN or infinite values")
+        V, tpl = _read_neutral(f)
         if landmarks is not None:  # any topology: the template registered to it (fwk.rig.register)
             reg = register_neutral(app, f, V, tpl, landmarks, units, say=say)
             app.check_scale(f, reg.neutral, units)
@@ -387,6 +398,8 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
             f"(the run's followers: {len(fol.summary())} of {len(fol.expressions)} expressions move parts of them)")
     for (f, V, _, region), P in zip(meshes, preds):
         if region is not None and fol is not None and len(V) == fol.n_full:  # the outside follows, in run units
+            from .rig.follow import follow
+
             P.update(follow(app.pre, fol, k * V, P))  # P is in run units here
             region = None  # P holds full meshes now
         for e in list(P):
@@ -445,6 +458,8 @@ def carry_expressions(reg: Registration, tpl: Template, expressions: dict, carry
     units: ``transfer`` (``fwk.rig.carry.DeformationCarry`` on its triangles) or ``barycentric``."""
     if carry == "barycentric":
         return {e: reg.carry(P) for e, P in expressions.items()}
+    from .rig.carry import DeformationCarry
+
     t0 = time.perf_counter()
     dc = DeformationCarry(reg, tpl.triangles)
     out = {e: dc.carry(P) for e, P in expressions.items()}
@@ -458,6 +473,8 @@ def register_neutral(app: Applier, path, V: np.ndarray, tpl: Template, landmarks
                      say=_stderr) -> Registration:
     """The run's template registered to a neutral of any topology (``fwk.rig.register``) with the
     landmark file ``landmarks``; ``units``: the neutral's (``--units``), else detected."""
+    from .rig.register import read_landmarks, register
+
     ids, points = read_landmarks(landmarks, app.template.n_vertices, V)
     u = None if units is None else app.factor(units)
     if len(tpl.triangles) == 0:
@@ -490,14 +507,14 @@ def register_scan(run_dir, scan, landmarks, out, units=None, seed_run: int | Non
     """``fwk register``: writes ``out/neutral.obj`` (the run's template topology and UVs, in the
     scan's frame and units), ``out/correspondence.npz`` (``Registration.arrays``) and
     ``out/report.md``; returns them."""
+    from .rig.register import FADE, FIT_TOLERANCE, render_residual
+
     scan, out = Path(scan), Path(out)
     check_dir(out, "--out", min_free_mb=0)
     (f,) = _inputs(scan) if not scan.is_dir() else (None,)
     if f is None:
         raise DataError(f"{scan}: fwk register takes one .obj, not a folder")
-    V, tpl = read_obj(f)
-    if not np.all(np.isfinite(V)):
-        raise DataError(f"{f}: vertex positions contain NaN or infinite values")
+    V, tpl = _read_neutral(f)
     app = Applier(run_dir, None, None, seed_run=seed_run, say=say)
     reg = register_neutral(app, f, V, tpl, landmarks, units, say=say)
     app.check_scale(f, reg.neutral, units)
