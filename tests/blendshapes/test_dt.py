@@ -117,8 +117,10 @@ def test_sources_mean_is_dt_from_the_mean_subject():
     ref = _fit(ref_col, 0)
     out, want = m.predict(P[:, 0], "mouth-wide"), ref.predict(P[:, 0], "mouth-wide")
     assert np.abs(out - want).max() < 1e-12
-    S0, S1 = m.state_dict()["src"]["mouth-wide"]
+    st = m.state_dict()
+    S0, S1 = st["neutral"], st["expressions"]["mouth-wide"]
     assert S0.shape == (1, *N.shape) and np.allclose(S0[0], N) and np.allclose(S1[0], E)
+    assert "src" not in st  # the mean neutral once, not once per expression
     for s in range(len(P)):  # no subject's own neutral is kept
         assert not np.allclose(S0[0], P[s, 0])
     assert "mean training subject" in m.describe()
@@ -135,6 +137,9 @@ def test_sources_mean_survives_the_safe_format(tmp_path):
     assert back.sources == "mean" and back.expressions == ["mouth-wide"]
     P = np.asarray(col.positions)
     assert np.array_equal(back.predict(P[:2, 0], "mouth-wide"), m.predict(P[:2, 0], "mouth-wide"))
+    old = DeformationTransfer()  # the form sources: mean was saved in before: every expression's (N, E)
+    old.load_state_dict({"sources": "mean", "F": m.F, "src": dict(m.src)})
+    assert np.array_equal(old.predict(P[:2, 0], "mouth-wide"), m.predict(P[:2, 0], "mouth-wide"))
 
 
 def test_sources_mean_is_a_recipe_value_and_other_words_are_refused():

@@ -200,12 +200,22 @@ class DeformationTransfer:
         return out
 
     def state_dict(self) -> dict:
+        if self.sources == MEAN and self.src:  # the one mean neutral once, not once per expression
+            N = next(iter(self.src.values()))[0]
+            return {"sources": MEAN, "F": self.F, "neutral": N, "expressions": {e: E for e, (_, E) in self.src.items()}}
         return {"sources": self.sources, "F": self.F, "src": self.src}
 
     def load_state_dict(self, d: dict, ctx=None) -> None:
-        """Restore (``ctx`` is not needed: DT keeps arrays only)."""
+        """Restore (``ctx`` is not needed: DT keeps arrays only). ``sources: mean`` stores its
+        mean neutral once beside the mean expressions; a state with ``src`` (every source's
+        neutral and expression per expression, as ``sources: mean`` was saved before) loads too."""
         self.sources = MEAN if d["sources"] == MEAN else list(d["sources"])
-        self.F, self.src = np.asarray(d["F"]), dict(d["src"])
+        self.F = np.asarray(d["F"])
+        if "src" in d:
+            self.src = dict(d["src"])
+        else:
+            N = np.asarray(d["neutral"])
+            self.src = {str(e): (N, np.asarray(E)) for e, E in d["expressions"].items()}
         self.expressions = list(self.src)
         self._maps = {}
 
