@@ -338,7 +338,7 @@ def parse_formats(text) -> list[str]:
 def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str] | None = None,
           log=print, registry=None, formats="obj", naming: str = "source", units: str | float | None = None,
           seed_run: int | None = None, say=_stderr, only_mapped: bool = False, landmarks=None,
-          carry: str = CARRIES[0]) -> list[Path]:
+          carry: str = CARRIES[0], command: str = "fwk apply") -> list[Path]:
     """Write the blendshapes of one neutral (``out/<expression>.obj``, ``out/<neutral>.glb``,
     ``out/<neutral>.usdc`` as ``formats`` asks) or of a folder of neutrals (the same in
     ``out/<stem>/``); returns the written files. ``units``: the neutrals' units or a factor into
@@ -349,7 +349,7 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     (``fwk.rig.register``): ``neutral`` (one OBJ) may have any topology; the run's template is
     registered to it, predicted on, and every expression carried back onto its own vertices by
     ``carry`` (``--carry``: transfer, Deformation Transfer onto its triangles, ``fwk.rig.carry``; or
-    barycentric, ``Registration.carry``)."""
+    barycentric, ``Registration.carry``). ``command``: the name the summary line starts with."""
     t0 = time.perf_counter()
     if carry not in CARRIES:
         raise FwkError(f"--carry {carry}: unknown carry (carries: {', '.join(CARRIES)})")
@@ -447,8 +447,8 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     n, t3 = len(meshes), time.perf_counter()
-    log(f"fwk apply: {n} neutral(s) x {len(preds[0]) if preds else 0} expression(s) with model {app.label} -> {out} "
-        f"({', '.join(fmts)}; loading the run {t_load:.2f} s; per neutral: reading {(t1 - t0 - t_load) / max(n, 1):.2f} s, "
+    log(f"{command}: {n} neutral(s) x {len(preds[0]) if preds else 0} expression(s) with model {app.label} -> {out} "
+        f"({', '.join(fmts)}; loading the {'run' if command == 'fwk apply' else 'model'} {t_load:.2f} s; per neutral: reading {(t1 - t0 - t_load) / max(n, 1):.2f} s, "
         f"predicting {(t2 - t1) / max(n, 1):.2f} s, writing {(t3 - t2) / max(n, 1):.2f} s; total {t3 - t0:.2f} s)")
     return written
 

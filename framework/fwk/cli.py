@@ -1,4 +1,4 @@
-"""The ``fwk`` command: list | show | run | eval | report | sample | apply | register | view.
+"""The ``fwk`` command: list | show | run | eval | report | sample | apply | rig | pack | register | view.
 
 A user's mistake (an FwkError) prints one line and exits 2; ``--debug`` shows the traceback.
 The folders a command writes into (``--runs-dir``, ``$FWK_RUNS_DIR``, ``$FWK_CACHE``) are
@@ -20,6 +20,7 @@ from .errors import FwkError, Terminated
 from .evaluation.cli_eval import add_eval_parser, run_eval
 from .evaluation.cli_report import add_report_parser, run_report
 from .generate import add_sample_parser, run_sample
+from .pack import add_pack_parser, add_rig_parser, card_summary, read_card, run_pack, run_rig, show_card, shipped
 from .hookspecs import KINDS
 from .plugins import get_registry
 from .registry import did_you_mean
@@ -32,6 +33,8 @@ EXTRA_COMMANDS = {
     "report": (add_report_parser, run_report),
     "sample": (add_sample_parser, run_sample),
     "apply": (add_apply_parser, run_apply),
+    "rig": (add_rig_parser, run_rig),
+    "pack": (add_pack_parser, run_pack),
     "register": (add_register_parser, run_register),
     "view": (add_view_parser, run_view),
     "convert": (add_convert_parser, run_convert),
@@ -40,7 +43,7 @@ EXTRA_COMMANDS = {
 
 #: Subcommands that compute: their processes register, so that concurrent fwk processes share
 #: the cores (fwk.engine.threads) instead of oversubscribing them.
-COMPUTING = ("run", "eval", "sample", "apply", "register")
+COMPUTING = ("run", "eval", "sample", "apply", "register", "rig", "pack")
 
 
 def _threads(value: str) -> str:
@@ -66,6 +69,14 @@ def cmd_list(args) -> int:
     print("  ".join(h.ljust(w) for h, w in zip(head[:4], widths)) + "  " + head[4])
     for r in rows:
         print("  ".join(str(c).ljust(w) for c, w in zip(r[:4], widths)) + "  " + r[4])
+    if not args.kind:  # the rig models that ship with fwk (fwk rig; fwk show rig NAME)
+        models = shipped()
+        print()
+        print("shipped rig models (fwk rig NEUTRAL.obj --out DIR; fwk show rig NAME for the test metrics):")
+        for name, folder in models.items():
+            print(f"  {name}  {card_summary(read_card(folder))}")
+        if not models:
+            print("  (none in this installation)")
     for b in reg.broken:
         print(f"broken plugin {b.plugin}: {b.error}", file=sys.stderr)
     return 0
@@ -103,6 +114,9 @@ def describe(kind: str, name: str) -> str:
 
 def cmd_show(args) -> int:
     """``fwk show KIND NAME``."""
+    if args.kind == "rig":  # a shipped rig model (or a folder written by fwk pack): its card
+        print(show_card(args.name))
+        return 0
     if args.kind not in KINDS:
         raise FwkError(f"unknown kind {args.kind!r}{did_you_mean(args.kind, KINDS)} (kinds: {', '.join(KINDS)})")
     print(describe(args.kind, args.name))
@@ -151,7 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("list", help="list registered components")
     sp.add_argument("--kind", help=f"one of: {', '.join(KINDS)}")
     sp.set_defaults(func=cmd_list)
-    sp = sub.add_parser("show", help="describe a component: parameters, defaults, docs")
+    sp = sub.add_parser("show", help="describe a component (KIND NAME) or a rig model (rig NAME)")
     sp.add_argument("kind")
     sp.add_argument("name")
     sp.set_defaults(func=cmd_show)

@@ -411,6 +411,27 @@ class CutSelectingModel(Protocol):
 
 
 @runtime_checkable
+class Packable(Protocol):
+    """Optional role of a model: ``packed_state()`` is the state ``fwk pack`` ships (``fwk.pack``):
+    what prediction needs, without what only training and reports read (a k sweep's curves, a
+    basis larger than the cuts chosen). ``load_state_dict`` reads it back, and the model then
+    predicts what it predicted before (to round-off; ``fwk pack`` measures the difference on the
+    model's mean neutral). A model without this role is packed with its ``state_dict()``."""
+
+    def packed_state(self) -> dict: ...
+
+
+@runtime_checkable
+class TruncatesCuts(Protocol):
+    """Optional role of an assembler: ``truncated_state(k)`` is the state of the same fitted
+    assembler built with the single cut k (at most its largest), which ``load_state_dict`` reads
+    and which assembles two bands at every cut up to k exactly as before (a packed ``pbs`` keeps
+    the basis up to its largest chosen k only)."""
+
+    def truncated_state(self, k: int) -> dict: ...
+
+
+@runtime_checkable
 class Described(Protocol):
     """Optional role of any component: ``describe()`` says in one line what this instance is,
     with its parameters (dt with ``sources: 0``: "Deformation Transfer from training subject 0

@@ -43,3 +43,12 @@ class TestPBSBending(BlendshapeModelContract):
     """Beyond the thesis: the spatial network trained with the bending term."""
     component = PBS
     params = {"network": NET, "ks": [0, 10, 40, 10_000], "bending_weight": 1.0}
+
+
+class TestPBSShippable(BlendshapeModelContract):
+    """The shipped rig model's form (recipes/rig_ict_shipped.yaml): anchored on DT from the mean
+    training subject, scaled per channel; its packed state (``Packable``) cuts the basis."""
+    component = PBS
+    params = {"network": NET, "ks": [0, 10, 40, 10_000], "anchor": {"name": "dt", "sources": "mean"},
+              "spatial": {"name": "euclidean", "scaling": "std", "granularity": "channel"},
+              "differential": {"name": "dr", "scaling": "std", "granularity": "channel"}}

@@ -85,3 +85,18 @@ def smoke_rig_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("smoke-rig")
     recipe = yaml.safe_load((REPO / "recipes" / "smoke" / "rig.yaml").read_text())
     return _execute(recipe, tmp)
+
+
+@pytest.fixture(scope="session")
+def shippable_rig_run(tmp_path_factory):
+    """recipes/smoke/rig.yaml with the shipped rig model's form (recipes/rig_ict_shipped.yaml):
+    anchored on DT from the mean training subject, scaled per channel, a k sweep that stops below
+    n (about 15 s)."""
+    tmp = tmp_path_factory.mktemp("shippable-rig")
+    recipe = yaml.safe_load((REPO / "recipes" / "smoke" / "rig.yaml").read_text())
+    recipe["name"], recipe["renders"] = "smoke-rig-shippable", 0
+    recipe["models"]["pbs"].update({
+        "anchor": {"name": "dt", "sources": "mean"}, "ks": [0, 10, 50, 200, 500],
+        "spatial": {"name": "euclidean", "scaling": "std", "granularity": "channel"},
+        "differential": {"name": "dr", "scaling": "std", "granularity": "channel"}})
+    return _execute(recipe, tmp)

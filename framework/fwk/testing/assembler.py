@@ -9,17 +9,20 @@ splits into copies of the mean), linear in P - mean and independent across the b
 returns the input for two equal sources and the high source at k = 0, and equals its cut points
 computed one at a time; ``band_shares(D)`` of displacements is (b, bands), finite, non-negative,
 each row summing to 1 (a share of the energy); ``state_dict`` / ``load_state_dict(d, ctx=None)``
-restore the same split.
+restore the same split; an assembler playing ``TruncatesCuts`` restores from
+``truncated_state(k)`` one that assembles every cut up to k as before.
 """
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from fwk.cache import Cache
 from fwk.data import Template
-from fwk.protocols import Assembler, plays
+from fwk.protocols import Assembler, TruncatesCuts, plays
 from fwk.testing import build
+from fwk.testing.model import safe_round_trip
 
 
 class AssemblerContract:
@@ -94,3 +97,16 @@ class AssemblerContract:
         assert np.allclose(b.assemble(b.split(P)), P, atol=1e-10)
         assert all(np.allclose(x, y) for x, y in zip(a.split(P), b.split(P)))
         assert np.allclose(b.assemble_many([P, P[::-1]], self.ks), a.assemble_many([P, P[::-1]], self.ks))
+
+    def test_truncated_state(self):
+        """Optional role ``TruncatesCuts``: the state cut at k (every k of ``ks`` up to the largest)
+        loads into an assembler that assembles two bands at every cut up to k as this one does."""
+        a, P, V = self.fitted()
+        if not isinstance(a, TruncatesCuts):
+            pytest.skip(f"{self.component.name} does not play TruncatesCuts")
+        Q = P[::-1].copy()
+        for k in [k for k in self.ks if k > 0]:
+            b = build(self.component, {**self.params, "k": k})
+            b.load_state_dict(safe_round_trip(a.truncated_state(k)), ctx=None)
+            cuts = [c for c in self.ks if c <= k]
+            assert np.allclose(b.assemble_many([P, Q], cuts), a.assemble_many([P, Q], cuts), atol=1e-12), k

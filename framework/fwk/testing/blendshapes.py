@@ -37,7 +37,7 @@ from fwk.testing import build
 
 from ..data.preprocess import Preprocessor
 from ..plugins import get_registry
-from ..protocols import (BLENDSHAPES, BlendshapeModel, CompositeModel, CutSelectingModel, FitData, Model,
+from ..protocols import (BLENDSHAPES, BlendshapeModel, CompositeModel, CutSelectingModel, FitData, Model, Packable,
                          plays)
 from ..runs import make_test_context
 from .model import safe_round_trip, same
@@ -139,6 +139,26 @@ class BlendshapeModelContract:
             assert same(b[e], a[e], self.exact, self.atol), e
         if isinstance(m, CutSelectingModel):
             assert m2.k == m.k and m2.sweep == m.sweep
+
+    def test_packed_state(self, fitted):
+        """Optional role ``Packable``: the packed state, through the safe format and stored in
+        float32 as ``fwk pack`` stores it, loads into a model predicting as this one does (to
+        float32 round-off of the predicted displacement)."""
+        m, data = fitted
+        if not isinstance(m, Packable):
+            pytest.skip(f"{self.component.name} does not play Packable")
+        from ..pack import _float32
+
+        m2 = build(self.component, self.params)
+        m2.load_state_dict(safe_round_trip(_float32(m.packed_state())), ctx=None)
+        assert list(m2.expressions) == list(m.expressions)
+        a, b = self._predictions(m, data), self._predictions(m2, data)
+        for e in EXPRESSIONS:
+            N = self._val(data, e)[0]
+            scale = max(float(np.abs(a[e] - N).max()), 1e-12)
+            assert float(np.abs(b[e] - a[e]).max()) <= 1e-4 * scale, e
+        if isinstance(m, CutSelectingModel):
+            assert m2.k == m.k
 
     def test_deterministic_for_a_seed(self, fitted, tmp_path):
         m, data = fitted

@@ -178,11 +178,26 @@ class Spectral:
         return {"cuts": self.cuts, "mass": self.mass, "eigen_k": self.eigen_k, "U": self.proj.U, "m": self.proj.m,
                 "mean": self.mean, "evals": self.evals}
 
+    def truncated_state(self, k: int) -> dict:
+        """The state of this fitted assembler built with the single cut k (``TruncatesCuts``):
+        the first k eigenvectors (and eigenvalues) only; ``assemble_many`` at any cut up to k gives
+        what it gave before (the basis columns are the same numbers)."""
+        self._check()
+        K = self.proj.U.shape[1]
+        if not 0 < int(k) <= K:
+            raise ValueError(f"truncated_state: k must lie in [1, {K}] (the fitted basis), got {k}")
+        k = int(k)
+        return {"cuts": [k], "mass": self.mass, "eigen_k": None, "U": np.ascontiguousarray(self.proj.U[:, :k]),
+                "m": self.proj.m, "mean": self.mean, "evals": None if self.evals is None else self.evals[:k]}
+
     def load_state_dict(self, d, ctx=None) -> None:
         self.cuts, self.mass, self.mean = [int(c) for c in d["cuts"]], bool(d["mass"]), np.asarray(d["mean"])
         self.eigen_k = d.get("eigen_k")
         self.evals = d.get("evals")
-        self.proj = SpectralProjector(np.asarray(d["U"]), None if d["m"] is None else np.asarray(d["m"]))
+        # float64 whatever the file stores (a packed model may keep the basis in float32)
+        self.mean = np.asarray(d["mean"], dtype=np.float64)
+        self.proj = SpectralProjector(np.asarray(d["U"], dtype=np.float64),
+                                      None if d["m"] is None else np.asarray(d["m"], dtype=np.float64))
 
 
 class TorchSpectral:

@@ -115,7 +115,7 @@ from fwk.errors import DataError, RecipeError
 from fwk.evaluation import evaluate, pareto_front
 from fwk.hookspecs import hookimpl
 from fwk.geometry.operators import cotangent_laplacian
-from fwk.protocols import BLENDSHAPES, BlendshapeModel, NetworkFactory
+from fwk.protocols import BLENDSHAPES, BlendshapeModel, NetworkFactory, Packable, TruncatesCuts
 from fwk.recipes import Kind, Spec, make_spec
 from fwk.scaling import Scaler
 
@@ -849,6 +849,23 @@ class PBS(_Blend):
         return {"kind": self.name, **self._base_state(), "k": dict(self.k), "sweep": self.sweep,
                 "assembler": None if self.assembler is None else self.assembler.state_dict(),
                 "assembler_k": self.assembler_k}
+
+    def packed_state(self) -> dict:
+        """The state ``fwk pack`` ships (``fwk.protocols.Packable``): ``state_dict()`` without the
+        k sweep's curves (reports read them, prediction does not; the chosen k stay) and with the
+        assembler's basis cut at the largest chosen k below n (``TruncatesCuts``; none when every
+        chosen k is 0 or n); the anchor's own packed state when it has one."""
+        st = self.state_dict()
+        st["sweep"] = {}
+        n = self.shape[0]
+        K = max([int(k) for k in self.k.values() if 0 < int(k) < n], default=0)
+        if self.assembler is not None and K == 0:
+            st["assembler"], st["assembler_k"] = None, 0
+        elif self.assembler is not None and K < self.assembler_k and isinstance(self.assembler, TruncatesCuts):
+            st["assembler"], st["assembler_k"] = self.assembler.truncated_state(K), K
+        if self.anchor is not None and isinstance(self.anchor, Packable):
+            st["anchor"] = self.anchor.packed_state()
+        return st
 
     def load_state_dict(self, d: dict, ctx=None) -> None:
         """Restore; ``ctx`` (optional) lends its cache to the network's graph hierarchy."""

@@ -1,0 +1,177 @@
+"""fwk pack and fwk rig: a rig model folder from a finished blendshapes run (the packed model
+predicts as the run's did, its card says what it is), a rig from it with no run directory, and the
+rig model that ships with fwk (fwk/shipped/ict-face): under 20 MB, no pickle, 51 ARKit shapes."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from fwk.cli import main
+from fwk.errors import FwkError
+from fwk.lifecycle import open_run
+from fwk.pack import CARD, MAX_PACK_ERROR, find_model, pack, shipped
+from fwk.safeio import is_pickle, load_npz, load_state
+
+from .readers import glb_shapes
+from .test_apply_rig import _validate, _validator
+
+
+def _mean_obj(folder, path):
+    """The model's mean training neutral (its units) as an OBJ of its topology."""
+    V = np.asarray(load_npz(folder / "stats" / "preprocess.npz")["mean_centred"])
+    F = np.asarray(load_npz(folder / "stats" / "template.npz")["triangles"])
+    path.write_text("".join(f"v {x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in V)
+                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in F))
+    return V
+
+
+@pytest.fixture(scope="module")
+def packed(shippable_rig_run, tmp_path_factory):
+    licence = tmp_path_factory.mktemp("lic") / "LICENSE-data.txt"
+    licence.write_text("the data's licence\n")
+    out = tmp_path_factory.mktemp("packed") / "face"
+    lines = []
+    pack(shippable_rig_run, out, include=[licence], log=lines.append)
+    return shippable_rig_run, out, lines
+
+
+def test_pack_writes_a_smaller_model_that_predicts_as_the_run(packed):
+    run_dir, out, lines = packed
+    assert "predicts within" in lines[0]
+    full = (run_dir / "models" / "pbs.safetensors").stat().st_size
+    small = (out / "models" / "pbs.safetensors").stat().st_size
+    assert small < full
+    assert not is_pickle((out / "models" / "pbs.safetensors").read_bytes()[:9])
+    a, b = open_run(run_dir), open_run(out)
+    m, p = a.model("pbs"), b.model("pbs")
+    st = load_state(out / "models" / "pbs.safetensors")
+    n = m.shape[0]
+    K = max([k for k in m.k.values() if 0 < k < n], default=0)
+    assert st["sweep"] == {} and p.k == m.k
+    if K:  # the basis cut at the largest chosen k below n
+        assert st["assembler"]["U"].shape == (n, K) and st["assembler"]["U"].dtype == np.float32
+    assert "neutral" in st["anchor"] and "src" not in st["anchor"]  # the mean neutral stored once
+    col = np.load(run_dir / "stats" / "template.npz")["mean_neutral"][None]
+    rng = np.random.default_rng(1)
+    N = col + 0.01 * rng.standard_normal((3, *col.shape[1:]))  # heads near the mean, registered space
+    want, got = m.predict_all(N, m.expressions), p.predict_all(N, m.expressions)
+    for e in m.expressions:
+        disp = np.abs(want[e] - N).max()
+        assert np.abs(got[e] - want[e]).max() <= MAX_PACK_ERROR * disp, e
+
+
+def test_card_says_what_the_model_is(packed):
+    run_dir, out, _ = packed
+    card = json.loads((out / CARD).read_text())
+    split = json.loads((run_dir / "split.json").read_text())
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert card["model"] == "pbs" and card["recipe"] == "smoke-rig-shippable"
+    assert card["identities"] == split
+    assert card["epochs"]["pbs"]["epochs_run"] == 3
+    assert card["included"] == ["LICENSE-data.txt"] and (out / "LICENSE-data.txt").read_text() == "the data's licence\n"
+    for e in metrics["expressions"]:
+        for label in ("pbs", "dt"):
+            want = metrics["blendshapes"][e][label]["l1"]
+            assert card["test"][e][label]["l1"] == {"mean": pytest.approx(want["mean_input"]), "units": "cm"}
+    assert card["pack"]["largest_difference"] <= MAX_PACK_ERROR * card["pack"]["largest_displacement"]
+
+
+def test_show_rig_prints_the_card_table(packed, capsys):
+    _, out, _ = packed
+    assert main(["show", "rig", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "pbs against dt" in text and "lower than the best other on: L1" in text
+    for e in ("face-compression", "mouth-wide", "oo-brow-raise-eyes-wide"):
+        assert e in text
+
+
+def test_rig_from_a_packed_model_equals_apply_on_the_run(packed, tmp_path, capsys):
+    run_dir, out, _ = packed
+    V = _mean_obj(out, tmp_path / "head.obj")
+    assert main(["rig", str(tmp_path / "head.obj"), "--model", str(out), "--out", str(tmp_path / "rig"),
+                 "--naming", "source"]) == 0
+    assert main(["apply", str(run_dir), str(tmp_path / "head.obj"), "--out", str(tmp_path / "ref")]) == 0
+    from fwk.data.io import read_obj
+
+    names = sorted(p.name for p in (tmp_path / "ref").glob("*.obj"))
+    assert names and names == sorted(p.name for p in (tmp_path / "rig").glob("*.obj"))
+    size = np.ptp(V, axis=0).max()
+    for name in names:
+        a, _ = read_obj(tmp_path / "rig" / name)
+        b, _ = read_obj(tmp_path / "ref" / name)
+        assert np.abs(a - b).max() < 1e-4 * size, name
+    assert (tmp_path / "rig" / "head.glb").is_file() and (tmp_path / "rig" / "head.usdc").is_file()
+    assert "fwk rig:" in capsys.readouterr().out
+
+
+def test_pack_and_rig_refusals(packed, tmp_path):
+    run_dir, out, _ = packed
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("x")
+    with pytest.raises(FwkError, match="not an empty folder"):
+        pack(run_dir, tmp_path / "full")
+    with pytest.raises(FwkError, match="--include"):
+        pack(run_dir, tmp_path / "new", include=[tmp_path / "nope.txt"])
+    assert not (tmp_path / "new").exists()
+    with pytest.raises(FwkError, match="--model nope"):
+        find_model("nope")
+    with pytest.raises(FwkError, match="not a model of"):
+        pack(run_dir, tmp_path / "new2", model="nope")
+    assert not (tmp_path / "new2").exists()
+
+
+def test_a_packed_model_opens_read_only(packed, tmp_path):
+    """A shipped model sits in site-packages, perhaps read-only: fwk rig writes nothing into it."""
+    _, out, _ = packed
+    ro = tmp_path / "ro"
+    shutil.copytree(out, ro)
+    before = sorted(p.relative_to(ro) for p in ro.rglob("*"))
+    for p in [ro, *ro.rglob("*")]:
+        p.chmod(0o555 if p.is_dir() else 0o444)
+    try:
+        _mean_obj(ro, tmp_path / "head.obj")
+        assert main(["rig", str(tmp_path / "head.obj"), "--model", str(ro), "--out", str(tmp_path / "rig"),
+                     "--naming", "source", "--format", "obj"]) == 0
+    finally:
+        for p in [ro, *ro.rglob("*")]:
+            p.chmod(0o755 if p.is_dir() else 0o644)
+    assert sorted(p.relative_to(ro) for p in ro.rglob("*")) == before
+
+
+# ----------------------------------------------------------------------------- the shipped model
+
+SHIPPED = shipped()
+
+
+@pytest.mark.skipif("ict-face" not in SHIPPED, reason="this checkout ships no ict-face rig model")
+def test_the_shipped_model_is_small_safe_and_licensed():
+    folder = SHIPPED["ict-face"]
+    for p in folder.rglob("*"):
+        if p.is_file():
+            assert p.stat().st_size <= 20_000_000, p
+    model = folder / "models" / "pbs-dt.safetensors"
+    assert not is_pickle(model.read_bytes()[:9])
+    assert isinstance(load_state(model), dict)  # safetensors + JSON, verified, never unpickled
+    card = json.loads((folder / CARD).read_text())
+    assert {"LICENSE-ICT-FaceKit.txt", "ATTRIBUTION.md"} <= set(card["included"])
+    assert "MIT" in (folder / "LICENSE-ICT-FaceKit.txt").read_text()
+    assert len(card["test"]) == 57 and card["identities"]["test"]
+
+
+@pytest.mark.skipif("ict-face" not in SHIPPED, reason="this checkout ships no ict-face rig model")
+def test_rig_with_the_shipped_model_writes_51_arkit_shapes(tmp_path, capsys):
+    from fwk.rig.arkit import ARKIT_NAMES
+
+    folder = SHIPPED["ict-face"]
+    _mean_obj(folder, tmp_path / "head.obj")
+    assert main(["rig", str(tmp_path / "head.obj"), "--out", str(tmp_path / "rig")]) == 0
+    objs = sorted(p.stem for p in (tmp_path / "rig").glob("*.obj"))
+    assert len(objs) == 51 and set(objs) <= set(ARKIT_NAMES)
+    shapes = glb_shapes(tmp_path / "rig" / "head.glb")[0]
+    assert sorted(k for k in shapes if k != "neutral") == objs
+    if _validator() is not None:
+        report = _validate(tmp_path / "rig" / "head.glb")
+        assert report["issues"]["numErrors"] == 0, report["issues"]["messages"]
