@@ -130,9 +130,13 @@ def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, in
         raise FwkError(f"--out {out}: exists and is not an empty folder (fwk pack writes a new rig model folder)")
     check_dir(out, "--out", min_free_mb=0)
     files = [Path(f) for f in include]
+    taken = {*_COPIED, "versions.json", "metrics.json", CARD, "stats", "models"}
     for f in files:
         if not f.is_file():
             raise FwkError(f"--include {f}: no such file")
+        if f.name in taken:
+            raise FwkError(f"--include {f}: its name is taken (by the rig model's own {f.name} or another --include)")
+        taken.add(f.name)
     run = open_run(run_dir, seed_run=seed_run, say=say or (lambda m: None))
     label = model or run.metrics.get("apply_model") or run.params.get("apply_model")
     label = choose_model(run.specs, BlendshapeModel, label, prefer=CutSelectingModel, source=str(run.run_dir))

@@ -116,6 +116,9 @@ def test_pack_and_rig_refusals(packed, tmp_path):
     with pytest.raises(FwkError, match="--include"):
         pack(run_dir, tmp_path / "new", include=[tmp_path / "nope.txt"])
     assert not (tmp_path / "new").exists()
+    (tmp_path / "card.json").write_text("{}")
+    with pytest.raises(FwkError, match="name is taken"):
+        pack(run_dir, tmp_path / "new", include=[tmp_path / "card.json"])
     with pytest.raises(FwkError, match="--model nope"):
         find_model("nope")
     with pytest.raises(FwkError, match="not a model of"):
@@ -172,6 +175,57 @@ def test_rig_with_the_shipped_model_writes_51_arkit_shapes(tmp_path, capsys):
     assert len(objs) == 51 and set(objs) <= set(ARKIT_NAMES)
     shapes = glb_shapes(tmp_path / "rig" / "head.glb")[0]
     assert sorted(k for k in shapes if k != "neutral") == objs
+    if _validator() is not None:
+        report = _validate(tmp_path / "rig" / "head.glb")
+        assert report["issues"]["numErrors"] == 0, report["issues"]["messages"]
+
+
+@pytest.mark.skipif("ict-face" not in SHIPPED, reason="this checkout ships no ict-face rig model")
+def test_shipped_model_rigs_a_held_out_ict_head(tmp_path, capsys):
+    """A test identity of the shipped model's own split (never trained on), its full 26,719-vertex
+    ICT-FaceKit head through ``fwk rig`` (defaults: OBJ, glb, USD, the 51 ARKit shapes): jawOpen
+    moves the lower teeth within 20 % of the identity's true jawOpen displacement there, the upper
+    teeth stay still and the skull top moves by less than 2 % of the lower teeth's mean motion
+    (what the model's region predicts there); the time is printed (the issue's target, 10 s on 2
+    cores, is a benchmark's: ``fwk rig`` prints its own timing)."""
+    import time
+
+    from fwk.data.io import read_obj, write_obj
+    from fwk.plugins import get_registry
+    from fwk.testing import ICT_SKIP_REASON, ict_path
+
+    from .test_follow import N_REGION, TEETH
+
+    ict = ict_path()
+    if ict is None:
+        pytest.skip(ICT_SKIP_REASON)
+    card = json.loads((SHIPPED["ict-face"] / CARD).read_text())
+    subject = card["identities"]["test"][0]
+    n_subjects = len([s for ids in card["identities"].values() for s in ids])
+    full = get_registry().get("dataset", "ict-facekit")(path=str(ict), region="full", n_subjects=n_subjects,
+                                                         shapes=["neutral", "jawOpen"]).load()
+    P = np.asarray(full.positions[full.subjects.index(subject)])
+    write_obj(tmp_path / "head.obj", P[0], full.template)
+    t0 = time.perf_counter()
+    assert main(["rig", str(tmp_path / "head.obj"), "--out", str(tmp_path / "rig")]) == 0
+    seconds = time.perf_counter() - t0
+    assert len(list((tmp_path / "rig").glob("*.obj"))) == 51
+    got = read_obj(tmp_path / "rig" / "jawOpen.obj")[0]
+    generic = read_obj(ict / "jawOpen.obj")[0] - read_obj(ict / "generic_neutral_mesh.obj")[0]
+    teeth = np.arange(*TEETH)
+    moving = np.linalg.norm(generic[teeth], axis=1) > 0.1
+    lower, upper = teeth[moving], teeth[~moving]
+    true, pred = P[1] - P[0], got - P[0]
+    rel = np.linalg.norm(pred[lower] - true[lower]) / np.linalg.norm(true[lower])
+    mean_true = np.linalg.norm(true[lower], axis=1).mean()
+    top = np.flatnonzero(P[0, :N_REGION, 1] > P[0, lower, 1].max() + 14.0)
+    up_move = np.linalg.norm(pred[upper], axis=1).max()
+    top_move = np.linalg.norm(pred[top], axis=1).max()
+    print(f"fwk rig {subject}: {seconds:.1f} s in-process; lower teeth rel {rel:.4f} (mean true {mean_true:.3f} cm); "
+          f"upper teeth max {up_move:.2e} cm; skull top max {top_move:.2e} cm")
+    assert rel < 0.2, f"lower teeth: relative error {rel:.3f} (true mean displacement {mean_true:.3f} cm)"
+    assert up_move < 0.01 * mean_true, f"upper teeth move {up_move:.4f} cm"
+    assert top_move < 0.02 * mean_true, f"skull top moves {top_move:.4f} cm, lower teeth {mean_true:.3f} cm"
     if _validator() is not None:
         report = _validate(tmp_path / "rig" / "head.glb")
         assert report["issues"]["numErrors"] == 0, report["issues"]["messages"]
