@@ -42,7 +42,7 @@ from .protocols import FAMILIES, ChecksData, Model
 from .recipes import Spec, parse_seeds, read_recipe_file, resolve
 from .registry import Registry
 from .runs import RunContext, check_recipe_hash, require_complete
-from .safeio import LEGACY_SUFFIX, SUFFIX, legacy_error, load_json, load_npz, load_state, save_state
+from .safeio import LEGACY_SUFFIX, NARROWED, SUFFIX, legacy_error, load_json, load_npz, load_state, save_state, widen
 from .seeds import FAILED, SEED_DIR, fans_out_seeds, member_recipe, plain_recipe, seed_finished, takes_split
 
 
@@ -113,6 +113,8 @@ def load_model_state(model, path: Path, ctx: RunContext | None, label: str | Non
     the model's name and label (a swapped file is refused) and accepted by its ``load_state_dict``; every
     failure is a ``DataError`` naming the file."""
     state, meta = load_state(path, with_meta=True)
+    if meta.get(NARROWED):  # a packed model (fwk pack): stored narrow, computed with in fwk's types
+        state = widen(state)
     saved = meta.get("name")  # the registered name: stable when a plugin moves its class
     if saved is not None and saved != model.name:
         raise DataError(f"{path}: holds the state of another model ({meta.get('label', '?')!s}: "

@@ -6,7 +6,9 @@ COO: stored as their indices and values) (a model's
 ``state_dict()``, a Lightning checkpoint). ``save_state`` writes it as a safetensors file: every
 array and tensor a named tensor, the structure (with the type of every leaf, so that NumPy arrays
 come back as NumPy arrays and tensors as tensors) as JSON in the file's metadata, and the SHA-256
-of the tensor bytes beside it. ``load_state`` verifies all of that before it returns anything;
+of the tensor bytes beside it; a NumPy array equal to one stored before is a reference to it (stored
+once; read back as a copy, and all references together may copy no more bytes than the file's
+tensors hold). ``load_state`` verifies all of that before it returns anything;
 nothing in the file is ever executed (safetensors parses a JSON header and raw bytes; no pickle).
 
 A value of any other type (a ``Spec``, a custom object, a function) cannot be saved: ``save_state``
@@ -112,8 +114,12 @@ def _where(path: str) -> str:
     return path or "the state"
 
 
-def _encode(obj, path: str, tensors: dict, torch) -> Any:
-    """The JSON structure of ``obj``; its arrays and tensors go to ``tensors`` (name -> tensor)."""
+def _encode(obj, path: str, tensors: dict, torch, seen: dict | None = None) -> Any:
+    """The JSON structure of ``obj``; its arrays and tensors go to ``tensors`` (name -> tensor).
+    A NumPy array equal (dtype, shape, bytes) to one stored before is stored once: the later ones
+    are references to it (``{"r": name}``; a model's triangles and mean neutral sit in several of
+    its parts)."""
+    seen = {} if seen is None else seen
     if obj is None or isinstance(obj, (bool, str)):
         return obj
     if isinstance(obj, np.generic):  # before int/float: np.float64 is a float
@@ -128,8 +134,13 @@ def _encode(obj, path: str, tensors: dict, torch) -> Any:
         if obj.dtype.kind not in "biuf" or obj.dtype.byteorder == ">":
             raise UnsafeStateError(f"{_where(path)}: a NumPy array of dtype {obj.dtype} cannot be saved safely "
                             "(numbers and booleans only)")
+        arr = np.array(obj, order="C", copy=True)
+        key = (arr.dtype.str, arr.shape, hashlib.sha256(arr.tobytes()).hexdigest())
+        if key in seen:
+            return {"r": seen[key]}
         name = str(len(tensors))
-        tensors[name] = torch.from_numpy(np.array(obj, order="C", copy=True))
+        tensors[name] = torch.from_numpy(arr)
+        seen[key] = name
         return {"n": name}
     if isinstance(obj, torch.Tensor):
         if obj.is_complex() or obj.layout not in (torch.strided, torch.sparse_coo):
@@ -147,11 +158,11 @@ def _encode(obj, path: str, tensors: dict, torch) -> Any:
         for k, v in obj.items():
             if not (k is None or isinstance(k, (str, int, float, bool))):
                 raise UnsafeStateError(f"{_where(path)}: a key of type {type(k).__name__} cannot be saved safely")
-            items.append([k, _encode(v, f"{path}.{k}" if path else str(k), tensors, torch)])
+            items.append([k, _encode(v, f"{path}.{k}" if path else str(k), tensors, torch, seen)])
         return {"d": items}
     if isinstance(obj, (list, tuple)):
         return {"l" if isinstance(obj, list) else "u":
-                [_encode(v, f"{path}[{i}]", tensors, torch) for i, v in enumerate(obj)]}
+                [_encode(v, f"{path}[{i}]", tensors, torch, seen) for i, v in enumerate(obj)]}
     raise UnsafeStateError(f"{_where(path)}: a {type(obj).__module__}.{type(obj).__qualname__} cannot be saved safely; "
                     "a state holds tensors, NumPy arrays and plain data (dict, list, tuple, str, int, float, bool, None)")
 
@@ -160,14 +171,32 @@ class _Malformed(Exception):
     pass
 
 
-def _decode(node, tensors: dict, used: set, depth: int = 0):
+class _Refs:
+    """What references (``{"r": name}``) may copy: only arrays decoded before, and in all no more
+    bytes than the file's tensors hold (a file cannot make its reader allocate more than twice
+    its size by repeating a reference)."""
+
+    def __init__(self, tensors: dict):
+        self.left = sum(t.numel() * t.element_size() for t in tensors.values())
+
+
+def _decode(node, tensors: dict, used: set, depth: int = 0, refs: _Refs | None = None):
     if depth > 200:
         raise _Malformed("nested too deeply")
     if node is None or isinstance(node, (bool, str, int, float)):
         return node
     if not isinstance(node, dict) or len(node) != 1:
         raise _Malformed(f"unexpected node {str(node)[:80]!r}")
+    refs = _Refs(tensors) if refs is None else refs
     (tag, val), = node.items()
+    if tag == "r":  # a NumPy array stored once before: a copy of it
+        if not isinstance(val, str) or val not in used:
+            raise _Malformed(f"a reference {str(val)[:40]!r} to no array decoded before")
+        t = tensors[val]
+        refs.left -= t.numel() * t.element_size()
+        if refs.left < 0:
+            raise _Malformed("its references copy more than its tensors hold")
+        return t.numpy().copy()
     if tag in ("t", "n"):
         if not isinstance(val, str) or val not in tensors:
             raise _Malformed(f"a tensor {str(val)[:40]!r} the file does not hold")
@@ -182,7 +211,7 @@ def _decode(node, tensors: dict, used: set, depth: int = 0):
             raise _Malformed("a malformed sparse tensor")
         import torch
 
-        i, v = (_decode({"t": n}, tensors, used, depth + 1) for n in val[:2])
+        i, v = (_decode({"t": n}, tensors, used, depth + 1, refs) for n in val[:2])
         try:
             return torch.sparse_coo_tensor(i, v, tuple(val[2]), check_invariants=True).coalesce()
         except (RuntimeError, ValueError, TypeError) as exc:
@@ -197,7 +226,7 @@ def _decode(node, tensors: dict, used: set, depth: int = 0):
     if tag in ("l", "u"):
         if not isinstance(val, list):
             raise _Malformed("a malformed sequence")
-        out = [_decode(v, tensors, used, depth + 1) for v in val]
+        out = [_decode(v, tensors, used, depth + 1, refs) for v in val]
         return out if tag == "l" else tuple(out)
     if tag == "d":
         if not isinstance(val, list):
@@ -206,7 +235,7 @@ def _decode(node, tensors: dict, used: set, depth: int = 0):
         for item in val:
             if not (isinstance(item, list) and len(item) == 2) or isinstance(item[0], (list, dict)):
                 raise _Malformed("a malformed mapping entry")
-            out[item[0]] = _decode(item[1], tensors, used, depth + 1)
+            out[item[0]] = _decode(item[1], tensors, used, depth + 1, refs)
         return out
     raise _Malformed(f"unknown tag {tag[:20]!r}")
 
@@ -302,6 +331,62 @@ def load_state(path, with_meta: bool = False):
     path = Path(path)
     state, meta = loads_state(read_bytes(path), str(path))
     return (state, meta) if with_meta else state
+
+
+# ----------------------------------------------------------------------------- packed precision
+
+#: the precisions ``fwk pack`` stores a state in (``narrow``); the first is the default
+PRECISIONS = ("float32", "mixed")
+#: with ``mixed``: a float array or tensor of at least this many values is stored as float16
+MIXED_MIN = 65_536
+#: the meta key a narrowed state carries (its precision); ``widen`` undoes the storage types
+NARROWED = "narrowed"
+
+
+def narrow(state, precision: str = "float32"):
+    """``state`` as ``fwk pack`` stores it: float64 arrays and tensors as float32, int64 arrays
+    whose values fit as int32 (ids, triangles), and with ``mixed`` every float array or tensor of
+    at least ``MIXED_MIN`` values (network weights, a basis) as float16; the small ones (means,
+    scalers, positions) stay float32. Dense arrays only; a sparse tensor is kept as it is."""
+    import torch
+
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision {precision!r}: one of {', '.join(PRECISIONS)}")
+    if isinstance(state, dict):
+        return {k: narrow(v, precision) for k, v in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(narrow(v, precision) for v in state)
+    half = precision == "mixed"
+    if isinstance(state, np.ndarray):
+        if state.dtype.kind == "f" and state.dtype.itemsize >= 4:
+            return state.astype(np.float16 if half and state.size >= MIXED_MIN else np.float32)
+        if state.dtype == np.int64 and (state.size == 0 or (state.min() >= -2 ** 31 and state.max() < 2 ** 31)):
+            return state.astype(np.int32)
+        return state
+    if isinstance(state, torch.Tensor) and state.layout == torch.strided and state.is_floating_point() \
+            and state.element_size() >= 4:
+        return state.to(torch.float16 if half and state.numel() >= MIXED_MIN else torch.float32)
+    return state
+
+
+def widen(state):
+    """A narrowed state (``narrow``) in the types fwk computes with: float16 and float32 NumPy
+    arrays as float64, float16 tensors as float32, int32 NumPy arrays as int64."""
+    import torch
+
+    if isinstance(state, dict):
+        return {k: widen(v) for k, v in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(widen(v) for v in state)
+    if isinstance(state, np.ndarray):
+        if state.dtype in (np.float16, np.float32):
+            return state.astype(np.float64)
+        if state.dtype == np.int32:
+            return state.astype(np.int64)
+        return state
+    if isinstance(state, torch.Tensor) and state.layout == torch.strided and state.dtype == torch.float16:
+        return state.to(torch.float32)
+    return state
 
 
 # ----------------------------------------------------------------------------- other run files

@@ -167,3 +167,30 @@ def test_a_state_whose_header_length_starts_with_0x80_is_no_pickle(tmp_path):
     legacy = tmp_path / "legacy.pt"
     legacy.write_bytes(buf.getvalue())
     assert legacy.read_bytes()[0] == 0x80 and file_is_pickle(legacy)
+
+
+def test_equal_arrays_are_stored_once_and_come_back_as_copies():
+    tri = np.arange(300, dtype=np.int64).reshape(100, 3)
+    mean = np.linspace(0, 1, 600).reshape(200, 3)
+    state = {"a": tri, "b": {"F": tri.copy(), "mean": mean}, "c": [mean.copy(), tri[:50].copy()]}
+    once = dumps_state({"a": tri, "b": {"mean": mean}, "c": [tri[:50].copy()]})
+    data = dumps_state(state)
+    assert len(data) < len(once) + 200  # the repeats cost a reference each, not their bytes
+    back, _ = loads_state(data, "f")
+    assert_same_state(back, state)
+    back["a"][0, 0] = -1  # copies, not views of one buffer
+    assert back["b"]["F"][0, 0] == 0
+
+
+@pytest.mark.parametrize("structure, match", [
+    ('{"d": [["x", {"r": "0"}], ["w", {"n": "0"}]]}', "no array decoded before"),  # a reference before its array
+    ('{"d": [["w", {"n": "0"}], ["x", {"r": "7"}]]}', "no array decoded before"),
+    ('{"l": [{"n": "0"}, ' + ", ".join(['{"r": "0"}'] * 3) + "]}", "copy more than"),  # amplification
+])
+def test_references_are_checked(structure, match):
+    data = dumps_state({"w": np.arange(4.0)})
+    with pytest.raises(DataError, match=match):
+        loads_state(_with_header(data, lambda h: h["__metadata__"].update(structure=structure)), "f")
+    ok = _with_header(data, lambda h: h["__metadata__"].update(structure='{"l": [{"n": "0"}, {"r": "0"}]}'))
+    # the sha256 covers the tensor bytes only: an edited structure with a valid reference loads
+    assert [list(x) for x in loads_state(ok, "f")[0]] == [[0.0, 1.0, 2.0, 3.0]] * 2
