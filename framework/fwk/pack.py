@@ -14,8 +14,11 @@ A *rig model* is a folder laid out as a run directory that holds only what ``fwk
 
 ``fwk pack RUN --out DIR [--model LABEL] [--seed-run S] [--include FILE ...]`` writes it. The
 model's state is its ``packed_state()`` when it plays ``fwk.protocols.Packable`` (pbs: the k sweep's
-curves left out, the spectral basis cut at the largest chosen k), else its ``state_dict()``; every
-float64 array is stored as float32 (the networks train in float32; ``--float64`` keeps them). The
+curves and the networks' derived buffers left out, the spectral basis cut at the largest chosen k;
+dt from the mean subject: only the vertices each expression moves), else its ``state_dict()``,
+stored narrow (``fwk.safeio.narrow``; widened again on load): every float array as float32 and
+ids as int32, and with ``--precision mixed`` the float arrays of at least 65,536 values (network
+weights, the basis) as float16; the stats npz files likewise (their integers kept). The
 packed model is then reopened from DIR and both it and the run's model predict every expression
 for the run's mean training neutral: the largest difference, in the run's units and as a share of
 the largest displacement, is printed and recorded in card.json, and a difference above
@@ -53,7 +56,7 @@ from .lifecycle import choose_model, open_run, read_run_recipe
 from .paths import check_dir
 from .protocols import BLENDSHAPES, BlendshapeModel, CutSelectingModel, Packable
 from .runs import RECIPE_HASH, recipe_hash
-from .safeio import load_json, load_npz, save_state
+from .safeio import NARROWED, PRECISIONS, load_json, load_npz, narrow, save_state
 
 #: where the rig models that ship with fwk live (package data)
 SHIPPED = Path(__file__).parent / "shipped"
@@ -65,19 +68,11 @@ _STATS = ("preprocess.npz", "template.npz", "followers.npz")
 _COPIED = ("recipe.yaml", "split.json")
 
 
-def _float32(x):
-    """``x`` (a state) with every float64 array and tensor stored as float32."""
-    import torch
-
-    if isinstance(x, dict):
-        return {k: _float32(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return type(x)(_float32(v) for v in x)
-    if isinstance(x, np.ndarray) and x.dtype == np.float64:
-        return x.astype(np.float32)
-    if isinstance(x, torch.Tensor) and x.dtype == torch.float64 and x.layout == torch.strided:
-        return x.to(torch.float32)
-    return x
+def _narrow_npz(src: Path, dest: Path, precision: str) -> None:
+    """Copy a stats npz with its float arrays narrowed as the model's state (``fwk.safeio.narrow``;
+    integer arrays kept: the readers of stats/ take them as they are), zip-compressed."""
+    z = load_npz(src)
+    np.savez_compressed(dest, **{k: narrow(v, precision) if v.dtype.kind == "f" else v for k, v in z.items()})
 
 
 def _versions(run_dir: Path) -> dict:
@@ -102,7 +97,7 @@ def _test_metrics(metrics: dict) -> dict:
             continue
         row = {}
         for label, ms in models.items():
-            if not isinstance(ms, dict):
+            if not isinstance(ms, dict) or ":" in label:  # a model's own parts (pbs's networks): not kept
                 continue
             row[label] = {}
             for m, v in ms.items():
@@ -120,7 +115,7 @@ def _epochs(metrics: dict, label: str) -> dict:
             for k, v in nets.items() if k.split("/")[0] == label and isinstance(v, dict)}
 
 
-def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, include=(), keep_float64=False,
+def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, include=(), precision="float32",
          log=print, say=None) -> Path:
     """Write the rig model of ``run_dir``'s model ``model`` (default: the run's ``apply_model``,
     else chosen by role) into the new folder ``out``; returns ``out``."""
@@ -142,9 +137,9 @@ def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, in
     label = choose_model(run.specs, BlendshapeModel, label, prefer=CutSelectingModel, source=str(run.run_dir))
     src = run.run_dir
     m = run.model(label)
-    state = m.packed_state() if isinstance(m, Packable) else m.state_dict()
-    if not keep_float64:
-        state = _float32(state)
+    if precision not in PRECISIONS:
+        raise FwkError(f"--precision {precision}: one of {', '.join(PRECISIONS)}")
+    state = narrow(m.packed_state() if isinstance(m, Packable) else m.state_dict(), precision)
     metrics = run.metrics
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent if out.parent.exists() else None))
     try:
@@ -154,9 +149,11 @@ def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, in
         (tmp / "stats").mkdir()
         for name in _STATS:
             if (src / "stats" / name).is_file():
-                shutil.copyfile(src / "stats" / name, tmp / "stats" / name)
+                _narrow_npz(src / "stats" / name, tmp / "stats" / name, precision)
         (tmp / "models").mkdir()
-        save_state(tmp / "models" / f"{label}.safetensors", state)
+        save_state(tmp / "models" / f"{label}.safetensors", state,
+                   {"model": f"{type(m).__module__}.{type(m).__qualname__}", "name": m.name, "label": label,
+                    NARROWED: precision})
         versions = _versions(src)
         (tmp / "versions.json").write_text(json.dumps({**versions, RECIPE_HASH: recipe_hash(tmp)}, indent=2))
         slim = {k: metrics[k] for k in ("dataset", "expressions", "apply_model", "legend") if k in metrics}
@@ -191,7 +188,7 @@ def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, in
             "epochs": _epochs(metrics, label),
             "k": dict(getattr(m, "k", {}) or {}),
             "test": _test_metrics(metrics),
-            "pack": {"float": "float64" if keep_float64 else "float32",
+            "pack": {"precision": precision,
                      "largest_difference": diff, "largest_displacement": disp, "units": units,
                      "bytes": (tmp / "models" / f"{label}.safetensors").stat().st_size},
             "included": [f.name for f in files],
@@ -207,7 +204,7 @@ def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, in
         raise
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     log(f"fwk pack: {label} of {src} -> {out} ({size / 1e6:.1f} MB; model file "
-        f"{card['pack']['bytes'] / 1e6:.1f} MB, {card['pack']['float']}); on the mean neutral the packed model "
+        f"{card['pack']['bytes'] / 1e6:.1f} MB, {precision}); on the mean neutral the packed model "
         f"predicts within {diff:.3g} {units} of the run's ({100 * share:.3g} % of the largest displacement, "
         f"{disp:.3g} {units}); {time.perf_counter() - t0:.1f} s")
     return out
@@ -316,7 +313,7 @@ def show_card(name: str) -> str:
     lines = [f"rig model {card.get('name')}  ({folder})", "", str(card.get("description") or ""), "",
              card_summary(card),
              f"recipe sha256 {card.get('recipe_sha256')}; packed from {card.get('packed_from')}",
-             f"stored {p.get('float')}, model file {int(p.get('bytes') or 0) / 1e6:.1f} MB; on the mean neutral it "
+             f"stored {p.get('precision')}, model file {int(p.get('bytes') or 0) / 1e6:.1f} MB; on the mean neutral it "
              f"predicts within {p.get('largest_difference', float('nan')):.3g} {p.get('units', '')} of the trained model",
              f"files beside it: {', '.join(card.get('included') or []) or 'none'}", "", card_table(card)]
     return "\n".join(lines)
@@ -333,12 +330,14 @@ def add_pack_parser(subparsers):
     p.add_argument("--seed-run", type=int, metavar="S", help="of a run with seeds: the seed whose model to pack")
     p.add_argument("--include", action="append", default=[], metavar="FILE",
                    help="a file to ship beside the model (a licence, an attribution); repeatable")
-    p.add_argument("--float64", action="store_true", help="keep float64 arrays (default: stored as float32)")
+    p.add_argument("--precision", choices=PRECISIONS, default=PRECISIONS[0],
+                   help="float32 (default): every float array as float32; mixed: arrays of 65,536 values or more "
+                        "(network weights, a basis) as float16, the rest float32")
     return p
 
 
 def run_pack(args) -> int:
-    pack(args.run_dir, args.out, args.model, args.seed_run, args.include, args.float64)
+    pack(args.run_dir, args.out, args.model, args.seed_run, args.include, args.precision)
     return 0
 
 

@@ -229,3 +229,38 @@ def test_shipped_model_rigs_a_held_out_ict_head(tmp_path, capsys):
     if _validator() is not None:
         report = _validate(tmp_path / "rig" / "head.glb")
         assert report["issues"]["numErrors"] == 0, report["issues"]["messages"]
+
+
+def test_narrow_and_widen_follow_the_stated_rule():
+    """fwk.safeio.narrow (what fwk pack stores) against a loop over the rule, and widen back."""
+    import torch
+
+    from fwk.safeio import MIXED_MIN, narrow, widen
+
+    state = {"big": np.linspace(0, 1, MIXED_MIN), "small": np.linspace(0, 1, 10), "ids": np.arange(5, dtype=np.int64),
+             "huge_ids": np.array([2 ** 40], dtype=np.int64), "w": torch.ones(MIXED_MIN), "b": torch.ones(3),
+             "nested": [{"x": np.ones((2, 2))}], "flag": True}
+    for precision in ("float32", "mixed"):
+        n = narrow(state, precision)
+        for k in ("big", "small"):
+            want = np.float16 if precision == "mixed" and state[k].size >= MIXED_MIN else np.float32
+            assert n[k].dtype == want, (precision, k)
+        assert n["w"].dtype == (torch.float16 if precision == "mixed" else torch.float32) and n["b"].dtype == torch.float32
+        assert n["ids"].dtype == np.int32 and n["huge_ids"].dtype == np.int64 and n["flag"] is True
+        w = widen(n)
+        assert w["big"].dtype == np.float64 and w["ids"].dtype == np.int64 and w["w"].dtype == torch.float32
+        assert np.allclose(w["big"], state["big"], atol=1e-3) and np.array_equal(w["ids"], state["ids"])
+        assert w["nested"][0]["x"].dtype == np.float64
+    with pytest.raises(ValueError):
+        narrow(state, "float8")
+
+
+def test_mixed_precision_pack(shippable_rig_run, tmp_path):
+    out = tmp_path / "mixed"
+    lines = []
+    pack(shippable_rig_run, out, precision="mixed", log=lines.append)
+    card = json.loads((out / CARD).read_text())
+    assert card["pack"]["precision"] == "mixed" and "mixed" in lines[0]
+    st, meta = load_state(out / "models" / "pbs.safetensors", with_meta=True)
+    assert meta["narrowed"] == "mixed" and meta["label"] == "pbs" and meta["name"] == "pbs"
+    assert card["pack"]["largest_difference"] <= MAX_PACK_ERROR * card["pack"]["largest_displacement"]

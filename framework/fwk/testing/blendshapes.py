@@ -141,16 +141,16 @@ class BlendshapeModelContract:
             assert m2.k == m.k and m2.sweep == m.sweep
 
     def test_packed_state(self, fitted):
-        """Optional role ``Packable``: the packed state, through the safe format and stored in
-        float32 as ``fwk pack`` stores it, loads into a model predicting as this one does (to
-        float32 round-off of the predicted displacement)."""
+        """Optional role ``Packable``: the packed state, through the safe format and narrowed and
+        widened as ``fwk pack`` stores it and fwk loads it (``--precision mixed``), loads into a
+        model predicting as this one does (to 1e-4 of the largest predicted displacement)."""
         m, data = fitted
         if not isinstance(m, Packable):
             pytest.skip(f"{self.component.name} does not play Packable")
-        from ..pack import _float32
+        from ..safeio import narrow, widen
 
         m2 = build(self.component, self.params)
-        m2.load_state_dict(safe_round_trip(_float32(m.packed_state())), ctx=None)
+        m2.load_state_dict(widen(safe_round_trip(narrow(m.packed_state(), "mixed"))), ctx=None)
         assert list(m2.expressions) == list(m.expressions)
         a, b = self._predictions(m, data), self._predictions(m2, data)
         for e in EXPRESSIONS:

@@ -321,6 +321,10 @@ class _Blend:
         return self._net_model
 
     def _make_nets(self, template, channels, ctx=None):
+        self.nets = self._build_nets(template, channels, ctx)
+
+    def _build_nets(self, template, channels, ctx=None) -> nn.ModuleDict:
+        """The network pair(s) for ``channels``, freshly initialised (``_make_nets`` keeps them)."""
         m = self._network_model()
         latent = int(m.latent_size)
         E = len(self.expressions)
@@ -335,8 +339,8 @@ class _Blend:
             else:
                 nets[f"b{b}"] = _Net(nn.ModuleList(m.build_encoder(template, c, ctx) for _ in range(E)),
                                      nn.ModuleList(m.build_decoder(template, c, ctx) for _ in range(E)))
-        self.nets = nets
         self._latent_dim = latent
+        return nets
 
     def _latent(self, b, X, sample: bool, only: int | None = None):
         """(codes, kl): codes per expression (list; with ``only``, just that expression's code
@@ -603,7 +607,14 @@ class _Blend:
         self.expr_scalers = None if es is None else [[Scaler().load_state_dict(x) for x in sc] for sc in es]
         self._expr_stacks = {}
         self._make_nets(self.template, self.shape[1], ctx)
-        self.nets.load_state_dict(d["nets"])
+        # a packed state leaves out the buffers the networks derive from the template (pooling
+        # matrices, spiral indices: ``derived_buffers``); every parameter must be there
+        got = self.nets.load_state_dict(d["nets"], strict=False)
+        buffers = {k for k, _ in self.nets.named_buffers()}
+        lost = [k for k in got.missing_keys if k not in buffers]
+        if got.unexpected_keys or lost:
+            raise DataError(f"{self.name}: the saved networks do not fit the recipe's (missing "
+                            f"{', '.join(lost[:3]) or 'none'}; unexpected {', '.join(got.unexpected_keys[:3]) or 'none'})")
         self.nets.eval()
         self._anchor_memo, self._bending, self.anchor = {}, None, None
         if self.anchor_spec is not None:
@@ -850,13 +861,34 @@ class PBS(_Blend):
                 "assembler": None if self.assembler is None else self.assembler.state_dict(),
                 "assembler_k": self.assembler_k}
 
+    def derived_buffers(self) -> set[str]:
+        """The networks' buffers that networks built afresh from the template hold too, equal
+        (pooling matrices, spiral indices: derived from the graph hierarchy, not trained)."""
+        fresh = dict(self._build_nets(self.template, self.shape[1]).named_buffers())
+        out = set()
+        for k, v in self.nets.named_buffers():
+            f = fresh.get(k)
+            if f is None or f.shape != v.shape or f.dtype != v.dtype or f.layout != v.layout:
+                continue
+            if v.layout == torch.sparse_coo:
+                a, b = v.coalesce(), f.coalesce()
+                same = torch.equal(a.indices(), b.indices()) and torch.equal(a.values(), b.values())
+            else:
+                same = torch.equal(v, f)
+            if same:
+                out.add(k)
+        return out
+
     def packed_state(self) -> dict:
         """The state ``fwk pack`` ships (``fwk.protocols.Packable``): ``state_dict()`` without the
-        k sweep's curves (reports read them, prediction does not; the chosen k stay) and with the
+        k sweep's curves (reports read them, prediction does not; the chosen k stay), without the
+        networks' buffers that building them from the template gives again (``derived_buffers``),
+        with the
         assembler's basis cut at the largest chosen k below n (``TruncatesCuts``; none when every
         chosen k is 0 or n); the anchor's own packed state when it has one."""
         st = self.state_dict()
         st["sweep"] = {}
+        st["nets"] = {k: v for k, v in st["nets"].items() if k not in self.derived_buffers()}
         n = self.shape[0]
         K = max([int(k) for k in self.k.values() if 0 < int(k) < n], default=0)
         if self.assembler is not None and K == 0:
