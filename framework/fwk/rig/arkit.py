@@ -106,6 +106,17 @@ def rename(shapes: dict[str, np.ndarray], neutral: np.ndarray, naming: str = "so
     return out
 
 
+def mapped_sources(names: list[str], naming: str) -> list[str]:
+    """The names (in order) whose shapes ``rename(..., only_mapped=True)`` keeps under
+    ``naming``: renamed into the standard, or a half of one of its symmetric shapes (``COMBINED``)
+    that is not itself among the names; what ``fwk rig`` predicts (ICT-FaceKit under arkit: 53 of
+    57, without cheekRaiser_L/R and PupilDilate_L/R)."""
+    check_only_mapped(naming)
+    std = set(MAPPED[naming])
+    halves = {h for whole, pair in COMBINED.items() if whole in std and whole not in names for h in pair}
+    return [n for n in names if ICT_TO_ARKIT.get(n, n) in std or n in halves]
+
+
 def only_mapped_note(source: list[str], kept: list[str], naming: str) -> str:
     """One line on what ``--only-mapped`` kept and left out: ``source``, the run's names;
     ``kept``, the names written."""

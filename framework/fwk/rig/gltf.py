@@ -71,7 +71,8 @@ def write_glb(path, neutral: np.ndarray, template: Template, shapes: dict[str, n
 
     p32 = (base - centre)[vert].astype(np.float32)
     attrs = g.Attributes(POSITION=add(p32, g.VEC3, ARRAY_BUFFER, True))
-    n0 = vertex_normals(base, template.triangles) if normals else None
+    # normals of the centred positions, in float32 as stored (a head far from the origin keeps its precision)
+    n0 = vertex_normals(base - centre, template.triangles, dtype=np.float32) if normals else None
     if normals:
         attrs.NORMAL = add(n0[vert].astype(np.float32), g.VEC3, ARRAY_BUFFER)
     if uv is not None:
@@ -81,8 +82,8 @@ def write_glb(path, neutral: np.ndarray, template: Template, shapes: dict[str, n
         attrs.TEXCOORD_0 = add(st.astype(np.float32), g.VEC2, ARRAY_BUFFER)
     attrs._VERTEX_INDEX = add(vert.astype(np.float32), g.SCALAR, ARRAY_BUFFER)
     targets = []
-    shape_normals = vertex_normals(np.stack([np.asarray(V, dtype=np.float64) for V in shapes.values()]),
-                                   template.triangles) if normals and shapes else None
+    shape_normals = vertex_normals(np.stack([np.asarray(V, dtype=np.float64) - centre for V in shapes.values()]),
+                                   template.triangles, dtype=np.float32) if normals and shapes else None
     for i, V in enumerate(shapes.values()):
         V = np.asarray(V, dtype=np.float64)
         # the delta of the float32 positions: base + delta reads back as V to float32 precision
