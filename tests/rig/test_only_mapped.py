@@ -32,6 +32,15 @@ def test_ict_facekit_gives_51_of_arkits_52_in_apples_order():
                     "PupilDilate_L, PupilDilate_R")
     # without --only-mapped every shape stays: 57 renamed plus the 2 sums
     assert len(rename(shapes, N, "arkit")) == 59
+    # what fwk rig predicts: only the shapes the kept ones come from (53), and they give the same rig
+    from fwk.rig.arkit import mapped_sources
+
+    need = mapped_sources(list(shapes), "arkit")
+    assert len(need) == 53 and not {"cheekRaiser_L", "cheekRaiser_R", "PupilDilate_L", "PupilDilate_R"} & set(need)
+    part = rename({n: shapes[n] for n in need}, N, "arkit", only_mapped=True)
+    assert list(part) == list(out) and all(np.array_equal(part[k], out[k]) for k in out)
+    with pytest.raises(FwkError, match="only-mapped"):
+        mapped_sources(list(shapes), "source")
 
 
 def test_only_mapped_needs_a_naming_that_maps():
