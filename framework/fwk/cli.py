@@ -20,7 +20,8 @@ from .errors import FwkError, Terminated
 from .evaluation.cli_eval import add_eval_parser, run_eval
 from .evaluation.cli_report import add_report_parser, run_report
 from .generate import add_sample_parser, run_sample
-from .pack import add_pack_parser, add_rig_parser, card_summary, read_card, run_pack, run_rig, show_card, shipped
+from . import __version__
+from .pack import RIG_KIND, add_pack_parser, add_rig_parser, card_summary, read_card, run_pack, run_rig, show_card, shipped
 from .hookspecs import KINDS
 from .plugins import get_registry
 from .registry import did_you_mean
@@ -55,11 +56,19 @@ def _threads(value: str) -> str:
 def cmd_list(args) -> int:
     """``fwk list [--kind KIND]``: one row per registered component, broken plugins on stderr."""
     reg = get_registry()
-    kinds = [args.kind] if args.kind else list(KINDS)
-    if args.kind and args.kind not in KINDS:
-        raise FwkError(f"--kind {args.kind}: unknown kind{did_you_mean(args.kind, KINDS)} (kinds: {', '.join(KINDS)})")
+    known = [*KINDS, RIG_KIND]
+    kinds = [args.kind] if args.kind else known
+    if args.kind and args.kind not in known:
+        raise FwkError(f"--kind {args.kind}: unknown kind{did_you_mean(args.kind, known)} (kinds: {', '.join(known)})")
     rows = []
     for kind in kinds:
+        if kind == RIG_KIND:  # the rig models that ship with fwk (fwk rig; fwk show rig NAME)
+            models = shipped()
+            rows += [(name, RIG_KIND, "fwk", __version__, card_summary(read_card(folder)))
+                     for name, folder in models.items()]
+            if not models:
+                rows.append(("-", RIG_KIND, "-", "-", "(no rig model ships with this installation)"))
+            continue
         entries = [e for e in reg if e.kind == kind]
         rows += [(e.name, e.kind, e.plugin, e.version, e.summary) for e in entries]
         if not entries:
@@ -69,14 +78,6 @@ def cmd_list(args) -> int:
     print("  ".join(h.ljust(w) for h, w in zip(head[:4], widths)) + "  " + head[4])
     for r in rows:
         print("  ".join(str(c).ljust(w) for c, w in zip(r[:4], widths)) + "  " + r[4])
-    if not args.kind:  # the rig models that ship with fwk (fwk rig; fwk show rig NAME)
-        models = shipped()
-        print()
-        print("shipped rig models (fwk rig NEUTRAL.obj --out DIR; fwk show rig NAME for the test metrics):")
-        for name, folder in models.items():
-            print(f"  {name}  {card_summary(read_card(folder))}")
-        if not models:
-            print("  (none in this installation)")
     for b in reg.broken:
         print(f"broken plugin {b.plugin}: {b.error}", file=sys.stderr)
     return 0
@@ -114,7 +115,7 @@ def describe(kind: str, name: str) -> str:
 
 def cmd_show(args) -> int:
     """``fwk show KIND NAME``."""
-    if args.kind == "rig":  # a shipped rig model (or a folder written by fwk pack): its card
+    if args.kind == RIG_KIND:  # a shipped rig model (or a folder written by fwk pack): its card
         print(show_card(args.name))
         return 0
     if args.kind not in KINDS:
@@ -163,7 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     sp = sub.add_parser("list", help="list registered components")
-    sp.add_argument("--kind", help=f"one of: {', '.join(KINDS)}")
+    sp.add_argument("--kind", help=f"one of: {', '.join([*KINDS, 'rig'])} (rig: the rig models fwk ships)")
     sp.set_defaults(func=cmd_list)
     sp = sub.add_parser("show", help="describe a component (KIND NAME) or a rig model (rig NAME)")
     sp.add_argument("kind")

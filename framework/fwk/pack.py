@@ -31,7 +31,7 @@ in the dataset's units where the metric has them) of the packed model and of eve
 of the run (the baselines, e.g. Deformation Transfer), from the run's ``metrics.json``.
 
 Rig models that ship with fwk live in ``fwk/shipped/<name>/`` (package data); ``fwk list`` shows
-them and ``fwk show rig NAME`` prints their card. ``fwk rig NEUTRAL.obj --out DIR`` writes the rig
+them (kind ``rig``, one row each) and ``fwk show rig NAME`` prints their card. ``fwk rig NEUTRAL.obj --out DIR`` writes the rig
 of one neutral (or a folder of them) with the shipped model (``--model NAME`` or a folder written by
 ``fwk pack``): by default OBJ, glb and USD with the ARKit-named shapes only (``fwk apply``'s
 ``--naming arkit --only-mapped``); ``--all-shapes`` keeps every shape, ``--landmarks`` rigs a head of
@@ -51,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from .apply import CARRIES, FORMATS, apply
+from .cache import dir_mode
 from .errors import FwkError
 from .lifecycle import choose_model, open_run, read_run_recipe
 from .paths import check_dir
@@ -141,7 +142,8 @@ def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, in
         raise FwkError(f"--precision {precision}: one of {', '.join(PRECISIONS)}")
     state = narrow(m.packed_state() if isinstance(m, Packable) else m.state_dict(), precision)
     metrics = run.metrics
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent if out.parent.exists() else None))
+    out.parent.mkdir(parents=True, exist_ok=True)  # the temporary folder beside out: os.replace stays on one disk
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
         for name in _COPIED:
             if (src / name).is_file():
@@ -180,13 +182,13 @@ def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, in
             "description": (metrics.get("legend") or {}).get(label, ""),
             "recipe": str(read_run_recipe(src).get("name") or ""),
             "recipe_sha256": recipe_hash(tmp),
-            "packed_from": str(src.resolve()),
+            "packed_from": "/".join(src.resolve().parts[-2:] if src.name.startswith("seed-") else [src.name]),
             "commit": versions.get("git_commit"), "commit_dirty": versions.get("git_dirty"),
             "torch": versions.get("torch"), "threads": versions.get("threads"),
             "dataset": metrics.get("dataset"),
             "identities": load_json(src / "split.json") if (src / "split.json").is_file() else None,
             "epochs": _epochs(metrics, label),
-            "k": dict(getattr(m, "k", {}) or {}),
+            "k": dict(m.k) if isinstance(m, CutSelectingModel) else {},
             "test": _test_metrics(metrics),
             "pack": {"precision": precision,
                      "largest_difference": diff, "largest_displacement": disp, "units": units,
@@ -194,10 +196,9 @@ def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, in
             "included": [f.name for f in files],
         }
         (tmp / CARD).write_text(json.dumps(card, indent=2))
-        out.parent.mkdir(parents=True, exist_ok=True)
         if out.exists():
             out.rmdir()
-        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp's 0700 -> the process umask's mode, as a folder made by mkdir
+        os.chmod(tmp, dir_mode())  # mkdtemp's 0700 -> the umask's mode, as a folder made by mkdir
         os.replace(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -208,12 +209,6 @@ def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, in
         f"predicts within {diff:.3g} {units} of the run's ({100 * share:.3g} % of the largest displacement, "
         f"{disp:.3g} {units}); {time.perf_counter() - t0:.1f} s")
     return out
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 # ----------------------------------------------------------------------------- shipped models
@@ -256,6 +251,8 @@ def find_model(name: str | None) -> Path:
 
 #: the shipped model ``fwk rig`` uses without --model
 DEFAULT = "ict-face"
+#: the kind ``fwk list`` and ``fwk show`` give the shipped rig models (no plugin kind: package data)
+RIG_KIND = "rig"
 
 
 def card_summary(card: dict) -> str:
@@ -266,7 +263,22 @@ def card_summary(card: dict) -> str:
     ds = card.get("dataset") or {}
     return (f"{card.get('model')} ({card.get('recipe')}) on {ds.get('name', '?')}, {ds.get('n_vertices', '?')} vertices; "
             f"identities train {n.get('train', '?')} / val {n.get('val', '?')} / test {n.get('test', '?')}; "
-            f"epochs {', '.join(map(str, ep)) or '?'}; commit {str(card.get('commit') or '?')[:10]}")
+            f"epochs {', '.join(map(str, ep)) or '?'}; commit {str(card.get('commit') or '?')[:10]}; {_wins(card)}")
+
+
+def _wins(card: dict, metrics=("l1", "dame", "fmpd")) -> str:
+    """'test: lower than dt on L1 57/57, ...': per metric, the expressions where the model's test
+    mean is below the best other model's (the baselines of its run)."""
+    label, test = card.get("model"), card.get("test") or {}
+    others = sorted({k for row in test.values() for k in row if k != label})
+    counts = []
+    for mm in metrics:
+        pairs = [(((row.get(label) or {}).get(mm) or {}).get("mean"),
+                  [((row.get(o) or {}).get(mm) or {}).get("mean") for o in others]) for row in test.values()]
+        pairs = [(a, min(b for b in bs if b is not None)) for a, bs in pairs
+                 if a is not None and any(b is not None for b in bs)]
+        counts.append(f"{mm.upper()} {sum(a < b for a, b in pairs)}/{len(pairs)}")
+    return f"test: lower than {', '.join(others) or 'nothing'} on " + ", ".join(counts)
 
 
 def card_table(card: dict, metrics=("l1", "dame", "fmpd")) -> str:
@@ -287,7 +299,6 @@ def card_table(card: dict, metrics=("l1", "dame", "fmpd")) -> str:
     lines.append(f"test identities: {label} against {', '.join(others) or 'nothing'}; each cell: {label} / best "
                  f"other (ratio; below 1: {label} lower)")
     lines.append(" | ".join(head))
-    wins = {mm: 0 for mm in metrics}
     for e, row in test.items():
         cells = [e]
         for mm in metrics:
@@ -298,11 +309,9 @@ def card_table(card: dict, metrics=("l1", "dame", "fmpd")) -> str:
                 cells.append("-")
                 continue
             b = min(bs)
-            wins[mm] += a < b
             cells.append(f"{a:.4g} / {b:.4g} ({a / b:.2f})" if b > 0 else f"{a:.4g} / {b:.4g}")
         lines.append(" | ".join(cells))
-    lines.append("lower than the best other on: " + ", ".join(f"{mm.upper()} {wins[mm]} of {len(test)}"
-                                                            for mm in metrics))
+    lines.append(_wins(card, metrics))
     return "\n".join(lines)
 
 

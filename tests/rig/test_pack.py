@@ -83,7 +83,7 @@ def test_show_rig_prints_the_card_table(packed, capsys):
     _, out, _ = packed
     assert main(["show", "rig", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "pbs against dt" in text and "lower than the best other on: L1" in text
+    assert "pbs against dt" in text and "test: lower than dt on L1" in text
     for e in ("face-compression", "mouth-wide", "oo-brow-raise-eyes-wide"):
         assert e in text
 
@@ -162,6 +162,22 @@ def test_the_shipped_model_is_small_safe_and_licensed():
     assert {"LICENSE-ICT-FaceKit.txt", "ATTRIBUTION.md"} <= set(card["included"])
     assert "MIT" in (folder / "LICENSE-ICT-FaceKit.txt").read_text()
     assert len(card["test"]) == 57 and card["identities"]["test"]
+
+
+@pytest.mark.skipif("ict-face" not in SHIPPED, reason="this checkout ships no ict-face rig model")
+def test_fwk_list_shows_the_shipped_model_as_a_row(capsys):
+    """fwk list: one row per component, the shipped rig models among them (kind rig) with what they
+    were trained on and their test counts against their run's baselines; --kind rig alone."""
+    assert main(["list", "--kind", "rig"]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    assert rows[0].split()[:2] == ["name", "kind"] and rows[1].split()[:3] == ["ict-face", "rig", "fwk"]
+    for word in ("rig_ict_shipped", "identities train 24 / val 8 / test 8", "epochs", "commit",
+                 "test: lower than dt on L1"):
+        assert word in rows[1], word
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert all(line.split() for line in out)  # no blank line: every line after the header is a row
+    assert any(line.split()[:2] == ["ict-face", "rig"] for line in out)
 
 
 @pytest.mark.skipif("ict-face" not in SHIPPED, reason="this checkout ships no ict-face rig model")
