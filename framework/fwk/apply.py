@@ -79,6 +79,7 @@ from .protocols import BlendshapeModel, CutSelectingModel
 from .rig.arkit import NAMINGS, check_only_mapped, mapped_sources, only_mapped_note, rename
 from .rig.fbx import import_bpy, write_fbx
 from .rig.gltf import write_glb
+from .rig.shipped import shipped_or_path
 from .rig.usd import write_usd
 
 if TYPE_CHECKING:  # the rig modules import scipy.spatial: loaded where they run, not at fwk's start-up
@@ -105,7 +106,8 @@ def add_apply_parser(subparsers):
         "apply", help="personalised blendshapes for your own neutral head(s) from a blendshapes run",
         description="Predict every expression of a trained blendshapes run for a neutral OBJ (or a folder "
                     "of them) and write one OBJ per expression with the neutral's own polygons and UVs.")
-    p.add_argument("run_dir", help="a finished `fwk run` directory of task blendshapes")
+    p.add_argument("run_dir", help="a finished `fwk run` directory of task blendshapes, or a shipped rig model's "
+                                   "name (fwk list --kind rig)")
     p.add_argument("neutral", help="a neutral head .obj sharing the run's topology, or a folder of them")
     p.add_argument("--out", required=True, help="output folder (created; existing files of the same name are replaced)")
     p.add_argument("--model", default=None, help="model label of the run (default: the run's apply_model, else "
@@ -150,7 +152,7 @@ class Applier:
 
     def __init__(self, run_dir, model: str | None = None, registry=None, seed_run: int | None = None,
                  say=_stderr):
-        run = open_run(run_dir, registry, seed_run=seed_run, say=say)
+        run = open_run(shipped_or_path(run_dir), registry, seed_run=seed_run, say=say)
         label = model or run.metrics.get("apply_model") or run.params.get("apply_model")
         self.label = choose_model(run.specs, BlendshapeModel, label, prefer=CutSelectingModel,
                                   source=str(run.run_dir))
@@ -507,7 +509,9 @@ def add_register_parser(subparsers):
                     "placement) guided by landmark pairs; write the neutral in the template's topology, the "
                     "correspondence of the scan's vertices and a report.")
     p.add_argument("scan", help="the head, an .obj of any topology")
-    p.add_argument("--template", required=True, metavar="RUN", help="a finished `fwk run` directory of task blendshapes")
+    p.add_argument("--template", required=True, metavar="RUN|MODEL",
+                   help="a finished `fwk run` directory of task blendshapes, or a shipped rig model's name "
+                        "(fwk list --kind rig)")
     p.add_argument("--landmarks", required=True, metavar="L.json", help='pairs {"landmarks": [{"template": ID, '
                    '"scan": ID or [x, y, z]}, ...]}, 0-based vertex ids, at least 5 (docs/rig-quickstart.md)')
     p.add_argument("--out", required=True, help="output folder: neutral.obj, correspondence.npz, report.md")

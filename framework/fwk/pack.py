@@ -57,11 +57,9 @@ from .lifecycle import choose_model, open_run, read_run_recipe
 from .paths import check_dir
 from .protocols import BLENDSHAPES, BlendshapeModel, CutSelectingModel, Packable
 from .runs import RECIPE_HASH, recipe_hash
+from .rig.shipped import CARD, shipped
 from .safeio import NARROWED, PRECISIONS, load_json, load_npz, narrow, save_state
 
-#: where the rig models that ship with fwk live (package data)
-SHIPPED = Path(__file__).parent / "shipped"
-CARD = "card.json"
 #: the largest difference between a packed model's predictions and the run's model's, as a share
 #: of the largest predicted displacement, that ``fwk pack`` accepts
 MAX_PACK_ERROR = 1e-3
@@ -213,13 +211,6 @@ def pack(run_dir, out, model: str | None = None, seed_run: int | None = None, in
 
 # ----------------------------------------------------------------------------- shipped models
 
-def shipped() -> dict[str, Path]:
-    """{name: folder} of the rig models that ship with fwk (``fwk/shipped/<name>/card.json``)."""
-    if not SHIPPED.is_dir():
-        return {}
-    return {p.name: p for p in sorted(SHIPPED.iterdir()) if (p / CARD).is_file()}
-
-
 def read_card(folder: Path) -> dict:
     card = load_json(Path(folder) / CARD)
     if not isinstance(card, dict):
@@ -363,7 +354,8 @@ def add_rig_parser(subparsers):
     p.add_argument("--naming", default="arkit", help="shape names: arkit (default) or source")
     p.add_argument("--all-shapes", action="store_true",
                    help="keep the shapes without an ARKit name (default with --naming arkit: ARKit's only)")
-    p.add_argument("--expressions", help="comma-separated subset of the model's expressions")
+    p.add_argument("--expressions", nargs="*", default=None,
+                   help="only these of the model's expressions, by its own names (as fwk apply)")
     p.add_argument("--units", help="the neutral's units (mm, cm, m, in, ...) or a factor into the model's")
     p.add_argument("--landmarks", metavar="L.json", help="landmarks for a head of another topology (fwk register)")
     p.add_argument("--carry", choices=CARRIES, default=CARRIES[0],
@@ -373,7 +365,7 @@ def add_rig_parser(subparsers):
 
 def run_rig(args) -> int:
     folder = find_model(args.model)
-    exprs = [e.strip() for e in args.expressions.split(",")] if args.expressions else None
+    exprs = args.expressions or None
     only = args.naming == "arkit" and not args.all_shapes
     apply(folder, args.neutral, args.out, None, exprs, formats=args.format, naming=args.naming, units=args.units,
           only_mapped=only, landmarks=args.landmarks, carry=args.carry, command="fwk rig")

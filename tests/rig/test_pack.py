@@ -165,6 +165,24 @@ def test_the_shipped_model_is_small_safe_and_licensed():
 
 
 @pytest.mark.skipif("ict-face" not in SHIPPED, reason="this checkout ships no ict-face rig model")
+def test_apply_takes_a_shipped_models_name_as_its_run(tmp_path, monkeypatch):
+    """fwk apply ict-face HEAD.obj (and fwk register --template ict-face: the same reopening) uses
+    the shipped model; a folder of that name in the working directory wins."""
+    from fwk.data.io import read_obj
+
+    folder = SHIPPED["ict-face"]
+    _mean_obj(folder, tmp_path / "head.obj")
+    monkeypatch.chdir(tmp_path)
+    assert main(["apply", "ict-face", "head.obj", "--out", "a", "--expressions", "jawOpen", "eyeBlink_L"]) == 0
+    assert main(["rig", "head.obj", "--out", "r", "--naming", "source", "--all-shapes", "--format", "obj",
+                 "--expressions", "jawOpen", "eyeBlink_L"]) == 0
+    for e in ("jawOpen", "eyeBlink_L"):
+        assert np.array_equal(read_obj(tmp_path / "a" / f"{e}.obj")[0], read_obj(tmp_path / "r" / f"{e}.obj")[0])
+    (tmp_path / "ict-face").mkdir()  # not a run: refused as a path, not taken for the shipped model
+    assert main(["apply", "ict-face", "head.obj", "--out", "b"]) == 2
+
+
+@pytest.mark.skipif("ict-face" not in SHIPPED, reason="this checkout ships no ict-face rig model")
 def test_fwk_list_shows_the_shipped_model_as_a_row(capsys):
     """fwk list: one row per component, the shipped rig models among them (kind rig) with what they
     were trained on and their test counts against their run's baselines; --kind rig alone."""
