@@ -864,7 +864,8 @@ class PBS(_Blend):
     def derived_buffers(self) -> set[str]:
         """The networks' buffers that networks built afresh from the template hold too, equal
         (pooling matrices, spiral indices: derived from the graph hierarchy, not trained)."""
-        fresh = dict(self._build_nets(self.template, self.shape[1]).named_buffers())
+        with torch.random.fork_rng():  # building initialises weights: the caller's random state stays as it was
+            fresh = dict(self._build_nets(self.template, self.shape[1]).named_buffers())
         out = set()
         for k, v in self.nets.named_buffers():
             f = fresh.get(k)
@@ -883,12 +884,12 @@ class PBS(_Blend):
         """The state ``fwk pack`` ships (``fwk.protocols.Packable``): ``state_dict()`` without the
         k sweep's curves (reports read them, prediction does not; the chosen k stay), without the
         networks' buffers that building them from the template gives again (``derived_buffers``),
-        with the
-        assembler's basis cut at the largest chosen k below n (``TruncatesCuts``; none when every
-        chosen k is 0 or n); the anchor's own packed state when it has one."""
+        with the assembler's basis cut at the largest chosen k below n (``TruncatesCuts``; none
+        when every chosen k is 0 or n); the anchor's own packed state when it has one."""
         st = self.state_dict()
         st["sweep"] = {}
-        st["nets"] = {k: v for k, v in st["nets"].items() if k not in self.derived_buffers()}
+        derived = self.derived_buffers()
+        st["nets"] = {k: v for k, v in st["nets"].items() if k not in derived}
         n = self.shape[0]
         K = max([int(k) for k in self.k.values() if 0 < int(k) < n], default=0)
         if self.assembler is not None and K == 0:
