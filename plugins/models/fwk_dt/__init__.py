@@ -20,9 +20,11 @@ transfer). ``placement: median`` (beyond the thesis) places it instead by the pe
 over the vertices of (T0 + d - X), d the source's displacement and X the solved result: the L1
 translation, which a majority of the vertices decides. Where the source leaves most of a head
 still (a jaw opening: the skull, the forehead), those vertices then stay still on the target too;
-the centroid rule moves them by the difference of the two centroid shifts (measured on
-ICT-FaceKit's jawOpen from the mean subject: 0.03-0.08 cm at the skull top, which ICT's own shape
-does not move). Several sources (``sources: [0, 1, 2]``) average their per-triangle maps Q_j; the
+the centroid rule moves them by the difference of the two centroid shifts. On fwk's ICT-FaceKit
+data, whose synthetic personalisation moves most vertices a little under every expression, it
+halves the skull top's motion under jawOpen from the mean subject (0.077 / 0.069 / 0.026 cm with
+the centroid, 0.042 / 0.026 / 0.008 cm with the median, three test identities; ICT's own shape:
+under 0.001 cm); what is left is the least-squares solve's own deformation. Several sources (``sources: [0, 1, 2]``) average their per-triangle maps Q_j; the
 thesis reports each source separately (one ``dt`` per source in a recipe).
 
 ``sources: mean`` (beyond the thesis) takes as the one source the mean training subject: the
