@@ -38,7 +38,12 @@ def bpy():
 
 @pytest.fixture
 def clean(bpy):
-    """bpy, checked empty after the test: write_fbx leaves nothing in Blender's scene."""
+    """bpy, checked empty after the test: write_fbx leaves nothing in Blender's scene. It starts
+    from an empty scene too: a freshly imported bpy holds Blender's start-up scene (a cube, a
+    camera, a light), which a test refused before any Blender call would otherwise find here (seen
+    when such a test was the first of a pytest-xdist worker to use bpy)."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        bpy.ops.wm.read_factory_settings(use_empty=True)
     yield bpy
     assert not bpy.data.objects and not bpy.data.meshes and not bpy.data.shape_keys
 
