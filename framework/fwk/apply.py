@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import argparse
 import os
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor
 import shutil
 import sys
 import tempfile
@@ -430,14 +430,12 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
         for (f, V, tpl, region), shapes in zip(meshes, renamed):
             sub = tmp if not neutral.is_dir() else tmp / f.stem
             sub.mkdir(parents=True, exist_ok=True)
-            objs = None
-            if "obj" in fmts:  # the OBJs in a second thread while the rig files are built (their
-                # writes and NumPy release the GIL: 51 full ICT heads, 1 s less of fwk rig's 9 s)
+            # the OBJs in a second thread while the rig files are built (their writes and NumPy release
+            # the GIL: 51 full ICT heads, 1 s less of fwk rig's 9 s); leaving the block waits for it
+            with ThreadPoolExecutor(1) as pool:
                 writer = ObjWriter(tpl)
-                pool = ThreadPoolExecutor(1)
-                objs = pool.submit(lambda w=writer, d=sub, sh=shapes: [w.write(d / f"{e}.obj", X) for e, X in sh.items()])
-                pool.shutdown(wait=False)
-            try:
+                objs = pool.submit(lambda: [writer.write(sub / f"{e}.obj", X) for e, X in shapes.items()]) \
+                    if "obj" in fmts else None
                 for fmt in fmts:
                     if fmt == "obj":
                         continue
@@ -447,9 +445,6 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
                         write_fbx(sub / f"{f.stem}.fbx", V, tpl, shapes, units=out_units, name=f.stem)
                     else:
                         write_usd(sub / f"{f.stem}{FORMATS[fmt]}", V, tpl, shapes, units=out_units, name=f.stem)
-            finally:  # the OBJ thread is done before anything is raised or moved
-                if objs is not None:
-                    wait([objs])
             if objs is not None:
                 objs.result()  # an error of the OBJ thread raises here
         out.mkdir(parents=True, exist_ok=True)

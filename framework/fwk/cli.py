@@ -164,7 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     sp = sub.add_parser("list", help="list registered components")
-    sp.add_argument("--kind", help=f"one of: {', '.join([*KINDS, 'rig'])} (rig: the rig models fwk ships)")
+    sp.add_argument("--kind", help=f"one of: {', '.join([*KINDS, RIG_KIND])} ({RIG_KIND}: the rig models fwk ships)")
     sp.set_defaults(func=cmd_list)
     sp = sub.add_parser("show", help="describe a component (KIND NAME) or a rig model (rig NAME)")
     sp.add_argument("kind")

@@ -257,17 +257,26 @@ def card_summary(card: dict) -> str:
             f"epochs {', '.join(map(str, ep)) or '?'}; commit {str(card.get('commit') or '?')[:10]}; {_wins(card)}")
 
 
+def _others(card: dict) -> list[str]:
+    """The card's other models (the baselines of its run), in name order."""
+    return sorted({k for row in (card.get("test") or {}).values() for k in row if k != card.get("model")})
+
+
+def _against_best(row: dict, label: str, others: list[str], metric: str) -> tuple[float, float] | None:
+    """(the model's test mean, the lowest of the others') of one expression's row, None when either
+    is missing."""
+    a = ((row.get(label) or {}).get(metric) or {}).get("mean")
+    bs = [b for b in (((row.get(o) or {}).get(metric) or {}).get("mean") for o in others) if b is not None]
+    return None if a is None or not bs else (a, min(bs))
+
+
 def _wins(card: dict, metrics=("l1", "dame", "fmpd")) -> str:
     """'test: lower than dt on L1 57/57, ...': per metric, the expressions where the model's test
     mean is below the best other model's (the baselines of its run)."""
-    label, test = card.get("model"), card.get("test") or {}
-    others = sorted({k for row in test.values() for k in row if k != label})
+    label, test, others = card.get("model"), card.get("test") or {}, _others(card)
     counts = []
     for mm in metrics:
-        pairs = [(((row.get(label) or {}).get(mm) or {}).get("mean"),
-                  [((row.get(o) or {}).get(mm) or {}).get("mean") for o in others]) for row in test.values()]
-        pairs = [(a, min(b for b in bs if b is not None)) for a, bs in pairs
-                 if a is not None and any(b is not None for b in bs)]
+        pairs = [p for p in (_against_best(row, label, others, mm) for row in test.values()) if p is not None]
         counts.append(f"{mm.upper()} {sum(a < b for a, b in pairs)}/{len(pairs)}")
     return f"test: lower than {', '.join(others) or 'nothing'} on " + ", ".join(counts)
 
@@ -275,10 +284,7 @@ def _wins(card: dict, metrics=("l1", "dame", "fmpd")) -> str:
 def card_table(card: dict, metrics=("l1", "dame", "fmpd")) -> str:
     """The card's test metrics: per expression the model's mean and every other model's, with the
     ratio to the best other (below 1: the model is better)."""
-    label = card.get("model")
-    test = card.get("test") or {}
-    others = sorted({k for row in test.values() for k in row  # the baselines, not the model's own parts
-                     if k != label and not k.startswith(f"{label}:")})
+    label, test, others = card.get("model"), card.get("test") or {}, _others(card)
     lines = []
     units = {}
     for row in test.values():
@@ -293,13 +299,11 @@ def card_table(card: dict, metrics=("l1", "dame", "fmpd")) -> str:
     for e, row in test.items():
         cells = [e]
         for mm in metrics:
-            a = ((row.get(label) or {}).get(mm) or {}).get("mean")
-            bs = [((row.get(o) or {}).get(mm) or {}).get("mean") for o in others]
-            bs = [b for b in bs if b is not None]
-            if a is None or not bs:
+            pair = _against_best(row, label, others, mm)
+            if pair is None:
                 cells.append("-")
                 continue
-            b = min(bs)
+            a, b = pair
             cells.append(f"{a:.4g} / {b:.4g} ({a / b:.2f})" if b > 0 else f"{a:.4g} / {b:.4g}")
         lines.append(" | ".join(cells))
     lines.append(_wins(card, metrics))

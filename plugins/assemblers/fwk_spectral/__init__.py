@@ -191,7 +191,7 @@ class Spectral:
                 "m": self.proj.m, "mean": self.mean, "evals": None if self.evals is None else self.evals[:k]}
 
     def load_state_dict(self, d, ctx=None) -> None:
-        self.cuts, self.mass, self.mean = [int(c) for c in d["cuts"]], bool(d["mass"]), np.asarray(d["mean"])
+        self.cuts, self.mass = [int(c) for c in d["cuts"]], bool(d["mass"])
         self.eigen_k = d.get("eigen_k")
         self.evals = d.get("evals")
         # float64 whatever the file stores (a packed model may keep the basis in float32)
