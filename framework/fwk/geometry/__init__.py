@@ -9,5 +9,7 @@ from .topology import (  # noqa: F401
     EdgeTopology, border_edges, connected_components, edge_faces, edge_topology, edges, interior_edges,
     non_manifold_edges, one_ring,
 )
-from .operators import check_mesh, cotangent_laplacian, face_areas, mass_matrix, vertex_normals  # noqa: F401
+from .operators import (  # noqa: F401
+    check_mesh, cotangent_laplacian, face_areas, factor_spd, mass_matrix, vertex_normals,
+)
 from .spectral import SpectralProjector, ShiftedFactors, eigenbasis, generalized_eigs, has_cholmod  # noqa: F401

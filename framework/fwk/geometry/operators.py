@@ -112,3 +112,19 @@ def vertex_normals(V, F) -> np.ndarray:
     nrm = np.linalg.norm(out, axis=-1, keepdims=True)
     out = out / np.where(nrm > 0, nrm, 1.0)
     return out[0] if single else out
+
+
+def factor_spd(A):
+    """SuperLU factors (``scipy.sparse.linalg.splu``; ``.solve(b)``) of a sparse symmetric
+    positive definite A, ordered for symmetry: the minimum degree ordering of A + A^T applied to
+    rows and columns alike, no partial pivoting (``diag_pivot_thresh=0``, ``SymmetricMode``: SPD
+    needs none). SciPy's default, COLAMD with partial pivoting, orders for an unsymmetric A: on
+    Deformation Transfer's 18,167 x 18,167 normal equations (a 6,080-vertex head) it filled in
+    1.86 M non-zeros and factored in 0.124 s, this 0.53 M in 0.034 s, and solved 3.6x faster
+    (``benchmarks/pipeline.py``). The solutions agree to rounding (tested against a dense
+    solve). Not for indefinite or unsymmetric matrices: without pivoting their factors may be
+    unstable (use ``splu`` itself)."""
+    from scipy.sparse.linalg import splu
+
+    return splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                options={"SymmetricMode": True})

@@ -39,9 +39,9 @@ scan's vertices in least squares, anchored softly to the barycentric carry:
    mu = 1 / l^2, l = ``ANCHOR_LENGTH`` median template edges in scan units (both terms then
    have units of area: wavelengths above l follow the anchor, below it the gradients). The
    normal equations (G^T A G + mu M) d = G^T A g + mu M c, with G the (3 m_s x p) gradient
-   operator and G^T A G the scan's cotangent Laplacian, are factorised once per scan (SuperLU)
-   and solved for every expression, three columns each. Degenerate scan triangles (area <=
-   1e-14 x the mean) carry no gradient term.
+   operator and G^T A G the scan's cotangent Laplacian, are factorised once per scan (SuperLU
+   ordered for symmetry, ``fwk.geometry.factor_spd``) and solved for every expression, three
+   columns each. Degenerate scan triangles (area <= 1e-14 x the mean) carry no gradient term.
 
 Properties (tests/rig/test_carry.py): a zero deformation gives the scan exactly; a rotation and
 uniform scale of the template (about any point) is reproduced exactly when the scan lies on the
@@ -58,10 +58,9 @@ import time
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
 
 from ..errors import DataError
-from ..geometry import mass_matrix
+from ..geometry import factor_spd, mass_matrix
 from .register import Registration, closest_points, median_edge
 
 #: the anchor's length l, in median template edges: mu = 1 / l^2. Measured on the ICT held-out
@@ -128,7 +127,7 @@ class DeformationCarry:
         h = median_edge(Y, Ft) / reg.unit                     # scan units
         self.mu = 1.0 / (anchor_length * h) ** 2
         self.mass = mass_matrix(V, SF, kind="barycentric").diagonal()
-        self.lu = splu((L + sp.diags(self.mu * self.mass)).tocsc(), permc_spec="COLAMD")
+        self.lu = factor_spd(L + sp.diags(self.mu * self.mass))
         self.GtA = GtA
         self.P = np.eye(3)[None] - nu[:, :, None] * nu[:, None, :]  # (m_s, 3, 3) tangent projections
         # the smooth field: scan triangle <- scan corners <- template vertices (bary) <- template triangles
