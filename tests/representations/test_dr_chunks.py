@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import fwk_dr
+from fwk.cache import forget
 from fwk.plugins import get_registry
 from tests.representations.test_dr_reference import head, smooth_deformation  # noqa: F401 (fixture)
 
@@ -48,6 +49,7 @@ def test_memory_is_bounded_by_the_chunk(head, monkeypatch):  # noqa: F811
 
     def peak(chunk):
         monkeypatch.setattr(fwk_dr, "CHUNK_BYTES", chunk * per_sample)
+        forget("fwk_dr.raw_features")  # computed afresh, not remembered from the call before
         tracemalloc.start()
         r.raw_features(P)
         out = tracemalloc.get_traced_memory()[1]
@@ -57,3 +59,37 @@ def test_memory_is_bounded_by_the_chunk(head, monkeypatch):  # noqa: F811
     small, whole = peak(2), peak(24)
     out_bytes = 24 * len(V) * 9 * 8 * 2  # the result and its concatenation
     assert small - out_bytes < 0.25 * (whole - out_bytes), (small, whole)
+
+
+def test_features_are_remembered_for_the_same_meshes_only(head, monkeypatch):  # noqa: F811
+    """fit then encode of the same meshes computes the features once; other meshes, another
+    reference, another fitted mean or another parameter compute afresh; a remembered result
+    equals a fresh one, and writing into it leaves the remembered one alone; results over
+    MEMO_BYTES are not remembered."""
+    V, t = head
+    P = _samples(V, 4)
+    R = _samples(V, 4, seed0=100, amplitude=0.02)
+    forget("fwk_dr.raw_features")
+    calls = []
+    real = fwk_dr.DR._raw_features
+    monkeypatch.setattr(fwk_dr.DR, "_raw_features", lambda self, *a: calls.append(1) or real(self, *a))
+    r = DR(scaling="std")
+    r.fit(P, None, t)
+    X = r.encode(P)
+    assert len(calls) == 1
+    F = r.raw_features(P)
+    assert len(calls) == 1 and np.array_equal(F, real(r, P, None))
+    F[0, 0, 0] += 1.0
+    assert np.array_equal(r.raw_features(P), real(r, P, None)) and len(calls) == 1
+    assert np.array_equal(X, r.scaler.transform(real(r, P, None)).astype(np.float32))
+    r.raw_features(P[:3])  # other meshes
+    r.raw_features(P, R)  # another reference
+    DR(scaling="std", normal_weight=0.2).fit(P, None, t)  # another parameter
+    r2 = DR(scaling="std")
+    r2.fit(P[:3], None, t)  # another fitted mean
+    r2.raw_features(P)
+    assert len(calls) == 6
+    monkeypatch.setattr(fwk_dr, "MEMO_BYTES", P.size * 3 * 8 - 1)  # too large to remember
+    r.raw_features(P)
+    r.raw_features(P)
+    assert len(calls) == 8
