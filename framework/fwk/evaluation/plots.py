@@ -62,10 +62,11 @@ def save_figure(fig, path, **savefig) -> Path:
 
 
 def _hits(box, rects: np.ndarray) -> bool:
-    """Whether the display-space ``box`` overlaps any of ``rects`` ((m, 4): x0, y0, x1, y1)."""
+    """Whether the display-space ``box`` (x0, y0, x1, y1) overlaps any of ``rects`` ((m, 4))."""
     if not len(rects):
         return False
-    return bool(np.any((rects[:, 0] < box.x1) & (rects[:, 2] > box.x0) & (rects[:, 1] < box.y1) & (rects[:, 3] > box.y0)))
+    x0, y0, x1, y1 = box
+    return bool(np.any((rects[:, 0] < x1) & (rects[:, 2] > x0) & (rects[:, 1] < y1) & (rects[:, 3] > y0)))
 
 
 def place_labels(ax, points, labels, first=(), fontsize: float = LABEL_PT, markers=None, avoid=(), lines=()) -> list:
@@ -99,20 +100,38 @@ def place_labels(ax, points, labels, first=(), fontsize: float = LABEL_PT, marke
     done = set(first)
     order = first + [i for i in range(len(labels)) if i not in done]
     placed, boxes = [], np.zeros((0, 4))
+    px = fig.dpi / 72.0  # pixels per point
     for i in order:
+        # the text's box at each alignment, measured once (a text's extent moves with its anchor);
+        # the candidates are then arithmetic: a trial annotation with its leader line per place
+        # cost most of the main job's figure time (the arrow's path clipped each time)
+        probe = ax.text(*P[i], str(labels[i]), fontsize=fontsize)
+        rel = {}
+        for _, _, ha, va in _PLACES:
+            if (ha, va) not in rel:
+                probe.set_ha(ha)
+                probe.set_va(va)
+                b = Text.get_window_extent(probe, renderer)
+                rel[ha, va] = (b.x0 - xy[i, 0], b.y0 - xy[i, 1], b.x1 - xy[i, 0], b.y1 - xy[i, 1])
+        probe.remove()
         for d, (ux, uy, ha, va) in ((d, p) for d in _DISTANCES for p in _PLACES):
             far = d > _DISTANCES[0]
-            t = ax.annotate(str(labels[i]), tuple(P[i]), fontsize=fontsize, xytext=(ux * d, uy * d),
-                            textcoords="offset points", ha=ha, va=va,
-                            arrowprops=dict(arrowstyle="-", lw=0.5, color="0.45", shrinkA=0, shrinkB=3) if far else None)
-            whole = t.get_window_extent(renderer)  # with its leader line: no two labels' overlap
-            box = Text.get_window_extent(t, renderer)  # the text alone: clear of every point and line, inside
-            inside = (box.x0 >= frame.x0 and box.x1 <= frame.x1 and box.y0 >= frame.y0 and box.y1 <= frame.y1)
+            ox, oy = xy[i, 0] + ux * d * px, xy[i, 1] + uy * d * px
+            r = rel[ha, va]
+            box = (ox + r[0], oy + r[1], ox + r[2], oy + r[3])  # the text alone
+            # with its leader line (within the box spanned by the text and its point): no two labels' overlap
+            whole = (min(box[0], xy[i, 0]), min(box[1], xy[i, 1]), max(box[2], xy[i, 0]), max(box[3], xy[i, 1])) \
+                if far else box
+            inside = box[0] >= frame.x0 and box[2] <= frame.x1 and box[1] >= frame.y0 and box[3] <= frame.y1
             if inside and not _hits(whole, boxes) and not _hits(box, blocked):
+                t = ax.annotate(str(labels[i]), tuple(P[i]), fontsize=fontsize, xytext=(ux * d, uy * d),
+                                textcoords="offset points", ha=ha, va=va,
+                                arrowprops=dict(arrowstyle="-", lw=0.5, color="0.45", shrinkA=0, shrinkB=3)
+                                if far else None)
+                t.get_window_extent(renderer)  # lays the annotation out (its text's extent is then box)
                 placed.append(t)
-                boxes = np.vstack([boxes, [[whole.x0, whole.y0, whole.x1, whole.y1]]])
+                boxes = np.vstack([boxes, [whole]])
                 break
-            t.remove()
     return placed
 
 
