@@ -1,5 +1,5 @@
 """Shared by the benchmarks: the ICT-FaceKit face-head region (11,248 vertices), or a
-synthetic head of the same size when the data is absent."""
+synthetic head of the same size when the data is absent; timing helpers."""
 from __future__ import annotations
 
 import numpy as np
@@ -29,3 +29,19 @@ def timeit(fn, repeat: int = 7) -> float:
         fn()
         best = min(best, time.perf_counter() - t)
     return best
+
+
+def alternate(fns: dict, n: int) -> dict:
+    """Median seconds per call of each closure, called in turn n times after one warm-up each
+    (side by side: a load that comes and goes falls on every version alike)."""
+    import time
+
+    for f in fns.values():
+        f()
+    ts = {k: [] for k in fns}
+    for _ in range(n):
+        for k, f in fns.items():
+            t0 = time.perf_counter()
+            f()
+            ts[k].append(time.perf_counter() - t0)
+    return {k: float(np.median(v)) for k, v in ts.items()}

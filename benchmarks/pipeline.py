@@ -24,7 +24,6 @@ import argparse
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -32,26 +31,13 @@ from scipy.sparse.linalg import splu
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _before_pipeline as before  # noqa: E402
-from _ict import face_head  # noqa: E402
+from _ict import alternate, face_head  # noqa: E402
 
 import fwk_dr  # noqa: E402
 import fwk_dt  # noqa: E402
 from fwk.cache import forget  # noqa: E402
 from fwk.geometry import factor_spd  # noqa: E402
 from fwk.plugins import get_registry  # noqa: E402
-
-
-def alternate(fns: dict, n: int) -> dict:
-    """Median seconds of each closure, called in turn n times after one warm-up each."""
-    for f in fns.values():
-        f()
-    ts = {k: [] for k in fns}
-    for _ in range(n):
-        for k, f in fns.items():
-            t0 = time.perf_counter()
-            f()
-            ts[k].append(time.perf_counter() - t0)
-    return {k: float(np.median(v)) for k, v in ts.items()}
 
 
 def dt_row(name, V, F, n) -> dict:

@@ -49,7 +49,7 @@ from torch.utils.flop_counter import FlopCounterMode
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _before  # noqa: E402
-from _ict import face_head  # noqa: E402
+from _ict import alternate, face_head  # noqa: E402
 from fwk.plugins import get_registry  # noqa: E402
 from fwk.recipes import make_spec  # noqa: E402
 
@@ -115,19 +115,6 @@ def matmul_rate(repeat: int = 7) -> float:
         a @ b
         ts.append(time.perf_counter() - t0)
     return 2 * 2048 ** 3 / float(np.median(ts)) / 1e9
-
-
-def alternate(steps: dict, n: int) -> dict:
-    """Median seconds per call of each closure, called in turn n times after one warm-up each."""
-    for f in steps.values():
-        f()
-    ts = {k: [] for k in steps}
-    for _ in range(n):
-        for k, f in steps.items():
-            t0 = time.perf_counter()
-            f()
-            ts[k].append(time.perf_counter() - t0)
-    return {k: float(np.median(v)) for k, v in ts.items()}
 
 
 def loss_deviation(enc, dec, x, n: int = 8) -> list[float]:
