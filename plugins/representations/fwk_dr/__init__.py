@@ -163,8 +163,8 @@ def polar(T, iters: int = 30, tol: float = 1e-14):
     X <- (g X + X^-T / g) / 2, g = |det X|^(-1/3), X^-T = cof(X) / det X, vectorised over
     (..., 3, 3); vertices whose T has det <= 0 (a reflection, or degenerate) use the SVD with
     det R = +1. The iteration runs on the nine components as contiguous arrays (one pass each
-    per operation; on (..., 3, 3) slices every operation strode over the matrices: 2.8x slower
-    at 243,200 matrices, measured)."""
+    per operation; on (..., 3, 3) slices every operation strode over the matrices: 1.7-2.8x slower
+    at 243,200 matrices, ``benchmarks/pipeline.py``)."""
     shape = T.shape
     x = list(np.ascontiguousarray(T.reshape(-1, 9).T))
     c = _cofactor_rows(x)
