@@ -7,8 +7,9 @@ convs and networks), side by side in one process.
 Networks (thesis 3.4 / appendix A), batch 16, on the ICT-FaceKit face-head region (11,248
 vertices) when ICT-FaceKit is present, else a synthetic head of the same size (printed):
 
-* ``vcconv VAE``: the fully convolutional VAE, channels [3, 32, 64, 128, 128, 8], 8 latent
-  vertices, weight_num 35, residual rate 0.5, ``simple`` sampler with 4 levels;
+* ``vcconv VAE``: the fully convolutional VAE at the thesis's width (its Mesh Autoencoder and
+  Deep Spectral Meshes' bands, issue 28's "thesis-width" network), channels [3, 32, 64, 128,
+  128, 8], 8 latent vertices, weight_num 35, residual rate 0.5, ``simple`` sampler with 4 levels;
 * ``vcconv ch5``: the same VAE at the chapter 5 study's and the ICT rig's width, channels
   [3, 8, 16, 32, 32, 2] (``recipes/thesis/ch5/base.yaml``), today's code only;
 * ``spiral++ AE``: channels [3, 16, 32, 64, 128], latent 64, ``quadric`` sampler, factors
