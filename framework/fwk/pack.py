@@ -57,7 +57,7 @@ from .lifecycle import choose_model, open_run, read_run_recipe
 from .paths import check_dir
 from .protocols import BLENDSHAPES, BlendshapeModel, CutSelectingModel, Packable
 from .runs import RECIPE_HASH, recipe_hash
-from .rig.shipped import CARD, shipped
+from .rig.shipped import CARD, shipped, shipped_or_path
 from .safeio import NARROWED, PRECISIONS, load_json, load_npz, narrow, save_state
 
 #: the largest difference between a packed model's predictions and the run's model's, as a share
@@ -220,7 +220,9 @@ def read_card(folder: Path) -> dict:
 
 def find_model(name: str | None) -> Path:
     """A shipped model's folder by name (None: the only one, or ``DEFAULT``), or a folder ``fwk
-    pack`` wrote (one with a card.json)."""
+    pack`` wrote (one with a card.json), or a run directory. A path that exists is taken as that
+    path, as every command that takes a run does (``fwk.rig.shipped.shipped_or_path``): a folder
+    in the working directory called like a shipped model wins, and is refused when it is neither."""
     have = shipped()
     if name is None:
         if DEFAULT in have:
@@ -229,13 +231,15 @@ def find_model(name: str | None) -> Path:
             return next(iter(have.values()))
         raise FwkError("fwk rig: no rig model ships with this installation; give --model FOLDER (fwk pack)"
                        if not have else f"fwk rig: give --model (shipped: {', '.join(have)})")
-    if name in have:
-        return have[name]
-    p = Path(name)
+    p = shipped_or_path(name)
     if (p / CARD).is_file():
         return p
     if p.is_dir() and (p / "recipe.yaml").is_file():
         return p  # a run directory: fwk rig applies it as fwk apply would
+    if p.exists() and name in have:
+        raise FwkError(f"--model {name}: {p} in the working directory is neither a folder written by fwk pack nor "
+                       f"a run, and a path is taken before a shipped model's name (the shipped {name}: "
+                       f"{have[name]})")
     raise FwkError(f"--model {name}: neither a shipped rig model ({', '.join(have) or 'none'}) nor a folder "
                    f"written by fwk pack or fwk run")
 

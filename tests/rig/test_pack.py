@@ -165,9 +165,10 @@ def test_the_shipped_model_is_small_safe_and_licensed():
 
 
 @pytest.mark.skipif("ict-face" not in SHIPPED, reason="this checkout ships no ict-face rig model")
-def test_apply_takes_a_shipped_models_name_as_its_run(tmp_path, monkeypatch):
+def test_apply_takes_a_shipped_models_name_as_its_run(tmp_path, monkeypatch, capsys):
     """fwk apply ict-face HEAD.obj (and fwk register --template ict-face: the same reopening) uses
-    the shipped model; a folder of that name in the working directory wins."""
+    the shipped model; a folder of that name in the working directory wins, for fwk apply and for
+    fwk rig --model alike (fwk rig without --model still takes the shipped default)."""
     from fwk.data.io import read_obj
 
     folder = SHIPPED["ict-face"]
@@ -180,6 +181,9 @@ def test_apply_takes_a_shipped_models_name_as_its_run(tmp_path, monkeypatch):
         assert np.array_equal(read_obj(tmp_path / "a" / f"{e}.obj")[0], read_obj(tmp_path / "r" / f"{e}.obj")[0])
     (tmp_path / "ict-face").mkdir()  # not a run: refused as a path, not taken for the shipped model
     assert main(["apply", "ict-face", "head.obj", "--out", "b"]) == 2
+    assert main(["rig", "head.obj", "--out", "b", "--model", "ict-face"]) == 2  # fwk rig alike
+    assert "is neither a folder written by fwk pack nor a run" in capsys.readouterr().err
+    assert main(["rig", "head.obj", "--out", "c", "--format", "obj", "--expressions", "jawOpen"]) == 0  # the default
 
 
 @pytest.mark.skipif("ict-face" not in SHIPPED, reason="this checkout ships no ict-face rig model")
