@@ -39,8 +39,6 @@ another topology (``fwk register``).
 """
 from __future__ import annotations
 
-import argparse
-import hashlib
 import json
 import os
 import shutil
