@@ -29,7 +29,8 @@ also load system libraries that a fresh machine may lack (libusb-1.0 above all: 
 ``fwk view SCAN.obj --pick LM.json --template RUN`` writes the landmark file of ``fwk register``
 and ``fwk apply --landmarks`` (``fwk.rig.register.read_landmarks``'s schema): open3d's editing
 window (``pick_points``, ``VisualizerWithEditing``: the mesh's vertices as a lit point cloud, as
-it picks points of a point cloud only) opens on the run's ``template.obj``, where the user
+it picks points of a point cloud only) opens on the run's ``template.obj`` (a rig model's
+template, ``--template ict-face``, written to a temporary OBJ), where the user
 shift-clicks 5-15 points (the instructions suggest ``RIGGER_POINTS``), and then on the scan, where
 the same points are picked in the same order; pairs in pick order, read back with
 ``read_landmarks``. ``--template-landmarks T.json`` gives the template's ids instead of the first
@@ -580,16 +581,23 @@ def _check_picks(ids: list[int], where: str) -> None:
 
 
 def template_obj(template) -> Path:
-    """The template OBJ of ``--template``: an .obj itself, or a blendshapes run's
-    ``template.obj`` (of its first seed's sub-run for a run with ``seeds:``)."""
-    p = Path(template)
+    """The template OBJ of ``--template``: an .obj itself, a blendshapes run's ``template.obj``
+    (of its first seed's sub-run for a run with ``seeds:``), or, for a rig model (a shipped one's
+    name, ``fwk list``, or a folder ``fwk pack`` wrote, which keeps no OBJ), its template's
+    triangles on its mean neutral written to a temporary OBJ: the picked ids are what count, and
+    they are the model's vertex ids."""
+    from .rig.shipped import CARD, shipped_or_path  # deferred: only for --template
+
+    p = shipped_or_path(template)
     if p.is_file():
         if p.suffix.lower() != ".obj":
-            raise FwkError(f"--template {p}: a run directory or a template .obj, not a {p.suffix or 'suffixless'} "
-                           f"file")
+            raise FwkError(f"--template {p}: a run directory, a rig model or a template .obj, not a "
+                           f"{p.suffix or 'suffixless'} file")
         return p
     if not p.is_dir():
-        raise FwkError(f"--template {p}: no such run directory or .obj")
+        raise FwkError(f"--template {p}: no such run directory, rig model or .obj")
+    if (p / CARD).is_file() and (p / "stats" / "template.npz").is_file():
+        return _packed_template_obj(p)
     if not (p / "template.obj").exists() and (p / "recipe.yaml").exists():
         from .lifecycle import seed_sub_run  # deferred: 40 ms of import time, only for a run with seeds
 
@@ -598,6 +606,32 @@ def template_obj(template) -> Path:
         raise FwkError(f"--template {template}: no template.obj in it (not a finished blendshapes run, or one "
                        f"from before template.obj); give the template .obj itself")
     return p / "template.obj"
+
+
+def _packed_template_obj(folder: Path) -> Path:
+    """A temporary OBJ of a packed rig model's template (``stats/template.npz``: its triangles on
+    the mean neutral), read with ``fwk.safeio.load_npz`` (arrays only, checked)."""
+    import tempfile
+
+    from .data.io import write_obj
+    from .data.template import Template
+    from .safeio import load_npz
+
+    path = folder / "stats" / "template.npz"
+    state = load_npz(path)
+    try:
+        V = np.asarray(state["mean_neutral"], dtype=np.float64)
+        F = np.asarray(state["triangles"], dtype=np.int64)
+        if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
+            raise ValueError(f"mean_neutral of shape {V.shape}, expected (n, 3) finite")
+        if F.ndim != 2 or F.shape[1] != 3 or not len(F) or F.min() < 0 or F.max() >= len(V):
+            raise ValueError(f"triangles of shape {F.shape} (expected (m, 3) ids below {len(V)})")
+        t = Template(V, F)
+    except Exception as exc:  # a damaged or swapped file: one line naming it
+        raise FwkError(f"--template {folder}: {path} is not a rig model's template "
+                       f"({type(exc).__name__}: {cut(str(exc), 100)})") from None
+    out = Path(tempfile.mkdtemp(prefix="fwk-template-")) / f"{folder.name}-template.obj"
+    return write_obj(out, V, t)
 
 
 def _numbered(names) -> str:
@@ -702,8 +736,8 @@ def add_view_parser(subparsers):
                    "shift-click the same 5-15 points in the same order (eye corners, mouth corners, nose tip, lip "
                    "midpoints, chin: the list is printed), closing each; writes LM.json as "
                    '{"landmarks": [{"template": ID, "scan": ID}, ...]}. Needs a real display (not xvfb-run)')
-    p.add_argument("--template", metavar="RUN", help="with --pick: a finished blendshapes run (its template.obj) or "
-                   "a template .obj")
+    p.add_argument("--template", metavar="RUN", help="with --pick: a finished blendshapes run (its template.obj), a "
+                   "rig model (a shipped one's name, e.g. ict-face, or a folder from fwk pack) or a template .obj")
     p.add_argument("--template-landmarks", metavar="T.json", help="with --pick: the template's vertex ids from this "
                    'file ([id, ...], {"name": id, ...} or an earlier landmark file) instead of the first window: you '
                    "pick on your head only")

@@ -245,3 +245,38 @@ def test_a_write_that_fails_after_picking_is_one_line(meshes, tmp_path, monkeypa
     assert fwk.view.main([str(scan), "--pick", str(out), "--template", str(run)]) == 2
     err = capsys.readouterr().err
     assert f"--pick {out}: cannot be written (Permission denied)" in err and err.count("\n") == 1
+
+
+def test_a_packed_rig_model_gives_its_template_to_pick_on(meshes, tmp_path, monkeypatch):
+    """--template with a rig model (a folder fwk pack wrote, which keeps no template.obj, or a
+    shipped model's name): the window opens on its template's triangles on its mean neutral,
+    written to a temporary OBJ, and the ids picked there are the model's; a damaged template
+    is one line naming the file."""
+    from fwk.data.io import read_obj
+    from fwk.rig.shipped import shipped
+
+    run, tpl, scan = meshes
+    V, t = read_obj(tpl)
+    packed = tmp_path / "packed"
+    (packed / "stats").mkdir(parents=True)
+    (packed / "card.json").write_text("{}")
+    np.savez(packed / "stats" / "template.npz", triangles=t.triangles, n_vertices=np.int64(len(V)), mean_neutral=V)
+    got = fwk.view.template_obj(packed)
+    V2, t2 = read_obj(got)
+    assert np.allclose(V2, V) and np.array_equal(t2.triangles, t.triangles)
+    clicks = types.SimpleNamespace(windows=[])
+
+    def fake_pick(path, title):
+        clicks.windows.append((str(path), title))
+        return TEMPLATE_IDS if len(clicks.windows) == 1 else SCAN_IDS
+
+    monkeypatch.setattr(fwk.view, "pick_points", fake_pick)
+    out = tmp_path / "lm.json"
+    assert fwk.view.main([str(scan), "--pick", str(out), "--template", str(packed)]) == 0
+    assert [d["template"] for d in json.loads(out.read_text())["landmarks"]] == TEMPLATE_IDS
+    np.savez(packed / "stats" / "template.npz", triangles=t.triangles[:, :2], mean_neutral=V)
+    with pytest.raises(FwkError, match="is not a rig model's template"):
+        fwk.view.template_obj(packed)
+    if "ict-face" in shipped():
+        V3, t3 = read_obj(fwk.view.template_obj("ict-face"))
+        assert V3.shape == (11248, 3) and len(t3.triangles) == 22288
