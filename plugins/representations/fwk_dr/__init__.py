@@ -168,13 +168,14 @@ def polar(T, iters: int = 30, tol: float = 1e-14):
     shape = T.shape
     x = list(np.ascontiguousarray(T.reshape(-1, 9).T))
     c = _cofactor_rows(x)
-    bad = x[0] * c[0] + x[1] * c[1] + x[2] * c[2] <= 1e-300
+    det = x[0] * c[0] + x[1] * c[1] + x[2] * c[2]
+    bad = det <= 1e-300
     if bad.any():
         for k in range(9):
             x[k] = np.where(bad, 1.0 if k in (0, 4, 8) else 0.0, x[k])
-    for _ in range(iters):
         c = _cofactor_rows(x)
         det = x[0] * c[0] + x[1] * c[1] + x[2] * c[2]
+    for _ in range(iters):  # c, det: the cofactors and determinant of the current x
         g = np.abs(det) ** (-1.0 / 3.0)
         gd = g * det
         xn = [0.5 * (g * x[k] + c[k] / gd) for k in range(9)]
@@ -182,6 +183,8 @@ def polar(T, iters: int = 30, tol: float = 1e-14):
         x = xn
         if done:
             break
+        c = _cofactor_rows(x)
+        det = x[0] * c[0] + x[1] * c[1] + x[2] * c[2]
     R = np.stack(x, axis=-1).reshape(shape)
     bad = bad.reshape(shape[:-2])
     if bad.any():
