@@ -98,20 +98,38 @@ def face_areas(V, F) -> np.ndarray:
     return 0.5 * np.linalg.norm(np.cross(P1 - P0, P2 - P0), axis=-1)
 
 
-def vertex_normals(V, F) -> np.ndarray:
-    """(n, 3) unit vertex normals, the area-weighted mean of the incident face normals;
-    batched: V (b, n, 3) -> (b, n, 3). A vertex in no (non-degenerate) face gets (0, 0, 0)."""
-    V = np.asarray(V, dtype=np.float64)
+def vertex_normals(V, F, chunk: int = 8, dtype=np.float64, fallback=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """(n, 3) unit vertex normals, the area-weighted mean of the incident face normals (the sum of
+    the incident triangles' cross products, normalised); batched: V (b, n, 3) -> (b, n, 3). A vertex
+    with no area (in no non-degenerate face) gets ``fallback``. The stack goes ``chunk`` shapes at
+    a time, vertex-major (each triangle corner one contiguous row gather), the cross product
+    written out by component: a 51-shape rig of ICT-FaceKit's full head took 6.1 s with np.cross
+    on the whole stack in a fresh process (most of it touching ~0.5 GB of new temporaries), 0.9 s
+    so. ``dtype``: the arithmetic's (float32 for a file that stores float32 normals)."""
+    V = np.asarray(V, dtype=dtype)
     F = np.asarray(F, dtype=np.int64)
-    single = V.ndim == 2
-    Vb = V[None] if single else V
-    N = np.cross(Vb[:, F[:, 1]] - Vb[:, F[:, 0]], Vb[:, F[:, 2]] - Vb[:, F[:, 0]])  # 2 x area x normal
-    n, m = Vb.shape[1], len(F)
-    A = sp.csr_matrix((np.ones(3 * m), (F.ravel(), np.repeat(np.arange(m), 3))), shape=(n, m))
-    out = (A @ N.transpose(1, 0, 2).reshape(m, -1)).reshape(n, len(Vb), 3).transpose(1, 0, 2)
-    nrm = np.linalg.norm(out, axis=-1, keepdims=True)
-    out = out / np.where(nrm > 0, nrm, 1.0)
-    return out[0] if single else out
+    stack = V if V.ndim == 3 else V[None]
+    S, n = stack.shape[:2]
+    m = len(F)
+    inc = sp.csr_matrix((np.ones(3 * m, dtype=dtype), (F.T.reshape(-1), np.tile(np.arange(m), 3))), shape=(n, m))
+    out = np.empty((S, n, 3), dtype=dtype)
+    t0, t1, t2 = (np.ascontiguousarray(F[:, k]) for k in range(3))
+    for s0 in range(0, S, chunk):
+        X = np.ascontiguousarray(stack[s0:s0 + chunk].transpose(1, 0, 2))  # (n, c, 3)
+        c = X.shape[1]
+        a = X[t0]
+        e1, e2 = X[t1] - a, X[t2] - a  # (m, c, 3)
+        fn = np.empty_like(e1)
+        fn[..., 0] = e1[..., 1] * e2[..., 2] - e1[..., 2] * e2[..., 1]
+        fn[..., 1] = e1[..., 2] * e2[..., 0] - e1[..., 0] * e2[..., 2]
+        fn[..., 2] = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
+        N = (inc @ fn.reshape(m, 3 * c)).reshape(n, c, 3)
+        norm = np.sqrt(np.einsum("nck,nck->nc", N, N))[..., None]
+        ok = norm[..., 0] > 0
+        part = np.broadcast_to(np.asarray(fallback, dtype=dtype), N.shape).copy()
+        part[ok] = N[ok] / norm[ok]
+        out[s0:s0 + c] = part.transpose(1, 0, 2)
+    return out if V.ndim == 3 else out[0]
 
 
 def factor_spd(A):

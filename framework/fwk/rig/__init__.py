@@ -25,7 +25,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-from scipy import sparse
 
 from ..data.template import METRES_PER_UNIT  # noqa: F401 (the writers' scale, re-exported)
 from ..errors import FwkError, cut
@@ -53,36 +52,11 @@ def missing(package: str, what: str, extra: str = "rig", spec: str | None = None
 
 
 def vertex_normals(V: np.ndarray, triangles: np.ndarray, chunk: int = 8, dtype=np.float64) -> np.ndarray:
-    """(n, 3) unit area-weighted vertex normals of V (n, 3), or (S, n, 3) of a stack V (S, n, 3):
-    the sum of the incident triangles' cross products, normalised; a vertex with no area gets
-    (0, 0, 1). The stack goes ``chunk`` shapes at a time, vertex-major (each triangle corner one
-    contiguous row gather), the cross product written out by component: a 51-shape rig of
-    ICT-FaceKit's full head took 6.1 s with np.cross on the whole stack in a fresh process (most of
-    it touching ~0.5 GB of new temporaries), 0.9 s so. ``dtype``: the arithmetic's (float32 for a
-    file that stores float32 normals)."""
-    V = np.asarray(V, dtype=dtype)
-    stack = V if V.ndim == 3 else V[None]
-    S, n = stack.shape[:2]
-    m = len(triangles)
-    inc = sparse.csr_matrix((np.ones(3 * m, dtype=dtype), (triangles.T.reshape(-1), np.tile(np.arange(m), 3))),
-                            shape=(n, m))
-    out = np.empty((S, n, 3), dtype=dtype)
-    t0, t1, t2 = (np.ascontiguousarray(triangles[:, k]) for k in range(3))
-    for s0 in range(0, S, chunk):
-        X = np.ascontiguousarray(stack[s0:s0 + chunk].transpose(1, 0, 2))  # (n, c, 3)
-        c = X.shape[1]
-        a = X[t0]
-        e1, e2 = X[t1] - a, X[t2] - a  # (m, c, 3)
-        fn = np.empty_like(e1)
-        fn[..., 0] = e1[..., 1] * e2[..., 2] - e1[..., 2] * e2[..., 1]
-        fn[..., 1] = e1[..., 2] * e2[..., 0] - e1[..., 0] * e2[..., 2]
-        fn[..., 2] = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
-        N = (inc @ fn.reshape(m, 3 * c)).reshape(n, c, 3)
-        norm = np.sqrt(np.einsum("nck,nck->nc", N, N))[..., None]
-        ok = norm[..., 0] > 0
-        part = np.broadcast_to(np.array([0.0, 0.0, 1.0], dtype=dtype), N.shape).copy()
-        part[ok] = N[ok] / norm[ok]
-        out[s0:s0 + c] = part.transpose(1, 0, 2)
-    return out if V.ndim == 3 else out[0]
+    """``fwk.geometry.vertex_normals`` (unit area-weighted vertex normals of V (n, 3) or of a
+    stack (S, n, 3), ``chunk`` shapes at a time, in ``dtype``) with (0, 0, 1) for a vertex with no
+    area: what the rig files store."""
+    from ..geometry import vertex_normals as normals  # deferred: fwk.geometry loads scipy's solvers
+
+    return normals(V, triangles, chunk=chunk, dtype=dtype, fallback=(0.0, 0.0, 1.0))
 
 
