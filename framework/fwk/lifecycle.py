@@ -4,6 +4,7 @@ Inside a run (tasks)::
 
     model = build_model(spec, label, family, ctx)           # build, check the family
     fit_s = fit_or_resume(model, label, data, ctx)          # resume a finished model, or fit and save
+    seconds = fit_models(models, data, ctx)                  # all of a run's models: side by side where faster
 
 Reopening a finished run (``fwk apply``, ``fwk sample``, the ``edit``/``interpolate`` tasks)::
 
@@ -131,14 +132,15 @@ def load_model_state(model, path: Path, ctx: RunContext | None, label: str | Non
                         f"({type(exc).__name__}: {msg[:160]})") from None
 
 
-def fit_or_resume(model, label: str, data, ctx: RunContext) -> float:
+def fit_or_resume(model, label: str, data, ctx: RunContext, fresh: bool = False) -> float:
     """Fit ``model`` on ``data`` (its checkpoints scoped to ``label``) and save it as
-    ``models/<label>.safetensors``; with ``ctx.resume`` and that file present, load it instead.
+    ``models/<label>.safetensors``; with ``ctx.resume`` and that file present, load it instead
+    (``fresh``: the caller knows it is absent and does not need the line).
     A ``RecipeError`` the model raises while fitting (a parameter the data refutes) is prefixed
     with ``models.<label>.``. Returns the seconds spent."""
     path = state_path(ctx.run_dir, label)
     t0 = time.perf_counter()
-    if ctx.resume and has_state(ctx.run_dir, label):
+    if not fresh and ctx.resume and has_state(ctx.run_dir, label):
         ctx.log(f"[{label}] loading the finished model from {path}")
         load_model_state(model, path, ctx, label)
     else:
@@ -150,6 +152,33 @@ def fit_or_resume(model, label: str, data, ctx: RunContext) -> float:
             raise RecipeError(msg if msg.startswith("models.") else f"models.{label}.{msg}") from None
         save_model_state(model, ctx.path("models", f"{label}{SUFFIX}"), label)
     return time.perf_counter() - t0
+
+
+def fit_models(models: dict, data, ctx: RunContext) -> dict[str, float]:
+    """``fit_or_resume`` for every model of ``models`` (label -> model, the recipe's order):
+    side by side in forked processes where one model cannot use the run's threads
+    (``fwk.sidebyside``: CPU, two or more models, ``train.side_by_side``), else one after
+    another. Returns label -> seconds spent fitting (or loading) it."""
+    from . import sidebyside
+
+    seconds: dict[str, float] = {}
+    how = sidebyside.plan(ctx, len(models))
+    todo = [lb for lb in models if not (ctx.resume and has_state(ctx.run_dir, lb))]
+    if how is not None and todo:
+        workers, threads, T = how
+
+        def job(label):
+            def fit():
+                fit_or_resume(models[label], label, data, ctx, fresh=True)
+            return fit
+
+        seconds = sidebyside.fit_side_by_side({lb: job(lb) for lb in todo}, ctx, workers, threads, T)
+    for label, model in models.items():
+        if label in seconds:
+            load_model_state(model, state_path(ctx.run_dir, label), ctx, label)
+        else:
+            seconds[label] = fit_or_resume(model, label, data, ctx)
+    return seconds
 
 
 def choose_model(specs: dict, role, label: str | None = None, prefer=None, what: str = "--model",

@@ -45,8 +45,8 @@ def swinging_load(tmp_path, monkeypatch):
     torch.set_num_threads(before)
 
 
-def _run(tmp_path, **kw):
-    (tmp_path / "r.yaml").write_text(yaml.safe_dump(RECIPE))
+def _run(tmp_path, recipe=RECIPE, **kw):
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
     return execute(str(tmp_path / "r.yaml"), runs_dir=str(tmp_path / "runs"), quiet=True, **kw)
 
 
@@ -54,10 +54,14 @@ def _epoch_threads(run):
     return {p.parent.name: [e["threads"] for e in json.loads(p.read_text())["epochs"]] for p in (run / "curves").glob("*/*.json")}
 
 
-def test_the_count_never_changes_during_a_run_and_is_recorded(tmp_path, swinging_load):
-    run = _run(tmp_path)
+@pytest.mark.parametrize("side_by_side", [False, True])
+def test_the_count_never_changes_during_a_run_and_is_recorded(tmp_path, swinging_load, side_by_side):
+    """One after another each model trains with the run's 2 threads; side by side (the default,
+    fwk.sidebyside) each with 1 of them, every epoch."""
+    run = _run(tmp_path, {**RECIPE, "train": {**RECIPE["train"], "side_by_side": side_by_side}})
     seen = _epoch_threads(run)
-    assert set(seen) == {"ae", "ae2"} and all(v == [2, 2, 2] for v in seen.values()), seen
+    each = 1 if side_by_side else 2
+    assert set(seen) == {"ae", "ae2"} and all(v == [each] * 3 for v in seen.values()), seen
     assert len(swinging_load) >= 1  # the rule was asked once, as the run started ...
     assert threads.thread_budget()[0] in (1, 2) and threads.pinned() is None  # ... and the pin ends with the run
     v = json.loads((run / "versions.json").read_text())
@@ -78,7 +82,8 @@ def test_a_resume_reuses_the_recorded_count(tmp_path, swinging_load, monkeypatch
     monkeypatch.setattr(threads, "outside_load", lambda *a, **k: (1.0, 2))  # the rule now says 1
     assert threads.thread_budget()[0] == 1
     execute(None, resume=str(run), quiet=True)
-    assert _epoch_threads(run)["ae2"] == [2, 2, 2]
+    # the run's count, 2, shared by the recipe's 2 models side by side: 1 each, also with one left
+    assert _epoch_threads(run)["ae2"] == [1, 1, 1]
     log = (run / "log.txt").read_text()
     assert "threads: 2 (as the run started: 1 fwk process on 2 cores; fixed for this run" in log
     v = json.loads((run / "versions.json").read_text())

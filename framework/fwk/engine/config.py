@@ -105,6 +105,8 @@ class TrainConfig:
     num_workers: int = 0
     log_every_n_steps: int = 10
     weight_decay: float = 0.0
+    #: fit a run's models side by side, one forked process each, on CPU (fwk.sidebyside)
+    side_by_side: bool = True
     #: the stopping rule on validation loss (``{patience, min_delta, monitor}``); None: train ``epochs``
     early_stopping: EarlyStopping | None = None
 
@@ -118,6 +120,8 @@ class TrainConfig:
         elif self.early_stopping is not None and not isinstance(self.early_stopping, EarlyStopping):
             raise RecipeError(f"train.early_stopping: expected a mapping {{patience, min_delta, monitor, relative}} or null, "
                               f"got {quote(self.early_stopping)}")
+        if not isinstance(self.side_by_side, bool):
+            raise RecipeError(f"train.side_by_side: expected true or false, got {quote(self.side_by_side)}")
         # every setting checked here, so that `replace` (a model's overrides) is checked like a recipe
         self.epochs = _integer("epochs", self.epochs, 1, MAX_EPOCHS)
         self.batch_size = _integer("batch_size", self.batch_size, 1, MAX_COUNT)

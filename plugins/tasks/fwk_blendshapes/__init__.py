@@ -69,7 +69,7 @@ from fwk.evaluation.presentation import axis_unit
 from fwk.evaluation.plots import scatter_pareto
 from fwk.evaluation.render import colour_limits, render_grid
 from fwk.hookspecs import hookimpl
-from fwk.lifecycle import build_models, fit_or_resume
+from fwk.lifecycle import build_models, fit_models
 from fwk.protocols import BLENDSHAPES, BlendshapeModel, CompositeModel, CutSelectingModel, FitData, TrainingModes
 from fwk.recipes import Kind, Spec, make_spec
 from fwk.rig.follow import Followers
@@ -167,13 +167,16 @@ class Blendshapes:
                    "timing": {}, CUTS: {}}
         preds = {e: {} for e in expressions}
         fitted = {}
-        for label, model in build_models(self.models, BLENDSHAPES, ctx, data).items():  # all checked first
+        built = build_models(self.models, BLENDSHAPES, ctx, data)  # all checked first
+        for label, model in built.items():
             if not isinstance(model, BlendshapeModel):
                 raise RecipeError(f"models.{label}: {model.name} does not play the blendshape model role "
                                   "(expressions, predict, predict_all; see fwk.protocols.BlendshapeModel)")
             if model.expressions is None:
                 model.expressions = list(expressions)
-            fit_s = fit_or_resume(model, label, data, ctx)
+        fit_seconds = fit_models(built, data, ctx)  # side by side where one model cannot use the threads
+        for label, model in built.items():
+            fit_s = fit_seconds[label]
             fitted[label] = model
             t0 = time.perf_counter()
             rows = self._predict(model, label, expressions, gt)

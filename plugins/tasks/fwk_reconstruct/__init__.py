@@ -4,7 +4,7 @@ The data flow of DESIGN.md: dataset -> split by subject (saved as ``split.json``
 preprocessing fitted on the training neutrals (centring, rigid registration to the mean
 neutral, one uniform scale into [-1, 1]; thesis 3.3.8; saved under ``stats/``) -> each model
 (a ``fwk.protocols.ReconstructionModel``) learns from the training shapes, or with ``--resume``
-is reloaded (``fwk.lifecycle.build_models``, ``fit_or_resume``: ``models/<label>.safetensors``) ->
+is reloaded (``fwk.lifecycle.build_models``, ``fit_models``: ``models/<label>.safetensors``) ->
 ``model.reconstruct`` on every split -> metrics (default ``fwk.evaluation.default_metrics``)
 against the ground truth in the evaluation space (the thesis's space) and in the dataset's own
 units -> ``metrics.json`` (and ``scores.json``: every test mesh's scores, which a run of several
@@ -27,7 +27,7 @@ from fwk.evaluation import default_metrics
 from fwk.evaluation.legend import model_legend
 from fwk.evaluation.report import standard_scatters
 from fwk.hookspecs import hookimpl
-from fwk.lifecycle import build_models, fit_or_resume
+from fwk.lifecycle import build_models, fit_models
 from fwk.protocols import RECONSTRUCT, FitData, ReconstructionModel
 from fwk.recipes import Kind, Spec
 
@@ -83,8 +83,9 @@ class Reconstruct:
         built = build_models(self.models, RECONSTRUCT, ctx, data)  # all checked first
         # the report's legend: what each label is, as the model describes itself (fwk.evaluation.legend)
         results["legend"] = model_legend(self.models, built)
+        fit_seconds = fit_models(built, data, ctx)  # side by side where one model cannot use the threads
         for label, model in built.items():
-            fit_s = fit_or_resume(model, label, data, ctx)
+            fit_s = fit_seconds[label]
             results["models"][label] = {}
             predictions[label] = {}
             t0 = time.perf_counter()

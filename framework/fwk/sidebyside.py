@@ -1,0 +1,216 @@
+"""The models of a run fitted side by side, one forked process each, when one model's fitting
+cannot use the run's threads (issue 28).
+
+Small networks gain little from a second thread (the main job's spiral++ PB networks: one
+epoch of ``pbs`` takes about as long on 1 thread as on 2), and Deformation Transfer's sparse
+factorisations use one; a run with T threads and m models to fit then leaves cores idle while
+it fits them one after another. ``fit_models`` fits them w = min(T, m) at a time instead, each
+in a child process forked after the data are prepared (the child shares them copy-on-write: no
+second load), with ``T // w`` threads; the child fits its model exactly as ``fit_or_resume``
+does (its checkpoints, curves and TensorBoard logs under its label, then
+``models/<label>.safetensors``) and exits; the run's process, which computes nothing meanwhile,
+loads each saved state in the recipe's order. ``train.side_by_side: false`` fits them one
+after another, each with the run's T threads.
+
+**Numbers.** A model's numbers depend on the thread count it trains with (the order of
+floating-point sums), so that count must not depend on what is left to fit: it is
+``T // min(T, m)`` with m the models of the recipe, also when a resume has fewer left to fit.
+A run's numbers therefore depend on T and the recipe only, as before; a model fitted side by
+side with one thread is bit for bit the model a 1-thread run fits
+(``tests/core/test_side_by_side.py``). Each training records its own count (``curves/``), and the
+log says the plan once.
+
+**When.** On the CPU only (a forked child cannot use a CUDA context its parent created), not with
+``train.strategy: ddp`` (whose ranks already share the cores), with T >= 2 and at least two
+models in the recipe. Everything else of the task (data, predictions, metrics, figures) runs in
+the run's process with T threads.
+
+**Failures.** A child that raises sends its exception back (an fwk error keeps its class and one
+line; any other its traceback); the run's process starts no other model, lets the running ones
+finish (as one after another, the models fitted before a failure are kept) and raises it;
+``fwk run --resume`` fits what is left. A child killed (out of memory) is reported with its
+signal. A child dies with the run's process
+(``PR_SET_PDEATHSIG``), and Ctrl-C stops them all.
+"""
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import signal
+import sys
+import time
+import traceback
+
+from . import errors as _errors
+from .errors import FwkError
+
+#: how often the run's process looks at its children (seconds)
+POLL = 0.05
+
+
+def plan(ctx, n_models: int) -> tuple[int, int, int] | None:
+    """(workers w, threads per model, the run's threads T) for fitting ``n_models`` models side by
+    side in the run of ``ctx``, or None where they are fitted one after another (see the module
+    docstring: ``train.side_by_side``, the device, DDP, T < 2, fewer than 2 models)."""
+    from .engine.threads import thread_budget
+
+    train = getattr(ctx, "train", None)
+    if n_models < 2 or train is None or not getattr(train, "side_by_side", True):
+        return None
+    if getattr(ctx, "device", "cpu") != "cpu" or train.accelerator not in ("auto", "cpu") or train.strategy == "ddp":
+        return None
+    if "torch" in sys.modules and sys.modules["torch"].cuda.is_initialized():
+        return None
+    T = thread_budget()[0]
+    if T < 2:
+        return None
+    w = min(T, n_models)
+    return w, T // w, T
+
+
+def _die_with_parent() -> None:
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _child(fit, label: str, threads: int, why: str, wfd: int, ctx) -> None:
+    """In the forked child: fit ``label`` with ``threads`` threads, write the outcome as JSON to
+    ``wfd`` and end the process (never returns)."""
+    code = 1
+    out = {"label": label}
+    try:
+        _die_with_parent()
+        signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C: the run's process says what happened
+        from .engine import threads as th
+
+        th._registered.clear()  # the parent's registration is the parent's to remove
+        os.environ[th.ENV_THREADS] = str(threads)  # wins over the pin, an allocation, OMP_NUM_THREADS
+        th.pin(threads, why)
+        th._threads_reported.setdefault(ctx.log_file, set()).add(threads)  # the run's process said the plan
+        th.apply_threads()
+        t0 = time.perf_counter()
+        fit()
+        out.update(ok=True, seconds=time.perf_counter() - t0)
+        code = 0
+    except BaseException as exc:  # everything goes back to the run's process
+        out.update(ok=False, kind=type(exc).__name__, fwk=isinstance(exc, FwkError), message=str(exc),
+                   traceback=traceback.format_exc())
+    finally:
+        try:
+            data = json.dumps(out).encode()
+            while data:
+                data = data[os.write(wfd, data):]
+            os.close(wfd)
+            sys.stdout.flush()
+            sys.stderr.flush()
+            from .engine import threads as th
+
+            th.unregister()
+        finally:
+            os._exit(code)
+
+
+def _reraise(label: str, out: dict) -> None:
+    if out.get("fwk"):
+        cls = getattr(_errors, out.get("kind", ""), None)
+        cls = cls if isinstance(cls, type) and issubclass(cls, FwkError) else FwkError
+        raise cls(out.get("message", ""))
+    if out.get("kind") == "KeyboardInterrupt":
+        raise KeyboardInterrupt
+    raise RuntimeError(f"models.{label}: fitting failed in its side-by-side process:\n{out.get('traceback', '')}")
+
+
+def fit_side_by_side(jobs: dict, ctx, workers: int, threads: int, T: int) -> dict[str, float]:
+    """Run ``jobs`` (label -> a function that fits and saves that model) in forked children,
+    ``workers`` at a time with ``threads`` threads each (``T``: the run's), logging through
+    ``ctx``; returns label -> seconds of each child's fitting. See the module docstring."""
+    import torch  # noqa: F401  (loaded before forking: every child then shares it)
+
+    why = (f"{workers} models fitted side by side on the run's {T} threads, {threads} each; "
+           "train.side_by_side: false fits them one after another")
+    todo = list(jobs)
+    running: dict[int, tuple[str, int, bytearray]] = {}
+    seconds: dict[str, float] = {}
+    ctx.log(f"fitting {len(todo)} model{'s' if len(todo) > 1 else ''} side by side, {workers} at a time with "
+        f"{threads} thread{'s' if threads > 1 else ''} each (the run's {T}; a model's thread count is fixed by "
+        f"the run's and the recipe's models: train.side_by_side: false fits them one after another with {T})")
+    sys.stdout.flush()
+    sys.stderr.flush()
+
+    def stop_all():
+        for pid in running:
+            try:
+                os.kill(pid, signal.SIGTERM)
+            except OSError:
+                pass
+        for pid in list(running):
+            try:
+                os.waitpid(pid, 0)
+            except OSError:
+                pass
+            os.close(running.pop(pid)[1])
+
+    failed: list = []  # the first child's error: raised once the running ones end (their work is kept)
+    try:
+        while (todo and not failed) or running:
+            while todo and not failed and len(running) < workers:
+                label = todo.pop(0)
+                r, w = os.pipe()
+                pid = os.fork()
+                if pid == 0:  # the child
+                    os.close(r)
+                    _child(jobs[label], label, threads, why, w, ctx)
+                os.close(w)
+                os.set_blocking(r, False)
+                running[pid] = (label, r, bytearray())
+            time.sleep(POLL)
+            for pid in list(running):
+                label, r, buf = running[pid]
+                while True:
+                    try:
+                        chunk = os.read(r, 65536)
+                    except BlockingIOError:
+                        break
+                    if not chunk:
+                        break
+                    buf.extend(chunk)
+                done, status = os.waitpid(pid, os.WNOHANG)
+                if done == 0:
+                    continue
+                while True:  # what the child wrote before it ended
+                    try:
+                        chunk = os.read(r, 65536)
+                    except BlockingIOError:
+                        break
+                    if not chunk:
+                        break
+                    buf.extend(chunk)
+                os.close(r)
+                del running[pid]
+                try:
+                    out = json.loads(bytes(buf).decode())
+                except ValueError:
+                    out = None
+                if out is None:
+                    sig = os.WTERMSIG(status) if os.WIFSIGNALED(status) else None
+                    how = f"was killed by signal {sig} ({signal.Signals(sig).name})" if sig else \
+                        f"ended with status {os.WEXITSTATUS(status)}"
+                    out = {"ok": False, "fwk": True, "kind": "FwkError",
+                           "message": f"models.{label}: its side-by-side fitting process {how} without a result "
+                                      "(out of memory? train.side_by_side: false fits one model at a time)"}
+                if out.get("ok"):
+                    seconds[label] = float(out["seconds"])
+                elif not failed:
+                    failed.append((label, out))
+                    if running:
+                        ctx.log(f"[{label}] failed; waiting for {', '.join(v[0] for v in running.values())} to "
+                                "finish (its work is kept for fwk run --resume), then stopping")
+    except BaseException:
+        stop_all()
+        raise
+    if failed:
+        _reraise(*failed[0])
+    return seconds

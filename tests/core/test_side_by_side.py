@@ -1,0 +1,179 @@
+"""A run's models fitted side by side in forked processes (fwk.sidebyside, issue 28): each model
+bit for bit the one a 1-thread run fits (a reconstruct and a blendshapes run), the plan's rule,
+a child's error raised by the run's process with its class, a killed child named with its
+signal, and a resume after either."""
+import json
+import os
+import signal
+
+import pytest
+import yaml
+
+from fwk.engine import threads
+from fwk.engine.config import TrainConfig
+from fwk.errors import DataError, FwkError, RecipeError
+from fwk.plugins import get_registry
+from fwk.runs import execute
+from fwk.safeio import load_state
+from fwk.sidebyside import plan
+
+AE = {"name": "ae", "channels": [8], "latent": 4, "sampler": {"name": "quadric", "factors": [4]}}
+RECON = {"name": "sbs", "task": "reconstruct", "seed": 0,
+         "dataset": {"name": "synthetic-heads", "n_vertices": 300, "n_subjects": 10},
+         "split": {"ratios": [0.6, 0.2, 0.2]}, "train": {"epochs": 3, "batch_size": 4},
+         "models": {"ae": AE, "ae2": {**AE, "channels": [4]}, "pca": {"name": "pca", "n_components": 3}},
+         "metrics": ["l1"], "renders": 0}
+BLEND = {"name": "sbs-blend", "task": "blendshapes", "seed": 0,
+         "dataset": {"name": "synthetic-heads", "n_vertices": 300, "n_subjects": 12,
+                     "shapes": ["neutral", "mouth-wide"], "gain_sd": 0},
+         "split": {"ratios": [0.6, 0.2, 0.2]}, "train": {"epochs": 2, "batch_size": 4},
+         "models": {"dt": {"name": "dt", "sources": 0},
+                    "pbs": {"name": "pbs", "spatial": {"name": "euclidean", "scaling": "std"},
+                            "differential": {"name": "dr", "scaling": "std"}, "knee_metric": "dame",
+                            "network": {"name": "vae", "conv": {"name": "spiral++", "length": 9},
+                                        "channels": [4, 8], "latent": 4,
+                                        "sampler": {"name": "quadric", "factors": [4, 4]}}}},
+         "metrics": ["l1", "dame"], "renders": 0}
+
+
+@pytest.fixture
+def env(tmp_path, monkeypatch):
+    monkeypatch.setenv("FWK_RUNTIME_DIR", str(tmp_path / "procs"))
+    for var in ("OMP_NUM_THREADS", "FWK_ALLOCATED_CPUS"):
+        monkeypatch.delenv(var, raising=False)
+    import torch
+
+    before = torch.get_num_threads()
+    yield monkeypatch
+    threads.unpin()
+    torch.set_num_threads(before)
+
+
+def _run(tmp_path, recipe, n, name, monkeypatch, **kw):
+    monkeypatch.setenv("FWK_THREADS", str(n))
+    monkeypatch.setenv("FWK_CACHE", str(tmp_path / f"cache-{name}"))
+    d = tmp_path / name
+    d.mkdir()
+    (d / "r.yaml").write_text(yaml.safe_dump(recipe))
+    return execute(str(d / "r.yaml"), runs_dir=str(d / "runs"), quiet=True, **kw)
+
+
+def _states(run):
+    out = {}
+    for p in sorted((run / "models").glob("*.safetensors")):
+        state = load_state(p)
+        out[p.stem] = state
+    return out
+
+
+def _same(a, b, where=""):
+    import numpy as np
+    import torch
+
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and set(a) == set(b), where
+        for k in a:
+            _same(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same(x, y, f"{where}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        if a.layout == torch.sparse_coo:
+            a, b = a.coalesce(), b.coalesce()
+            assert torch.equal(a.indices(), b.indices()) and torch.equal(a.values(), b.values()), where
+        else:
+            assert a.dtype == b.dtype and torch.equal(a, b), where
+    elif isinstance(a, np.ndarray):
+        assert np.array_equal(a, b), where
+    else:
+        assert a == b, where
+
+
+def _epoch_threads(run):
+    return {p.parent.name: [e["threads"] for e in json.loads(p.read_text())["epochs"]]
+            for p in (run / "curves").glob("*/*.json")}
+
+
+@pytest.mark.parametrize("recipe", [RECON, BLEND], ids=["reconstruct", "blendshapes"])
+def test_side_by_side_fits_the_models_a_one_thread_run_fits_bit_for_bit(tmp_path, env, recipe):
+    one = _run(tmp_path, recipe, 1, "one", env)
+    two = _run(tmp_path, recipe, 2, "two", env)
+    log = (two / "log.txt").read_text()
+    n = len(recipe["models"])
+    assert f"fitting {n} models side by side, 2 at a time with 1 thread each (the run's 2;" in log
+    assert "side by side" not in (one / "log.txt").read_text()  # one thread: one after another
+    a, b = _states(one), _states(two)
+    assert set(a) == set(b) == set(recipe["models"])
+    _same(a, b)
+    seen = _epoch_threads(two)
+    assert seen and all(set(v) == {1} for v in seen.values()), seen
+    m1, m2 = (json.loads((r / "metrics.json").read_text()) for r in (one, two))
+    assert m2["threads"] == 2 and set(m1["models"]) == set(m2["models"])
+    for label in m1["timing"]:
+        assert m2["timing"][label]["fit_s"] > 0
+
+
+def test_the_plan():
+    class Ctx:
+        def __init__(self, **train):
+            self.train, self.device = TrainConfig(**train), "cpu"
+
+    old = os.environ.get("FWK_THREADS")
+    try:
+        for T, m, want in ((2, 5, (2, 1, 2)), (4, 2, (2, 2, 4)), (3, 5, (3, 1, 3)), (4, 3, (3, 1, 4)),
+                           (1, 5, None), (2, 1, None)):
+            os.environ["FWK_THREADS"] = str(T)
+            assert plan(Ctx(), m) == want, (T, m)
+        os.environ["FWK_THREADS"] = "2"
+        assert plan(Ctx(side_by_side=False), 3) is None
+        assert plan(Ctx(strategy="ddp"), 3) is None
+        assert plan(Ctx(accelerator="gpu"), 3) is None
+        c = Ctx()
+        c.device = "cuda"
+        assert plan(c, 3) is None
+    finally:
+        if old is None:
+            os.environ.pop("FWK_THREADS", None)
+        else:
+            os.environ["FWK_THREADS"] = old
+    with pytest.raises(RecipeError, match="train.side_by_side: expected true or false"):
+        TrainConfig(side_by_side="yes")
+
+
+def _break(monkeypatch, how):
+    """The ae model's fit fails for the model with 4 channels (ae2) in the way ``how``."""
+    cls = get_registry().get("model", "ae")
+    real = cls.fit
+
+    def fit(self, data, ctx):
+        if ctx.scope == "ae2":
+            if how == "error":
+                raise DataError("ae2 refuses these data")
+            if how == "bug":
+                raise ZeroDivisionError("a bug in a plugin")
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(self, data, ctx)
+
+    monkeypatch.setattr(cls, "fit", fit)
+    return real
+
+
+@pytest.mark.parametrize("how", ["error", "bug", "kill"])
+def test_a_failing_child_fails_the_run_which_resumes(tmp_path, env, how):
+    recipe = {**RECON, "models": {"ae": AE, "ae2": {**AE, "channels": [4]}}}
+    real = _break(env, how)
+    if how == "error":
+        expect, match = DataError, "ae2 refuses these data"
+    elif how == "bug":
+        expect, match = RuntimeError, r"models.ae2: fitting failed in its side-by-side process:\n(.|\n)*ZeroDivisionError"
+    else:
+        expect, match = FwkError, r"models.ae2: its side-by-side fitting process was killed by signal 9 \(SIGKILL\)"
+    with pytest.raises(expect, match=match):
+        _run(tmp_path, recipe, 2, "broken", env)
+    runs = list((tmp_path / "broken" / "runs").iterdir())
+    assert len(runs) == 1 and (runs[0] / "FAILED").exists()
+    env.setattr(get_registry().get("model", "ae"), "fit", real)
+    run = execute(None, resume=str(runs[0]), quiet=True)
+    assert (run / "metrics.json").exists() and set(_states(run)) == {"ae", "ae2"}
+    assert _epoch_threads(run)["ae2"] == [1, 1, 1]
