@@ -4,7 +4,10 @@ cannot use the run's threads (issue 28).
 Small networks gain little from a second thread (the main job's spiral++ PB networks: one
 epoch of ``pbs`` takes about as long on 1 thread as on 2), and Deformation Transfer's sparse
 factorisations use one; a run with T threads and m models to fit then leaves cores idle while
-it fits them one after another. ``fit_models`` fits them w = min(T, m) at a time instead, each
+it fits them one after another (measured with ``benchmarks/side_by_side.py``: two 1-thread
+trainings together make 1.09x (the thesis-width vcconv VAE) to 1.52x (the main job's PB network)
+the steps per second of one 2-thread training, ``docs/methods/autoencoders.md``).
+``fit_models`` fits them w = min(T, m) at a time instead, each
 in a child process forked after the data are prepared (the child shares them copy-on-write: no
 second load), with ``T // w`` threads; the child fits its model exactly as ``fit_or_resume``
 does (its checkpoints, curves and TensorBoard logs under its label, then
