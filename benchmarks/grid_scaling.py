@@ -1,6 +1,7 @@
-"""A 2-member grid on this machine's cores: members in turn (``executor: local``, each member
-taking every core) against members side by side on Ray (``executor: ray``, one CPU and one
-thread each), both wall times measured in one go.
+"""A 2-member grid on this machine's cores: members in turn (``executor: local`` with
+``train.side_by_side=false``, each member taking every core), side by side in processes forked by
+the local executor (its default, ``fwk.sidebyside``: one thread each) and side by side on Ray
+(``executor: ray``, one CPU and one thread each), the three wall times measured in one go.
 
     python benchmarks/grid_scaling.py                       # spiral-euclidean, spiral-dr; 20 epochs
     python benchmarks/grid_scaling.py --epochs 40 --members spiral-euclidean lsa-dr
@@ -74,17 +75,22 @@ def main(argv=None) -> int:
         warm = write_grid(tmp / "warm", args.members, 1)
         run(warm, tmp / "warm-runs", env)  # the data, samplers and operators into the cache
         load0 = os.getloadavg()
-        local = run(recipe, tmp / "local", env)
+        local = run(recipe, tmp / "local", env, "train.side_by_side=false")
+        forked = run(recipe, tmp / "forked", env)
         ray = run(recipe, tmp / "ray", env, "executor=ray")
         load1 = os.getloadavg()
         cores = len(os.sched_getaffinity(0))
         print(f"{cores} cores; members {', '.join(args.members)}, {args.epochs} epochs each")
         print(f"load average before {load0[0]:.2f} / {load0[1]:.2f} / {load0[2]:.2f}, "
               f"after {load1[0]:.2f} / {load1[1]:.2f} / {load1[2]:.2f}")
-        print(f"in turn (executor local, {cores} threads each): {local:.1f} s")
+        print(f"in turn (executor local, train.side_by_side=false, {cores} threads each): {local:.1f} s")
+        print(f"side by side, forked (executor local, 1 thread each): {forked:.1f} s ({forked / local:.2f} of in turn)")
         print(f"side by side (executor ray, 1 CPU and 1 thread each): {ray:.1f} s ({ray / local:.2f} of in turn)")
-        (d_local,), (d_ray,) = list((tmp / "local").iterdir()), list((tmp / "ray").iterdir())
+        (d_local,), (d_forked,), (d_ray,) = (list((tmp / k).iterdir()) for k in ("local", "forked", "ray"))
         for m in args.members:
+            a, c = (json.loads((d / m / "metrics.json").read_text())["models"]["ae"]["test"]["l1"]["mean"]
+                    for d in (d_forked, d_ray))
+            print(f"{m}: test L1 forked {a:.6g}, ray {c:.6g} (both one thread: equal {a == c})")
             a, b = (json.loads((d / m / "metrics.json").read_text())["models"]["ae"]["test"]["l1"]["mean"]
                     for d in (d_local, d_ray))
             ta, tb = ({h["threads"] for h in json.loads((d / m / "curves" / "ae" / "ae.json").read_text())["epochs"]}

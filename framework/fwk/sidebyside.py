@@ -79,11 +79,11 @@ def _die_with_parent() -> None:
         pass
 
 
-def _child(fit, label: str, threads: int, why: str, wfd: int, ctx) -> None:
-    """In the forked child: fit ``label`` with ``threads`` threads, write the outcome as JSON to
+def _child(work, threads: int, why: str, wfd: int, log_file) -> None:
+    """In the forked child: run ``work()`` with ``threads`` threads, write the outcome as JSON to
     ``wfd`` and end the process (never returns)."""
     code = 1
-    out = {"label": label}
+    out: dict = {}
     try:
         _die_with_parent()
         signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C: the run's process says what happened
@@ -92,11 +92,11 @@ def _child(fit, label: str, threads: int, why: str, wfd: int, ctx) -> None:
         th._registered.clear()  # the parent's registration is the parent's to remove
         os.environ[th.ENV_THREADS] = str(threads)  # wins over the pin, an allocation, OMP_NUM_THREADS
         th.pin(threads, why)
-        th._threads_reported.setdefault(ctx.log_file, set()).add(threads)  # the run's process said the plan
+        th._threads_reported.setdefault(log_file, set()).add(threads)  # the run's process said the plan
         th.apply_threads()
         t0 = time.perf_counter()
-        fit()
-        out.update(ok=True, seconds=time.perf_counter() - t0)
+        result = work()
+        out.update(ok=True, seconds=time.perf_counter() - t0, result=result)
         code = 0
     except BaseException as exc:  # everything goes back to the run's process
         out.update(ok=False, kind=type(exc).__name__, fwk=isinstance(exc, FwkError), message=str(exc),
@@ -116,30 +116,31 @@ def _child(fit, label: str, threads: int, why: str, wfd: int, ctx) -> None:
             os._exit(code)
 
 
-def _reraise(label: str, out: dict) -> None:
-    if out.get("fwk"):
-        cls = getattr(_errors, out.get("kind", ""), None)
-        cls = cls if isinstance(cls, type) and issubclass(cls, FwkError) else FwkError
-        raise cls(out.get("message", ""))
-    if out.get("kind") == "KeyboardInterrupt":
-        raise KeyboardInterrupt
-    raise RuntimeError(f"models.{label}: fitting failed in its side-by-side process:\n{out.get('traceback', '')}")
+def _read_all(fd: int, buf: bytearray) -> None:
+    while True:
+        try:
+            chunk = os.read(fd, 65536)
+        except BlockingIOError:
+            return
+        if not chunk:
+            return
+        buf.extend(chunk)
 
 
-def fit_side_by_side(jobs: dict, ctx, workers: int, threads: int, T: int) -> dict[str, float]:
-    """Run ``jobs`` (label -> a function that fits and saves that model) in forked children,
-    ``workers`` at a time with ``threads`` threads each (``T``: the run's), logging through
-    ``ctx``; returns label -> seconds of each child's fitting. See the module docstring."""
+def run_forked(jobs: dict, workers: int, threads: int, why: str, log_file, stop_on_error: bool = True,
+               on_done=None) -> dict[str, dict]:
+    """Run ``jobs`` (name -> a function of no arguments returning JSON-able data or None) in
+    forked children, ``workers`` at a time with ``threads`` threads each, in the order given.
+    Returns name -> outcome: ``{"ok": True, "seconds": s, "result": ...}``, or ``{"ok": False,
+    "kind", "fwk", "message", "traceback"}`` for one that raised, or ``{"ok": False, "killed":
+    how, "message"}`` for one that ended without a word (a signal). ``stop_on_error``: after a
+    failure start no other job (the running ones end); ``on_done(name, outcome)`` as each ends.
+    Ctrl-C (or any error here) stops the children."""
     import torch  # noqa: F401  (loaded before forking: every child then shares it)
 
-    why = (f"{workers} models fitted side by side on the run's {T} threads, {threads} each; "
-           "train.side_by_side: false fits them one after another")
     todo = list(jobs)
     running: dict[int, tuple[str, int, bytearray]] = {}
-    seconds: dict[str, float] = {}
-    ctx.log(f"fitting {len(todo)} model{'s' if len(todo) > 1 else ''} side by side, {workers} at a time with "
-        f"{threads} thread{'s' if threads > 1 else ''} each (the run's {T}; a model's thread count is fixed by "
-        f"the run's and the recipe's models: train.side_by_side: false fits them one after another with {T})")
+    outcomes: dict[str, dict] = {}
     sys.stdout.flush()
     sys.stderr.flush()
 
@@ -156,64 +157,79 @@ def fit_side_by_side(jobs: dict, ctx, workers: int, threads: int, T: int) -> dic
                 pass
             os.close(running.pop(pid)[1])
 
-    failed: list = []  # the first child's error: raised once the running ones end (their work is kept)
+    failed = False
     try:
         while (todo and not failed) or running:
             while todo and not failed and len(running) < workers:
-                label = todo.pop(0)
+                name = todo.pop(0)
                 r, w = os.pipe()
                 pid = os.fork()
                 if pid == 0:  # the child
                     os.close(r)
-                    _child(jobs[label], label, threads, why, w, ctx)
+                    _child(jobs[name], threads, why, w, log_file)
                 os.close(w)
                 os.set_blocking(r, False)
-                running[pid] = (label, r, bytearray())
+                running[pid] = (name, r, bytearray())
             time.sleep(POLL)
             for pid in list(running):
-                label, r, buf = running[pid]
-                while True:
-                    try:
-                        chunk = os.read(r, 65536)
-                    except BlockingIOError:
-                        break
-                    if not chunk:
-                        break
-                    buf.extend(chunk)
+                name, r, buf = running[pid]
+                _read_all(r, buf)
                 done, status = os.waitpid(pid, os.WNOHANG)
                 if done == 0:
                     continue
-                while True:  # what the child wrote before it ended
-                    try:
-                        chunk = os.read(r, 65536)
-                    except BlockingIOError:
-                        break
-                    if not chunk:
-                        break
-                    buf.extend(chunk)
+                _read_all(r, buf)  # what the child wrote before it ended
                 os.close(r)
                 del running[pid]
                 try:
                     out = json.loads(bytes(buf).decode())
                 except ValueError:
-                    out = None
-                if out is None:
                     sig = os.WTERMSIG(status) if os.WIFSIGNALED(status) else None
                     how = f"was killed by signal {sig} ({signal.Signals(sig).name})" if sig else \
                         f"ended with status {os.WEXITSTATUS(status)}"
-                    out = {"ok": False, "fwk": True, "kind": "FwkError",
-                           "message": f"models.{label}: its side-by-side fitting process {how} without a result "
-                                      "(out of memory? train.side_by_side: false fits one model at a time)"}
-                if out.get("ok"):
-                    seconds[label] = float(out["seconds"])
-                elif not failed:
-                    failed.append((label, out))
-                    if running:
-                        ctx.log(f"[{label}] failed; waiting for {', '.join(v[0] for v in running.values())} to "
-                                "finish (its work is kept for fwk run --resume), then stopping")
+                    out = {"ok": False, "killed": how, "message": f"its side-by-side process {how} without a result"}
+                outcomes[name] = out
+                failed = failed or (stop_on_error and not out.get("ok"))
+                if on_done is not None:
+                    on_done(name, out)
     except BaseException:
         stop_all()
         raise
-    if failed:
-        _reraise(*failed[0])
-    return seconds
+    return outcomes
+
+
+def _reraise(label: str, out: dict) -> None:
+    if out.get("killed"):
+        raise FwkError(f"models.{label}: its side-by-side fitting process {out['killed']} without a result "
+                       "(out of memory? train.side_by_side: false fits one model at a time)")
+    if out.get("fwk"):
+        cls = getattr(_errors, out.get("kind", ""), None)
+        cls = cls if isinstance(cls, type) and issubclass(cls, FwkError) else FwkError
+        raise cls(out.get("message", ""))
+    if out.get("kind") == "KeyboardInterrupt":
+        raise KeyboardInterrupt
+    raise RuntimeError(f"models.{label}: fitting failed in its side-by-side process:\n{out.get('traceback', '')}")
+
+
+def fit_side_by_side(jobs: dict, ctx, workers: int, threads: int, T: int) -> dict[str, float]:
+    """Run ``jobs`` (label -> a function that fits and saves that model) in forked children,
+    ``workers`` at a time with ``threads`` threads each (``T``: the run's), logging through
+    ``ctx``; returns label -> seconds of each child's fitting; the first failure is raised
+    once the running children end. See the module docstring."""
+    why = (f"{workers} models fitted side by side on the run's {T} threads, {threads} each; "
+           "train.side_by_side: false fits them one after another")
+    ctx.log(f"fitting {len(jobs)} model{'s' if len(jobs) > 1 else ''} side by side, {workers} at a time with "
+            f"{threads} thread{'s' if threads > 1 else ''} each (the run's {T}; a model's thread count is fixed by "
+            f"the run's and the recipe's models: train.side_by_side: false fits them one after another with {T})")
+    first: list = []
+
+    def done(label, out):
+        if not out.get("ok") and not first:
+            first.append((label, out))
+            ctx.log(f"[{label}] failed; no other model starts, those still fitting finish (their work is kept "
+                    "for fwk run --resume), then the run stops")
+
+    outcomes = run_forked(jobs, workers, threads, why, ctx.log_file, stop_on_error=True, on_done=done)
+    if first:
+        label, out = first[0]
+        _reraise(label, out)
+    return {label: float(out["seconds"]) for label, out in outcomes.items()}

@@ -98,7 +98,7 @@ def test_too_many_components_refused_before_any_model_trains(tmp_path, env, caps
     import fwk_reconstruct
 
     fitted = []
-    monkeypatch.setattr(fwk_reconstruct, "fit_or_resume", lambda model, label, *a, **k: fitted.append(label) or 0.0)
+    monkeypatch.setattr(fwk_reconstruct, "fit_models", lambda models, *a, **k: fitted.extend(models) or {})
     root = _folder(tmp_path)
     r = _recipe(tmp_path, root, "{mlp: {name: mlp-vae, latent: 4, hidden: [16]}, pca: {name: pca, n_components: 500}}")
     _fails(tmp_path, capsys, r, "models.pca.n_components: 500 components")

@@ -122,6 +122,38 @@ def test_a_failing_member_is_reported_and_the_rest_go_on(tmp_path, monkeypatch):
     assert "grid member bad failed" in (d / "log.txt").read_text()
 
 
+def test_local_members_side_by_side_give_a_one_thread_grids_numbers(tmp_path, monkeypatch):
+    """Local executor with 2 threads: the members (one failing) run side by side in forked
+    processes, a thread each (fwk.sidebyside): every value of every member's metrics.json (but
+    wall times) is bit for bit that of the same grid run with 1 thread, one member after another;
+    the failing member is reported and the others finish, as one after another."""
+    from fwk.cli import main
+
+    monkeypatch.setenv("FWK_RUNTIME_DIR", str(tmp_path / "procs"))
+    configs = {"bad": "{models: {ae: {name: pca, n_components: 500}}, dataset: {n_vertices: 200, n_subjects: 12}}",
+               "a": TINY % 2, "b": "{dataset: {n_vertices: 200, n_subjects: 12}, train: {epochs: 2}, "
+                                   "models: {ae: {name: ae, channels: [4], latent: 8, sampler: {name: quadric, "
+                                   "factors: [4]}}}}"}
+    g = _grid(tmp_path, configs)
+    runs = {}
+    for n in (1, 2):
+        monkeypatch.setenv("FWK_THREADS", str(n))
+        monkeypatch.setenv("FWK_CACHE", str(tmp_path / f"cache{n}"))
+        assert main(["--quiet", "run", str(g), "--runs-dir", str(tmp_path / f"runs{n}")]) == 2
+        runs[n] = _only_run(tmp_path / f"runs{n}")
+    log = (runs[2] / "log.txt").read_text()
+    assert "3 member runs side by side, 2 at a time with 1 thread each (the run's 2;" in log
+    assert "side by side" not in (runs[1] / "log.txt").read_text()
+    assert "grid member bad failed" in log and "n_components" in (runs[2] / "bad" / "FAILED").read_text()
+    for name in ("a", "b"):
+        one, two = (_values(json.loads((runs[n] / name / "metrics.json").read_text())) for n in (1, 2))
+        assert one == two, name
+        curves = [json.loads(p.read_text()) for p in (runs[2] / name / "curves").glob("*/*.json")]
+        assert curves and all(e["threads"] == 1 for c in curves for e in c["epochs"])
+    m = json.loads((runs[2] / "metrics.json").read_text())
+    assert set(m["models"]) == {"a", "b"} and set(m["failed"]) == {"bad"}
+
+
 # ------------------------------------------------------------------------------ Ray
 
 needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,

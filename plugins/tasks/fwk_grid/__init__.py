@@ -10,8 +10,9 @@ stopped (``fwk run --resume``). The grid's report has one row per configuration 
 L1, L2, DAME and FMPD on train and test (``columns``), and the L1/DAME and L1/FMPD scatters
 with their Pareto fronts.
 
-``executor`` says where the members run (``fwk_grid.executors``): ``local`` (default: one after
-another in this process) or ``ray`` (Ray tasks declaring ``cpus`` / ``gpus`` each, on a local
+``executor`` says where the members run (``fwk_grid.executors``): ``local`` (default: in this
+process, side by side in forked processes with the run's threads shared when ``train.side_by_side``
+allows, as a run's models are, ``fwk.sidebyside``) or ``ray`` (Ray tasks declaring ``cpus`` / ``gpus`` each, on a local
 Ray instance or the cluster at ``address``: ``fwk run grid.yaml executor=ray
 executor.address=ray://head:10001``). Either way each member writes its own sub-run, so a grid
 is resumable whichever executor ran it, and its report is the same. A member that fails is
@@ -149,7 +150,12 @@ class Grid:
         if jobs and self.executor.name == "ray":
             outcomes = run_ray(jobs, self.executor, ctx.log)
         elif jobs:
-            outcomes = run_local(jobs, ctx.log, ctx.registry)
+            from fwk.sidebyside import plan
+
+            # a member's thread count from the run's and the grid's jobs, finished ones included
+            how = plan(ctx, sum(len(r.seeds) if r.seeds is not None else 1 for r in resolved.values()))
+            outcomes = run_local(jobs, ctx.log, ctx.registry,
+                                 side_by_side=None if how is None else (*how, ctx.log_file))
         else:
             outcomes = {}
         failed = {}

@@ -1,5 +1,10 @@
-"""Where a grid's members run: ``local`` (one after another in this process) or ``ray`` (Ray
-tasks, on a local Ray instance or an existing cluster).
+"""Where a grid's members run: ``local`` (in this process, or side by side in processes forked
+from it) or ``ray`` (Ray tasks, on a local Ray instance or an existing cluster).
+
+``local`` runs the members side by side on the CPU when the grid's ``train.side_by_side`` (default
+true) allows it and the run has T >= 2 threads: w = min(T, jobs) at a time (a job: a member, or one
+seed of a member), each with T // w threads, jobs counted over the whole grid (finished ones
+included) so that a member's count does not depend on what a resume has left (``fwk.sidebyside``).
 
 Both executors run a member the same way (``run_member``): its recipe resolved afresh, a run
 context on its sub-run folder ``<grid run>/<member>/`` with ``resume`` set (a member killed
@@ -145,9 +150,13 @@ def run_member(job: dict, registry=None) -> dict:
 
 # ------------------------------------------------------------------------- executors
 
-def run_local(jobs: list[dict], log, registry=None) -> dict[str, dict]:
+def run_local(jobs: list[dict], log, registry=None, side_by_side=None) -> dict[str, dict]:
     """Run the members one after another in this process (with ``registry``, default the
-    process-wide one): {name: outcome}."""
+    process-wide one): {name: outcome}. ``side_by_side``: (workers, threads, T, log file) of
+    ``fwk.sidebyside.plan``: the members run ``workers`` at a time instead, each in a process
+    forked from this one with ``threads`` of the run's T threads (``run_forked``)."""
+    if side_by_side is not None:
+        return _run_forked(jobs, log, registry, *side_by_side)
     out = {}
     for i, job in enumerate(jobs):
         log(f"[{i + 1}/{len(jobs)}] {job['name']}")
@@ -155,6 +164,34 @@ def run_local(jobs: list[dict], log, registry=None) -> dict[str, dict]:
         if not outcome["ok"]:
             log(f"grid member {job['name']} failed: {outcome['error']}")
     return out
+
+
+def _run_forked(jobs: list[dict], log, registry, workers: int, threads: int, T: int, log_file) -> dict[str, dict]:
+    from fwk.sidebyside import run_forked
+
+    why = (f"{workers} grid members side by side on the run's {T} threads, {threads} each; "
+           "train.side_by_side: false runs them one after another")
+    log(f"{len(jobs)} member run{'s' if len(jobs) != 1 else ''} side by side, {workers} at a time with {threads} "
+        f"thread{'s' if threads > 1 else ''} each (the run's {T}; fixed by the run's count and the grid's members; "
+        f"train.side_by_side: false runs them one after another with {T})")
+    count = [0]
+
+    def done(name, o):
+        count[0] += 1
+        outcome = o.get("result") if o.get("ok") else {
+            "ok": False, "error": o.get("message", "").splitlines()[0] if o.get("message") else o.get("kind", "?"),
+            "traceback": o.get("traceback"), "seconds": 0.0}
+        out[name] = outcome
+        if outcome["ok"]:
+            log(f"[{count[0]}/{len(jobs)}] {name}: finished in {outcome['seconds']:.1f} s")
+        else:
+            log(f"[{count[0]}/{len(jobs)}] grid member {name} failed: {outcome['error']}")
+
+    out: dict[str, dict] = {}
+    byname = {job["name"]: job for job in jobs}
+    run_forked({name: (lambda job=job: run_member(job, registry)) for name, job in byname.items()}, workers,
+               threads, why, log_file, stop_on_error=False, on_done=done)
+    return {job["name"]: out[job["name"]] for job in jobs}
 
 
 def _ray():
