@@ -23,6 +23,9 @@ side with one thread is bit for bit the model a 1-thread run fits
 (``tests/core/test_side_by_side.py``). Each training records its own count (``curves/``), and the
 log says the plan once.
 
+``run_forked`` is the machinery (jobs in forked children, w at a time, outcomes back as JSON);
+a grid's local executor runs its members with it the same way (``fwk_grid.executors``).
+
 **When.** On the CPU only (a forked child cannot use a CUDA context its parent created), not with
 ``train.strategy: ddp`` (whose ranks already share the cores), with T >= 2 and at least two
 models in the recipe. Everything else of the task (data, predictions, metrics, figures) runs in
