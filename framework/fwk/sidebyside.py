@@ -1,12 +1,11 @@
 """The models of a run fitted side by side, one forked process each, when one model's fitting
 cannot use the run's threads (issue 28).
 
-Small networks gain little from a second thread (the main job's spiral++ PB networks: one
-epoch of ``pbs`` takes about as long on 1 thread as on 2), and Deformation Transfer's sparse
-factorisations use one; a run with T threads and m models to fit then leaves cores idle while
-it fits them one after another (measured with ``benchmarks/side_by_side.py``: two 1-thread
-trainings together make 1.09x (the thesis-width vcconv VAE) to 1.52x (the main job's PB network)
-the steps per second of one 2-thread training, ``docs/methods/autoencoders.md``).
+A second thread speeds one training up by less than a second process would: two 1-thread
+trainings together make 1.09x (the thesis-width vcconv VAE) to 1.52x (the main job's PB
+network) the steps per second of one 2-thread training (``benchmarks/side_by_side.py``,
+``docs/methods/autoencoders.md``), and Deformation Transfer's sparse factorisations use one
+thread. A run with T threads that fits its m models one after another leaves that unused.
 ``fit_models`` fits them w = min(T, m) at a time instead, each
 in a child process forked after the data are prepared (the child shares them copy-on-write: no
 second load), with ``T // w`` threads; the child fits its model exactly as ``fit_or_resume``
@@ -26,7 +25,8 @@ log says the plan once.
 ``run_forked`` is the machinery (jobs in forked children, w at a time, outcomes back as JSON);
 a grid's local executor runs its members with it the same way (``fwk_grid.executors``).
 
-**When.** On the CPU only (a forked child cannot use a CUDA context its parent created), not with
+**When.** On Linux (``os.fork``: Windows has none, and macOS's system frameworks are not safe
+to fork), on the CPU only (a forked child cannot use a CUDA context its parent created), not with
 ``train.strategy: ddp`` (whose ranks already share the cores), with T >= 2 and at least two
 models in the recipe. Everything else of the task (data, predictions, metrics, figures) runs in
 the run's process with T threads.
@@ -62,6 +62,8 @@ def plan(ctx, n_models: int) -> tuple[int, int, int] | None:
     from .engine.threads import thread_budget
 
     train = getattr(ctx, "train", None)
+    if not sys.platform.startswith("linux"):  # fork: none on Windows, unsafe with macOS's frameworks
+        return None
     if n_models < 2 or train is None or not getattr(train, "side_by_side", True):
         return None
     if getattr(ctx, "device", "cpu") != "cpu" or train.accelerator not in ("auto", "cpu") or train.strategy == "ddp":
