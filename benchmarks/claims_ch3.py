@@ -17,7 +17,9 @@ RUN is a run of ``recipes/thesis/ch3/plateau.yaml`` (members ``<conv>-<represent
   DAME than Euclidean;
 * C13 (thesis 3.5.3, l. 1483): the L1/DAME Pareto front over every (conv, representation) member,
   and whether the pair the thesis names as the fair balance on Facsimile's test set (LSA-3DMM and
-  the Mesh Autoencoder (vcconv), each with Euclidean Std.) is on it.
+  the Mesh Autoencoder (vcconv), each with Euclidean Std.) is on it;
+* C15 (a run of ``recipes/thesis/ch3/feast-variance.yaml``, whose ``mean-shape`` member is the
+  baseline): how many FeaStNet members have both L1 and DAME below the mean shape's.
 
 Verdicts: ``_claims.RULE`` (printed): a verdict "holds" when its comparison goes the claim's way
 for more than half of the complete convs, "partly" for some, "does not hold" for none; on one
@@ -90,7 +92,31 @@ def main(argv=None) -> int:
     front, line = c13(rows)
     print(f"\nL1/DAME front over the {len(rows)} finished members: {', '.join(f'{c}-{r}' for c, r in front)}.")
     print(line)
+    print(c15(rows, mean_shape(a.run, a.split)))
     return 0
+
+
+def mean_shape(run: Path, split: str) -> dict | None:
+    """The ``mean-shape`` member's means on ``split`` (feast-variance.yaml's baseline: pca with no
+    component, the training mean), or None where the run has none."""
+    f = run / "mean-shape" / "metrics.json"
+    if not f.exists():
+        return None
+    (res,) = json.loads(f.read_text())["models"].values()
+    return {k: v["mean"] for k, v in res[split].items()}
+
+
+def c15(rows: dict, base: dict | None) -> str:
+    """C15 (FeaStNet learns): for each finished feast member, whether its L1 and its DAME are
+    both below the mean shape's (a network that stays at the mean shape has neither)."""
+    feast = [(rep, rows[("feast", rep)]) for rep in REPS if ("feast", rep) in rows]
+    if base is None or not feast:
+        return "C15 (FeaStNet learns): not measured (no mean-shape member, or no finished feast member)."
+    learned = [rep for rep, r in feast if r["l1"] < base["l1"] and r["dame"] < base["dame"]]
+    parts = ", ".join(f"{rep} L1 {r['l1'] * 1e3:.3f} / DAME {r['dame'] * 1e2:.3f}" for rep, r in feast)
+    return (f"C15 (FeaStNet learns: L1 and DAME below the mean shape's, {base['l1'] * 1e3:.3f}e-3 / "
+            f"{base['dame'] * 1e2:.3f}e-2): {len(learned)} of {len(feast)} feast members ({parts}): "
+            f"{verdict(len(learned), len(feast))}.")
 
 
 def _pair(r: dict, k: str):

@@ -111,3 +111,24 @@ def test_the_spiral_seeds_run_gives_the_pages_verdict(tmp_path, capsys):
     assert "| spiral | yes | tie | yes | yes | yes | yes |" in out
     assert ("C1 (a Euclidean-based representation lower L1 and DR Norm. lower DAME): 1 of 1 complete convs: holds "
             "(over seeds; differences within the seeds' sd are ties).") in out
+
+
+def test_c15_counts_the_feast_members_below_the_mean_shape_on_both(tmp_path, capsys):
+    """feast-variance.yaml's run: a feast member learns when its L1 and its DAME are both below the
+    mean-shape member's; without that member C15 is not measured."""
+    run = tmp_path / "feast-variance-1"
+    _member(run, "feast-euclidean", 9.0, 2.5)           # L1 below, DAME above: not learned
+    _member(run, "feast-euclidean-std", 8.0, 1.5)       # both below
+    _member(run, "feast-dr-norm", 8.5, 1.2)             # both below
+    assert _module().main([str(run)]) == 0
+    assert "C15 (FeaStNet learns): not measured (no mean-shape member" in capsys.readouterr().out
+    _member(run, "mean-shape", 11.963, 1.978)
+    assert _module().main([str(run)]) == 0
+    out = capsys.readouterr().out
+    assert ("C15 (FeaStNet learns: L1 and DAME below the mean shape's, 11963.000e-3 / 197.800e-2): 2 of 3 feast "
+            "members (euclidean L1 9000.000 / DAME 250.000, euclidean-std L1 8000.000 / DAME 150.000, dr-norm L1 "
+            "8500.000 / DAME 120.000): holds.") in out
+    _member(run.parent / "none", "feast-euclidean", 12.0, 2.5)
+    _member(run.parent / "none", "mean-shape", 11.963, 1.978)
+    assert _module().main([str(run.parent / "none")]) == 0
+    assert ": 0 of 1 feast members (euclidean L1 12000.000 / DAME 250.000): does not hold." in capsys.readouterr().out
