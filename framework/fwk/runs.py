@@ -59,6 +59,8 @@ from .safeio import refuse_pickled
 from .seeds import fans_out_seeds, run_seeds
 
 SCOPED = ("checkpoints", "tb", "curves")  # per network, under the model's label
+#: what this process puts before each line it writes to a log file (set in a forked side-by-side child)
+LOG_PREFIX = [""]
 
 
 def _default_device() -> str:
@@ -141,13 +143,14 @@ class RunContext:
 
     # output ------------------------------------------------------------------------
     def log(self, msg: str) -> None:
-        """Print ``msg`` (unless quiet) and append it to the run's log file."""
+        """Print ``msg`` (unless quiet) and append it to the run's log file (after the process's
+        ``LOG_PREFIX``: a grid member's name while members run side by side, ``fwk.sidebyside``)."""
         if not self.quiet:
             print(msg, flush=True)
         try:
             self.log_file.parent.mkdir(parents=True, exist_ok=True)
             with open(self.log_file, "a") as f:
-                f.write(msg.rstrip("\n") + "\n")
+                f.write(LOG_PREFIX[0] + msg.rstrip("\n") + "\n")
         except OSError:
             pass
 

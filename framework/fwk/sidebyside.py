@@ -41,6 +41,7 @@ signal. A child dies with the run's process
 from __future__ import annotations
 
 import ctypes
+import io
 import json
 import os
 import signal
@@ -84,12 +85,43 @@ def _die_with_parent() -> None:
         pass
 
 
-def _child(work, threads: int, why: str, wfd: int, log_file) -> None:
-    """In the forked child: run ``work()`` with ``threads`` threads, write the outcome as JSON to
-    ``wfd`` and end the process (never returns)."""
+class _Prefixed(io.TextIOBase):
+    """A text stream writing ``prefix`` at the start of every line it passes to ``stream``."""
+
+    def __init__(self, stream, prefix: str):
+        self.stream, self.prefix, self.at_start = stream, prefix, True
+
+    def write(self, text: str) -> int:
+        parts = []
+        for piece in text.splitlines(keepends=True):
+            if self.at_start:
+                parts.append(self.prefix)
+            parts.append(piece)
+            self.at_start = piece.endswith(("\n", "\r"))
+        self.stream.write("".join(parts))
+        return len(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def isatty(self) -> bool:
+        return self.stream.isatty()
+
+    def fileno(self) -> int:
+        return self.stream.fileno()
+
+
+def _child(work, threads: int, why: str, wfd: int, log_file, prefix: str = "") -> None:
+    """In the forked child: run ``work()`` with ``threads`` threads (``prefix`` before every line
+    it prints and logs), write the outcome as JSON to ``wfd`` and end the process (never returns)."""
     code = 1
     out: dict = {}
     try:
+        if prefix:
+            from . import runs
+
+            runs.LOG_PREFIX[0] = prefix
+            sys.stdout = _Prefixed(sys.stdout, prefix)
         _die_with_parent()
         signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C: the run's process says what happened
         from .engine import threads as th
@@ -133,14 +165,15 @@ def _read_all(fd: int, buf: bytearray) -> None:
 
 
 def run_forked(jobs: dict, workers: int, threads: int, why: str, log_file, stop_on_error: bool = True,
-               on_done=None) -> dict[str, dict]:
+               on_done=None, prefixes: dict | None = None) -> dict[str, dict]:
     """Run ``jobs`` (name -> a function of no arguments returning JSON-able data or None) in
     forked children, ``workers`` at a time with ``threads`` threads each, in the order given.
     Returns name -> outcome: ``{"ok": True, "seconds": s, "result": ...}``, or ``{"ok": False,
     "kind", "fwk", "message", "traceback"}`` for one that raised, or ``{"ok": False, "killed":
     how, "message"}`` for one that ended without a word (a signal). ``stop_on_error``: after a
-    failure start no other job (the running ones end); ``on_done(name, outcome)`` as each ends.
-    Ctrl-C (or any error here) stops the children."""
+    failure start no other job (the running ones end); ``on_done(name, outcome)`` as each ends;
+    ``prefixes``: name -> what the job's printed and logged lines start with. Ctrl-C (or any
+    error here) stops the children."""
     import torch  # noqa: F401  (loaded before forking: every child then shares it)
 
     todo = list(jobs)
@@ -171,7 +204,7 @@ def run_forked(jobs: dict, workers: int, threads: int, why: str, log_file, stop_
                 pid = os.fork()
                 if pid == 0:  # the child
                     os.close(r)
-                    _child(jobs[name], threads, why, w, log_file)
+                    _child(jobs[name], threads, why, w, log_file, (prefixes or {}).get(name, ""))
                 os.close(w)
                 os.set_blocking(r, False)
                 running[pid] = (name, r, bytearray())

@@ -177,3 +177,15 @@ def test_a_failing_child_fails_the_run_which_resumes(tmp_path, env, how):
     run = execute(None, resume=str(runs[0]), quiet=True)
     assert (run / "metrics.json").exists() and set(_states(run)) == {"ae", "ae2"}
     assert _epoch_threads(run)["ae2"] == [1, 1, 1]
+
+
+def test_a_prefixed_stream_starts_every_line_with_the_prefix():
+    import io
+
+    from fwk.sidebyside import _Prefixed
+
+    out = io.StringIO()
+    w = _Prefixed(out, "[a] ")
+    for piece in ("x\ny", "z\n", "\n", "p\rq\n"):
+        w.write(piece)
+    assert out.getvalue() == "[a] x\n[a] yz\n[a] \n[a] p\r[a] q\n"

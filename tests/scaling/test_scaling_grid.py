@@ -144,6 +144,7 @@ def test_local_members_side_by_side_give_a_one_thread_grids_numbers(tmp_path, mo
     log = (runs[2] / "log.txt").read_text()
     assert "3 member runs side by side, 2 at a time with 1 thread each (the run's 2;" in log
     assert "side by side" not in (runs[1] / "log.txt").read_text()
+    assert "[a] [ae] fitting ae" in log and "[b] [ae] fitting ae" in log  # which member said each line
     assert "grid member bad failed" in log and "n_components" in (runs[2] / "bad" / "FAILED").read_text()
     for name in ("a", "b"):
         one, two = (_values(json.loads((runs[n] / name / "metrics.json").read_text())) for n in (1, 2))

@@ -190,7 +190,8 @@ def _run_forked(jobs: list[dict], log, registry, workers: int, threads: int, T: 
     out: dict[str, dict] = {}
     byname = {job["name"]: job for job in jobs}
     run_forked({name: (lambda job=job: run_member(job, registry)) for name, job in byname.items()}, workers,
-               threads, why, log_file, stop_on_error=False, on_done=done)
+               threads, why, log_file, stop_on_error=False, on_done=done,
+               prefixes={name: f"[{name}] " for name in byname})  # which member said each line
     return {job["name"]: out[job["name"]] for job in jobs}
 
 
