@@ -122,8 +122,7 @@ def _child(work, threads: int, why: str, wfd: int, log_file, prefix: str = "") -
 
             runs.LOG_PREFIX[0] = prefix
             sys.stdout = _Prefixed(sys.stdout, prefix)
-        _die_with_parent()
-        signal.signal(signal.SIGINT, signal.SIG_DFL)  # Ctrl-C: the run's process says what happened
+        _die_with_parent()  # Ctrl-C reaches the children as it reaches the run (the same disposition)
         from .engine import threads as th
 
         th._registered.clear()  # the parent's registration is the parent's to remove
@@ -237,8 +236,9 @@ def run_forked(jobs: dict, workers: int, threads: int, why: str, log_file, stop_
 
 def _reraise(label: str, out: dict) -> None:
     if out.get("killed"):
-        raise FwkError(f"models.{label}: its side-by-side fitting process {out['killed']} without a result "
-                       "(out of memory? train.side_by_side: false fits one model at a time)")
+        why = ("out of memory? train.side_by_side: false fits one model at a time" if "SIGKILL" in out["killed"]
+               else "stopped from outside")
+        raise FwkError(f"models.{label}: its side-by-side fitting process {out['killed']} without a result ({why})")
     if out.get("fwk"):
         cls = getattr(_errors, out.get("kind", ""), None)
         cls = cls if isinstance(cls, type) and issubclass(cls, FwkError) else FwkError

@@ -189,3 +189,39 @@ def test_a_prefixed_stream_starts_every_line_with_the_prefix():
     for piece in ("x\ny", "z\n", "\n", "p\rq\n"):
         w.write(piece)
     assert out.getvalue() == "[a] x\n[a] yz\n[a] \n[a] p\r[a] q\n"
+
+
+def test_ctrl_c_stops_the_run_and_its_children_and_the_run_resumes(tmp_path):
+    """Ctrl-C (SIGINT to the foreground process group) while two models train side by side: the
+    run ends with 130 and "interrupted", marked FAILED, no child left; the resume finishes it."""
+    import subprocess
+    import sys
+    import time
+
+    recipe = {**RECON, "train": {"epochs": 250, "batch_size": 4},
+              "models": {"ae": AE, "ae2": {**AE, "channels": [4]}}}
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
+    env = {**os.environ, "FWK_THREADS": "2", "FWK_CACHE": str(tmp_path / "cache"),
+           "FWK_RUNTIME_DIR": str(tmp_path / "procs")}
+    env.pop("OMP_NUM_THREADS", None)
+    p = subprocess.Popen([sys.executable, "-m", "fwk", "run", str(tmp_path / "r.yaml"), "--runs-dir",
+                          str(tmp_path / "runs")], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True, start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    seen = set()
+    deadline = time.monotonic() + 240
+    for line in p.stdout:  # both trainings under way
+        seen |= {lb for lb in ("[ae] epoch", "[ae2/ae] epoch") if line.startswith(lb)}
+        if len(seen) == 2 or time.monotonic() > deadline:
+            break
+    assert len(seen) == 2, seen
+    os.killpg(p.pid, signal.SIGINT)
+    out = p.communicate(timeout=120)[0]
+    assert p.returncode == 130 and "fwk: interrupted" in out, out[-2000:]
+    (run,) = (tmp_path / "runs").iterdir()
+    assert (run / "FAILED").read_text().startswith("interrupted (Ctrl-C)")
+    left = subprocess.run(["pgrep", "-g", str(p.pid)], capture_output=True, text=True).stdout.split()
+    assert not left, left
+    resumed = subprocess.run([sys.executable, "-m", "fwk", "--quiet", "run", "--resume", str(run)], env=env,
+                             cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0 and (run / "metrics.json").exists(), resumed.stderr[-2000:]
