@@ -132,3 +132,18 @@ def test_c15_counts_the_feast_members_below_the_mean_shape_on_both(tmp_path, cap
     _member(run.parent / "none", "mean-shape", 11.963, 1.978)
     assert _module().main([str(run.parent / "none")]) == 0
     assert ": 0 of 1 feast members (euclidean L1 12000.000 / DAME 250.000): does not hold." in capsys.readouterr().out
+
+
+def test_the_feast_variance_run_gives_the_pages_c15(tmp_path, capsys):
+    """docs/methods/claims.md's C15 row: feast-variance-20261203-142530's test split (L1 x1e-3,
+    DAME x1e-2) as the page prints them give the page's words."""
+    run = tmp_path / "feast-variance-20261203-142530"
+    page = {"euclidean": (11.714, 4.423), "euclidean-std": (4.721, 2.244), "dr-norm": (5.725, 1.932)}
+    for rep, (l1, dame) in page.items():
+        _member(run, f"feast-{rep}", l1 * 1e-3, dame * 1e-2)
+    _member(run, "mean-shape", 11.963e-3, 1.978e-2)
+    assert _module().main([str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "C15 (FeaStNet learns: L1 and DAME below the mean shape's, 11.963e-3 / 1.978e-2): 1 of 3 feast members" in out
+    assert out.rstrip().endswith(": partly.")
+    assert "| feast | yes | yes | yes | yes | yes | yes |" in out  # C1 and C2 the thesis's way (FMPD as DAME here)
