@@ -610,7 +610,10 @@ def template_obj(template) -> Path:
 
 def _packed_template_obj(folder: Path) -> Path:
     """A temporary OBJ of a packed rig model's template (``stats/template.npz``: its triangles on
-    the mean neutral), read with ``fwk.safeio.load_npz`` (arrays only, checked)."""
+    the mean neutral), read with ``fwk.safeio.load_npz`` (arrays only, checked); removed when this
+    process ends."""
+    import atexit
+    import shutil
     import tempfile
 
     from .data.io import write_obj
@@ -630,8 +633,9 @@ def _packed_template_obj(folder: Path) -> Path:
     except Exception as exc:  # a damaged or swapped file: one line naming it
         raise FwkError(f"--template {folder}: {path} is not a rig model's template "
                        f"({type(exc).__name__}: {cut(str(exc), 100)})") from None
-    out = Path(tempfile.mkdtemp(prefix="fwk-template-")) / f"{folder.name}-template.obj"
-    return write_obj(out, V, t)
+    tmp = Path(tempfile.mkdtemp(prefix="fwk-template-"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)  # the process's own: gone when it ends
+    return write_obj(tmp / f"{folder.name}-template.obj", V, t)
 
 
 def _numbered(names) -> str:

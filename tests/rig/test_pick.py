@@ -5,7 +5,9 @@ written in the schema fwk.rig.register.read_landmarks reads. The windows are
 from __future__ import annotations
 
 import json
+import os
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -280,3 +282,21 @@ def test_a_packed_rig_model_gives_its_template_to_pick_on(meshes, tmp_path, monk
     if "ict-face" in shipped():
         V3, t3 = read_obj(fwk.view.template_obj("ict-face"))
         assert V3.shape == (11248, 3) and len(t3.triangles) == 22288
+
+
+def test_a_packed_models_temporary_template_is_removed_when_the_process_ends(tmp_path):
+    """fwk view --pick --template MODEL writes the model's template to a temporary OBJ for the
+    picking window; the process removes it as it ends (it left 1 MB in the temp folder before)."""
+    import subprocess
+    import sys
+
+    from fwk.rig.shipped import shipped
+
+    if "ict-face" not in shipped():
+        pytest.skip("no shipped rig model in this install")
+    code = "import fwk.view; p = fwk.view.template_obj('ict-face'); print(p, p.exists())"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "TMPDIR": str(tmp_path)})
+    path, existed = out.stdout.split()
+    assert out.returncode == 0 and existed == "True", out.stderr[-2000:]
+    assert not Path(path).exists() and not Path(path).parent.exists() and not list(tmp_path.iterdir())
