@@ -62,7 +62,11 @@ def plan(ctx, n_models: int) -> tuple[int, int, int] | None:
     docstring: ``train.side_by_side``, the device, DDP, T < 2, fewer than 2 models)."""
     from .engine.threads import thread_budget
 
+    from .runs import ONE_AFTER_ANOTHER
+
     train = getattr(ctx, "train", None)
+    if ONE_AFTER_ANOTHER[0]:  # resuming a run started before side by side: as it started
+        return None
     if not sys.platform.startswith("linux"):  # fork: none on Windows, unsafe with macOS's frameworks
         return None
     if n_models < 2 or train is None or not getattr(train, "side_by_side", True):

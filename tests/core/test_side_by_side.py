@@ -225,3 +225,29 @@ def test_ctrl_c_stops_the_run_and_its_children_and_the_run_resumes(tmp_path):
     resumed = subprocess.run([sys.executable, "-m", "fwk", "--quiet", "run", "--resume", str(run)], env=env,
                              cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert resumed.returncode == 0 and (run / "metrics.json").exists(), resumed.stderr[-2000:]
+
+
+def test_a_run_started_before_side_by_side_resumes_one_after_another(tmp_path, env):
+    """A run whose versions.json lacks the side-by-side mark (started by an earlier fwk, whose
+    models trained one after another with the run's threads) resumes the same way."""
+    import shutil
+
+    recipe = {**RECON, "models": {"ae": AE, "ae2": {**AE, "channels": [4]}}}
+    run = _run(tmp_path, recipe, 2, "old", env)
+    v = json.loads((run / "versions.json").read_text())
+    assert v.pop("side_by_side") is True
+    (run / "versions.json").write_text(json.dumps(v))
+    for d in ("curves", "checkpoints", "tb"):  # as if it had stopped before its second model
+        shutil.rmtree(run / d / "ae2", ignore_errors=True)
+    for p in (run / "models").glob("ae2*"):
+        p.unlink()
+    execute(None, resume=str(run), quiet=True)
+    assert _epoch_threads(run)["ae2"] == [2, 2, 2]
+    log = (run / "log.txt").read_text()
+    assert "this run started before fwk fitted models side by side (2026-12-03): its models are fitted one " \
+           "after another, as when it started" in log
+    from fwk.runs import ONE_AFTER_ANOTHER
+
+    assert ONE_AFTER_ANOTHER == [False]  # the rule ends with the run
+    again = _run(tmp_path, recipe, 2, "new", env)  # a new run in the same process: side by side
+    assert _epoch_threads(again)["ae2"] == [1, 1, 1]
