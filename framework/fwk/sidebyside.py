@@ -59,9 +59,9 @@ POLL = 0.05
 def plan(ctx, n_models: int) -> tuple[int, int, int] | None:
     """(workers w, threads per model, the run's threads T) for fitting ``n_models`` models side by
     side in the run of ``ctx``, or None where they are fitted one after another (see the module
-    docstring: ``train.side_by_side``, the device, DDP, T < 2, fewer than 2 models)."""
+    docstring: ``train.side_by_side``, the device, DDP, T < 2, fewer than 2 models, a resumed run
+    that started before side by side: ``fwk.runs.ONE_AFTER_ANOTHER``)."""
     from .engine.threads import thread_budget
-
     from .runs import ONE_AFTER_ANOTHER
 
     train = getattr(ctx, "train", None)
