@@ -167,6 +167,9 @@ def run_local(jobs: list[dict], log, registry=None, side_by_side=None) -> dict[s
 
 
 def _run_forked(jobs: list[dict], log, registry, workers: int, threads: int, T: int, log_file) -> dict[str, dict]:
+    """``run_local``'s members side by side: ``run_member`` in forked children (``fwk.sidebyside``),
+    ``workers`` at a time with ``threads`` threads each, logged as they finish; a child that ends
+    without an outcome (killed) is a failed member."""
     from fwk.sidebyside import run_forked
 
     why = (f"{workers} grid members side by side on the run's {T} threads, {threads} each; "
