@@ -132,15 +132,14 @@ def load_model_state(model, path: Path, ctx: RunContext | None, label: str | Non
                         f"({type(exc).__name__}: {msg[:160]})") from None
 
 
-def fit_or_resume(model, label: str, data, ctx: RunContext, fresh: bool = False) -> float:
+def fit_or_resume(model, label: str, data, ctx: RunContext) -> float:
     """Fit ``model`` on ``data`` (its checkpoints scoped to ``label``) and save it as
-    ``models/<label>.safetensors``; with ``ctx.resume`` and that file present, load it instead
-    (``fresh``: the caller knows it is absent and does not need the line).
+    ``models/<label>.safetensors``; with ``ctx.resume`` and that file present, load it instead.
     A ``RecipeError`` the model raises while fitting (a parameter the data refutes) is prefixed
     with ``models.<label>.``. Returns the seconds spent."""
     path = state_path(ctx.run_dir, label)
     t0 = time.perf_counter()
-    if not fresh and ctx.resume and has_state(ctx.run_dir, label):
+    if ctx.resume and has_state(ctx.run_dir, label):
         ctx.log(f"[{label}] loading the finished model from {path}")
         load_model_state(model, path, ctx, label)
     else:
@@ -165,14 +164,9 @@ def fit_models(models: dict, data, ctx: RunContext) -> dict[str, float]:
     how = sidebyside.plan(ctx, len(models))
     todo = [lb for lb in models if not (ctx.resume and has_state(ctx.run_dir, lb))]
     if how is not None and todo:
-        workers, threads, T = how
-
-        def job(label):
-            def fit():
-                fit_or_resume(models[label], label, data, ctx, fresh=True)
-            return fit
-
-        seconds = sidebyside.fit_side_by_side({lb: job(lb) for lb in todo}, ctx, workers, threads, T)
+        workers, threads, T = how  # todo holds no saved state, so fit_or_resume fits each
+        seconds = sidebyside.fit_side_by_side(
+            {lb: (lambda lb=lb: fit_or_resume(models[lb], lb, data, ctx)) for lb in todo}, ctx, workers, threads, T)
     for label, model in models.items():
         if label in seconds:
             load_model_state(model, state_path(ctx.run_dir, label), ctx, label)
