@@ -70,7 +70,7 @@ import numpy as np
 from .cache import file_mode
 from .data import Template
 from .data.io import ObjWriter, check_topology, line_number, read_obj
-from .data.template import METRES_PER_UNIT
+from .data.template import METRES_PER_UNIT, template_from_arrays
 from .errors import DataError, FwkError, TopologyError, quote
 from .lifecycle import choose_model, open_run
 from .safeio import load_npz
@@ -163,7 +163,7 @@ class Applier:
         self.pre = run.preprocessor
         z = load_npz(tpl)  # arrays only, never unpickled; one line naming the file when damaged
         try:
-            self.template = Template(z["mean_neutral"], z["triangles"])
+            self.template = template_from_arrays(z)
         except (KeyError, ValueError, TypeError, IndexError) as exc:  # another npz (swapped, edited)
             raise FwkError(f"{tpl}: not the template of a blendshapes run ({type(exc).__name__}: "
                            f"{str(exc)[:120]})") from None

@@ -617,25 +617,19 @@ def _packed_template_obj(folder: Path) -> Path:
     import tempfile
 
     from .data.io import write_obj
-    from .data.template import Template
+    from .data.template import template_from_arrays
     from .safeio import load_npz
 
     path = folder / "stats" / "template.npz"
     state = load_npz(path)
     try:
-        V = np.asarray(state["mean_neutral"], dtype=np.float64)
-        F = np.asarray(state["triangles"], dtype=np.int64)
-        if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
-            raise ValueError(f"mean_neutral of shape {V.shape}, expected (n, 3) finite")
-        if F.ndim != 2 or F.shape[1] != 3 or not len(F) or F.min() < 0 or F.max() >= len(V):
-            raise ValueError(f"triangles of shape {F.shape} (expected (m, 3) ids below {len(V)})")
-        t = Template(V, F)
+        t = template_from_arrays(state)
     except Exception as exc:  # a damaged or swapped file: one line naming it
         raise FwkError(f"--template {folder}: {path} is not a rig model's template "
                        f"({type(exc).__name__}: {cut(str(exc), 100)})") from None
     tmp = Path(tempfile.mkdtemp(prefix="fwk-template-"))
     atexit.register(shutil.rmtree, tmp, ignore_errors=True)  # the process's own: gone when it ends
-    return write_obj(tmp / f"{folder.name}-template.obj", V, t)
+    return write_obj(tmp / f"{folder.name}-template.obj", t.vertices, t)
 
 
 def _numbered(names) -> str:

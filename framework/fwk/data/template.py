@@ -114,6 +114,19 @@ class Template:
         return dataclasses.replace(self, vertices=np.asarray(vertices, dtype=np.float64))
 
 
+def template_from_arrays(state) -> Template:
+    """The Template a run or rig model keeps in ``stats/template.npz`` (``mean_neutral`` (n, 3),
+    finite; ``triangles`` (m, 3), ids below n): a KeyError or ValueError saying what is wrong
+    otherwise (a swapped or damaged file), for the caller to name the file."""
+    V = np.asarray(state["mean_neutral"], dtype=np.float64)
+    F = np.asarray(state["triangles"], dtype=np.int64)
+    if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
+        raise ValueError(f"mean_neutral of shape {V.shape}, expected (n, 3) finite")
+    if F.ndim != 2 or F.shape[1] != 3 or not len(F) or F.min() < 0 or F.max() >= len(V):
+        raise ValueError(f"triangles of shape {F.shape} (expected (m, 3) ids below {len(V)})")
+    return Template(V, F)
+
+
 @dataclass(eq=False)
 class MeshCollection:
     """Shapes of many subjects on one template.
