@@ -114,29 +114,22 @@ def test_side_by_side_fits_the_models_a_one_thread_run_fits_bit_for_bit(tmp_path
         assert m2["timing"][label]["fit_s"] > 0
 
 
-def test_the_plan():
+def test_the_plan(monkeypatch):
     class Ctx:
         def __init__(self, **train):
             self.train, self.device = TrainConfig(**train), "cpu"
 
-    old = os.environ.get("FWK_THREADS")
-    try:
-        for T, m, want in ((2, 5, (2, 1, 2)), (4, 2, (2, 2, 4)), (3, 5, (3, 1, 3)), (4, 3, (3, 1, 4)),
-                           (1, 5, None), (2, 1, None)):
-            os.environ["FWK_THREADS"] = str(T)
-            assert plan(Ctx(), m) == want, (T, m)
-        os.environ["FWK_THREADS"] = "2"
-        assert plan(Ctx(side_by_side=False), 3) is None
-        assert plan(Ctx(strategy="ddp"), 3) is None
-        assert plan(Ctx(accelerator="gpu"), 3) is None
-        c = Ctx()
-        c.device = "cuda"
-        assert plan(c, 3) is None
-    finally:
-        if old is None:
-            os.environ.pop("FWK_THREADS", None)
-        else:
-            os.environ["FWK_THREADS"] = old
+    for T, m, want in ((2, 5, (2, 1, 2)), (4, 2, (2, 2, 4)), (3, 5, (3, 1, 3)), (4, 3, (3, 1, 4)),
+                       (1, 5, None), (2, 1, None)):
+        monkeypatch.setenv("FWK_THREADS", str(T))
+        assert plan(Ctx(), m) == want, (T, m)
+    monkeypatch.setenv("FWK_THREADS", "2")
+    assert plan(Ctx(side_by_side=False), 3) is None
+    assert plan(Ctx(strategy="ddp"), 3) is None
+    assert plan(Ctx(accelerator="gpu"), 3) is None
+    c = Ctx()
+    c.device = "cuda"
+    assert plan(c, 3) is None
     with pytest.raises(RecipeError, match="train.side_by_side: expected true or false"):
         TrainConfig(side_by_side="yes")
 
