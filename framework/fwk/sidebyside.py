@@ -40,7 +40,6 @@ signal. A child dies with the run's process
 """
 from __future__ import annotations
 
-import ctypes
 import io
 import json
 import os
@@ -50,6 +49,7 @@ import time
 import traceback
 
 from . import errors as _errors
+from .engine.distributed import die_with_parent
 from .errors import FwkError
 
 #: how often the run's process looks at its children (seconds)
@@ -80,13 +80,6 @@ def plan(ctx, n_models: int) -> tuple[int, int, int] | None:
         return None
     w = min(T, n_models)
     return w, T // w, T
-
-
-def _die_with_parent() -> None:
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
 
 
 class _Prefixed(io.TextIOBase):
@@ -126,7 +119,7 @@ def _child(work, threads: int, why: str, wfd: int, log_file, prefix: str = "") -
 
             runs.LOG_PREFIX[0] = prefix
             sys.stdout = _Prefixed(sys.stdout, prefix)
-        _die_with_parent()  # Ctrl-C reaches the children as it reaches the run (the same disposition)
+        die_with_parent()  # Ctrl-C reaches the children as it reaches the run (the same disposition)
         from .engine import threads as th
 
         th._registered.clear()  # the parent's registration is the parent's to remove

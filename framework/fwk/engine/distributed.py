@@ -88,9 +88,10 @@ def make_job(ctx, ckdir: Path, ckpt: Path | None) -> dict:
             "device": ctx.device}
 
 
-def _die_with_parent() -> None:
-    """In a rank process before it runs (Linux): be killed when rank 0 dies, however it dies
-    (``kill -9`` included), rather than wait in a collective for the process group's timeout."""
+def die_with_parent() -> None:
+    """In a child process before it runs (Linux): be killed when its parent dies, however it
+    dies (``kill -9`` included): a DDP rank rather than wait in a collective for the process
+    group's timeout, a side-by-side fit (``fwk.sidebyside``) rather than train on alone."""
     try:
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
@@ -163,7 +164,7 @@ def make_strategy(job: dict, devices, world: int):
             cmd = [sys.executable, "-m", "fwk.rank", json.dumps(job)]
             for rank in range(1, self.num_processes):
                 self.procs.append(subprocess.Popen(cmd, env={**os.environ, "LOCAL_RANK": str(rank)},
-                                                   preexec_fn=_die_with_parent))
+                                                   preexec_fn=die_with_parent))
 
     class FwkDDP(DDPStrategy):
         """DDP on this machine's processes, ranks started by fwk (``python -m fwk.rank``)."""
