@@ -16,7 +16,8 @@ vertices) when ICT-FaceKit is present, else a synthetic head of the same size (p
   [4, 4, 4, 4], spirals of length 9 (today: each pooling fused into its conv, spiral++ playing
   ``fwk.protocols.FusedPoolingConv``).
 
-A step is forward, L1 loss, backward and an Adam step. The versions alternate step by step after
+A step is forward, L1 loss, backward and an Adam step (fused, as ``fwk.engine.trainer`` trains;
+the frozen code's with torch's per-parameter Adam, as it trained). The versions alternate step by step after
 one warm-up step each; the table gives the median step time of each, their ratio, the GFLOP per
 step (3x the dense products of one forward pass, counted by ``torch.utils.flop_counter``; the
 sparse pooling left out, see ``gflop``) and the achieved rate against an fp32 matmul (2048^3)
@@ -73,9 +74,13 @@ def networks(spec, template):
     return enc, dec, m.hierarchy
 
 
-def stepper(enc, dec, x, bf16=False):
-    """One training step (forward ``dec(enc(x)[0])``, L1, backward, Adam) as a closure returning the loss."""
-    opt = torch.optim.Adam(list(enc.parameters()) + list(dec.parameters()), 1e-3)
+def stepper(enc, dec, x, bf16=False, fused=True):
+    """One training step (forward ``dec(enc(x)[0])``, L1, backward, Adam) as a closure returning the loss.
+
+    ``fused``: Adam as fwk trains with it (``fwk.engine.trainer.make_optimizer``: one fused kernel
+    over every parameter); False: torch's default per-parameter Adam, as the code before issue 17
+    (``_before``) trained."""
+    opt = torch.optim.Adam(list(enc.parameters()) + list(dec.parameters()), 1e-3, fused=fused)
 
     def step():
         opt.zero_grad(set_to_none=True)
@@ -183,7 +188,7 @@ def main():
         else:
             oenc, odec = _before.spiralpp_ae(h, 3, spec["channels"], spec["latent"], length=9)
         g_new, g_old = gflop(enc, dec, x), gflop(oenc, odec, x)
-        steps = {"before": stepper(oenc, odec, x), "after": stepper(enc, dec, x)}
+        steps = {"before": stepper(oenc, odec, x, fused=False), "after": stepper(enc, dec, x)}
         if a.bf16:
             e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
             steps["after_bf16"] = stepper(e16, d16, x, bf16=True)

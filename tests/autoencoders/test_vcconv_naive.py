@@ -152,9 +152,38 @@ def test_vcconv_orders_agree_in_value_and_gradient():
             assert close(b, a)
 
 
-def test_vcconv_auto_order_takes_the_fewest_multiply_adds_and_runs_under_bf16_autocast():
+def test_vcconv_multiply_adds_are_the_dense_products_torch_counts():
+    """``multiply_adds`` (half of auto's cost model) against torch's own count of the forward's
+    dense products (mm, bmm, addmm), for every order, mode and a few widths (no residual path: the
+    residual rides along as an extra coefficient, which the model leaves out)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
     h = REG.get("sampler", "simple")(levels=2).build(two_components())
     VC = REG.get("conv", "vcconv")
+    for mode, c_in, c_out in (("down", 3, 16), ("up", 16, 3), ("same", 8, 8), ("up", 8, 3)):
+        conv = VC(c_in, c_out, h, 0, weight_num=7, mode=mode)
+        x = torch.randn(5, conv.n_in, c_in)
+        for order in ("sum", "basis", "kernel"):
+            conv.order = order
+            with torch.no_grad(), FlopCounterMode(display=False) as fc:
+                conv(x)
+            assert fc.get_total_flops() == 2 * conv.multiply_adds(5)[order], (mode, c_in, c_out, order)
+
+
+def test_vcconv_auto_order_weighs_memory_traffic_and_runs_under_bf16_autocast():
+    h = REG.get("sampler", "simple")(levels=2).build(two_components())
+    VC = REG.get("conv", "vcconv")
+    from fwk_vcconv import FLOAT_COST
+
+    # a decoder's last layer at the chapter 5 width (8 -> 3 channels, batch 16): the explicit kernels
+    # need half the multiply-adds of the basis order, but gather every input row once per slot
+    # (b c floats a slot against b c_out): auto takes the basis order, as measured on ICT-FaceKit
+    conv = VC(8, 3, h, 0, weight_num=35, mode="up", residual_rate=0.5)
+    macs, floats = conv.multiply_adds(16), conv.traffic(16)
+    assert macs["kernel"] < macs["basis"] and floats["basis"] < floats["kernel"]
+    assert conv.chosen_order(16) == "basis"
+    cost = conv.costs(16)
+    assert all(cost[k] == macs[k] + FLOAT_COST * floats[k] for k in cost)
     torch.manual_seed(5)
     for mode, c_in, c_out in (("down", 3, 16), ("up", 16, 3)):
         conv = VC(c_in, c_out, h, 0, weight_num=6, mode=mode, residual_rate=0.5, activation=torch.nn.ELU())

@@ -25,9 +25,10 @@ identity). res averages the input over the same support
 with learned non-negative weights normalised to sum to one (|w_ij| / sum_j |w_ij|; the identity
 when the vertex count is unchanged) followed by a linear channel map when c_in != c_out.
 
-Evaluation (the same sum in one of three orders, ``order``; ``auto`` takes the one with the
-fewest multiply-adds for the layer's shape and batch, which is ``sum`` for the encoder's strided
-layers and ``basis`` for the decoder's transposed ones at the thesis's sizes):
+Evaluation (the same sum in one of three orders, ``order``; ``auto`` takes the cheapest for the
+layer's shape and batch by a cost model of multiply-adds plus the floats of the large
+intermediates each order materialises (``VCConv.costs``, ``FLOAT_COST``), which is ``sum`` for the
+encoder's strided layers and ``basis`` for the decoder's transposed ones at the thesis's sizes):
 
 * ``sum``: T_im = sum_j A_ijm x_j on the output side (one gather of the input rows, one batched
   (M x K) @ (K x b c_in) product per output vertex), then y_i = sum_m B_m^T T_im as one dense
@@ -61,6 +62,12 @@ from fwk.protocols import CONV_BUILD_ARGS, STRIDED_BUILD_ARGS
 
 MODES = ("same", "down", "up")
 ORDERS = ("auto", "sum", "basis", "kernel")  # evaluation order of the same sum (see the module docstring)
+#: ``auto``'s price of a float of a large intermediate (``VCConv.traffic``), in multiply-adds of a
+#: dense product. Measured 2026-12-03 (every order of every layer of the thesis-width and the
+#: chapter 5 width VAE, forward and backward, 2 threads, ICT-FaceKit's face-head, batch 16): 12 to
+#: 32 pick the fastest order for all 20 layers; 0 (multiply-adds alone) picked ``kernel`` for the
+#: chapter 5 decoder's last two layers, 40 and 72 ms against ``basis``'s 26 and 50 ms.
+FLOAT_COST = 16
 
 
 def support(hierarchy, level: int, mode: str, radius: int):
@@ -231,13 +238,37 @@ class VCConv(nn.Module):
             self.res_lin.reset_parameters()
 
     # ---- evaluation orders
-    def costs(self, b: int) -> dict:
-        """Multiply-adds of one forward pass per order for batch size b (``auto`` takes the least)."""
+    def multiply_adds(self, b: int) -> dict:
+        """Multiply-adds of one forward pass per order for batch size b."""
         M, c, o = self.basis.shape
         P_out, P_in = self._out_slots, self._in_slots
         return {"sum": P_out * M * b * c + self.n_out * b * M * c * o,
                 "basis": self.n_in * b * c * M * o + P_in * M * b * o,
                 "kernel": P_out * M * c * o + P_out * b * c * o}
+
+    def traffic(self, b: int) -> dict:
+        """Floats of the large intermediates one forward pass materialises per order for batch
+        size b (each is written, read, and has a gradient of its size in the backward):
+
+        * ``sum``: the gathered inputs (slots x b c), T and its copy laid out for the basis
+          product (2 x n_out (M + 1) b c);
+        * ``basis``: Z and its copy laid out per input vertex (2 x n_in M b o), the per-slot
+          products and residual terms sent to the outputs (2 x slots b o);
+        * ``kernel``: the explicit kernels (slots c o), the gathered inputs, their copy laid out
+          for the product and the residual's weighted copy (3 x slots b c);
+
+        and the output (n_out b o) for every order."""
+        M, c, o = self.basis.shape
+        P_out, P_in = self._out_slots, self._in_slots
+        y = self.n_out * b * o
+        return {"sum": P_out * b * c + 2 * self.n_out * (M + 1) * b * c + y,
+                "basis": 2 * self.n_in * M * b * o + 2 * P_in * b * o + y,
+                "kernel": P_out * c * o + 3 * P_out * b * c + y}
+
+    def costs(self, b: int) -> dict:
+        """The cost model ``auto`` minimises: multiply-adds + ``FLOAT_COST`` x traffic, per order."""
+        macs, floats = self.multiply_adds(b), self.traffic(b)
+        return {k: macs[k] + FLOAT_COST * floats[k] for k in macs}
 
     def chosen_order(self, b: int) -> str:
         """The order ``forward`` uses for batch size b."""
