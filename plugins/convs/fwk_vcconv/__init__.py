@@ -145,7 +145,7 @@ class VCConv(nn.Module):
         residual_rate (float or None): r in [0, 1]; None: no residual path.
         activation (torch.nn.Module or None): applied to the conv branch before the residual mix;
             supplied by the model like the build arguments (not a recipe key); None: no activation.
-        order (str): evaluation order of the same sum: ``auto`` (fewest multiply-adds), ``sum``,
+        order (str): evaluation order of the same sum: ``auto`` (the cheapest by ``costs``), ``sum``,
             ``basis`` or ``kernel`` (see the module docstring); the numbers agree to rounding.
 
     Shapes:
