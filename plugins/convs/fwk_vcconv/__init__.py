@@ -64,9 +64,9 @@ MODES = ("same", "down", "up")
 ORDERS = ("auto", "sum", "basis", "kernel")  # evaluation order of the same sum (see the module docstring)
 #: ``auto``'s price of a float of a large intermediate (``VCConv.traffic``), in multiply-adds of a
 #: dense product. Measured 2026-12-03 (every order of every layer of the thesis-width and the
-#: chapter 5 width VAE, forward and backward, 2 threads, ICT-FaceKit's face-head, batch 16): 12 to
+#: chapter 5 width VAE, forward and backward, 2 threads, ICT-FaceKit's face-head, batch 16): 6 to
 #: 32 pick the fastest order for all 20 layers; 0 (multiply-adds alone) picked ``kernel`` for the
-#: chapter 5 decoder's last two layers, 40 and 72 ms against ``basis``'s 26 and 50 ms.
+#: chapter 5 decoder's last two layers, 36 and 59 ms against ``basis``'s 22 and 42 ms.
 FLOAT_COST = 16
 
 
@@ -250,10 +250,9 @@ class VCConv(nn.Module):
         """Floats of the large intermediates one forward pass materialises per order for batch
         size b (each is written, read, and has a gradient of its size in the backward):
 
-        * ``sum``: the gathered inputs (slots x b c), T and its copy laid out for the basis
-          product (2 x n_out (M + 1) b c);
-        * ``basis``: Z and its copy laid out per input vertex (2 x n_in M b o), the per-slot
-          products and residual terms sent to the outputs (2 x slots b o);
+        * ``sum``: the gathered inputs (slots x b c) and T (n_out (M + 1) b c);
+        * ``basis``: Z (n_in M b o), the per-slot products and residual terms sent to the outputs
+          (2 x slots b o);
         * ``kernel``: the explicit kernels (slots c o), the gathered inputs, their copy laid out
           for the product and the residual's weighted copy (3 x slots b c);
 
@@ -261,8 +260,8 @@ class VCConv(nn.Module):
         M, c, o = self.basis.shape
         P_out, P_in = self._out_slots, self._in_slots
         y = self.n_out * b * o
-        return {"sum": P_out * b * c + 2 * self.n_out * (M + 1) * b * c + y,
-                "basis": 2 * self.n_in * M * b * o + 2 * P_in * b * o + y,
+        return {"sum": P_out * b * c + self.n_out * (M + 1) * b * c + y,
+                "basis": self.n_in * M * b * o + 2 * P_in * b * o + y,
                 "kernel": P_out * c * o + 3 * P_out * b * c + y}
 
     def costs(self, b: int) -> dict:
@@ -297,7 +296,13 @@ class VCConv(nn.Module):
             A = torch.cat([A, self._gather_out(self._res_weights())[:, None]], 1)  # residual as an (M+1)-th
         Mx = A.shape[1]
         x2 = xv.reshape(self.n_in, b * c)
-        Bm = self.basis.reshape(M * c, o)
+        # T_i is computed transposed, (b c) x (M + 1) (X_i^T A_i: a transposed operand costs BLAS
+        # nothing), so that its rows (beta, q) are already the dense product's layout [(i, beta), (q, m)]:
+        # the basis is laid out to match, (c (M + 1)) x o, with a zero row for the residual's column
+        Bm = self.basis.permute(1, 0, 2)
+        if has_res:
+            Bm = torch.cat([Bm, Bm.new_zeros(c, 1, o)], 1)
+        Bm = Bm.reshape(c * Mx, o)
         sizes = [count * width for _, count, width in self._out_spans]
         # a gather per bucket (its backward: an index_add into the small input) and a split of the small A
         # (its backward: one cat); slices of large tensors would cost a zero-filled copy each in the backward
@@ -305,15 +310,14 @@ class VCConv(nn.Module):
         at = 0
         for (start, count, width), Ab in zip(self._out_spans, A.split(sizes)):
             Xb = x2.index_select(0, self._out_src[at:at + count * width]).reshape(count, width, b * c)
-            T = torch.bmm(Ab.reshape(count, width, Mx).transpose(1, 2), Xb).reshape(count, Mx, b, c)
-            Tc, Tr = T.split([M, Mx - M], 1) if has_res else (T, None)
-            yb = torch.addmm(self.bias, Tc.permute(0, 2, 1, 3).reshape(count * b, M * c), Bm)
+            T = torch.bmm(Xb.transpose(1, 2), Ab.reshape(count, width, Mx))  # (count, b c, M + 1)
+            yb = torch.addmm(self.bias, T.reshape(count * b, c * Mx), Bm)
             rows = self._out_order[start:start + count]
             y = yb.new_empty(self.n_out, b, o) if y is None else y  # every row is written by one bucket
             y.index_copy_(0, rows, yb.reshape(count, b, o))
             if has_res:
-                res = Tr.new_empty(self.n_out, b, c) if res is None else res
-                res.index_copy_(0, rows, Tr.reshape(count, b, c))
+                res = T.new_empty(self.n_out, b, c) if res is None else res
+                res.index_copy_(0, rows, T.reshape(count, b, c, Mx)[..., M])
             at += count * width
         if has_res and self.res_lin is not None:
             res = res @ self.res_lin.weight.t()
@@ -328,7 +332,9 @@ class VCConv(nn.Module):
             <= self._in_slots * c + self.n_out * c * o  # R before the scatter when that is cheaper
         d = o if res_first else c
         x2 = xv.reshape(self.n_in, b * c)
-        Bm = self.basis.permute(1, 0, 2).reshape(c, M * o)
+        # Z_j is computed transposed, (b o) x M, straight from one dense product ([q, (p, m)] basis);
+        # the per-vertex product takes it as a transposed operand (free in BLAS) instead of a copy
+        Bm = self.basis.permute(1, 2, 0).reshape(c, o * M)
         A = self.coef.reshape(-1, M).index_select(0, self._in_pos) * self._in_valid[:, None]  # (slots, M)
         sizes = [count * width for _, count, width in self._in_spans]
         w = (self._res_weights().index_select(0, self._in_pos) * self._in_valid).split(sizes) if has_res \
@@ -337,8 +343,8 @@ class VCConv(nn.Module):
         at = 0
         for (start, count, width), Ab, wb in zip(self._in_spans, A.split(sizes), w):
             xb = x2.index_select(0, self._in_order[start:start + count])  # (count, b c)
-            Z = (xb.reshape(count * b, c) @ Bm).reshape(count, b, M, o)
-            Y = torch.bmm(Ab.reshape(count, width, M), Z.transpose(1, 2).reshape(count, M, b * o))
+            Z = (xb.reshape(count * b, c) @ Bm).reshape(count, b * o, M)  # Z_j^T
+            Y = torch.bmm(Ab.reshape(count, width, M), Z.transpose(1, 2))  # (count, width, b o)
             dst = self._in_dst[at:at + count * width]
             if y is None:
                 y = self.bias.to(Y.dtype).expand(self.n_out, b, o).reshape(self.n_out, b * o).clone()
