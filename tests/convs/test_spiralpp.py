@@ -177,3 +177,40 @@ def test_spiralpp_fused_pooling_under_bf16_autocast():
                 y16 = fused(x)
             assert y16.dtype == torch.bfloat16
             assert (y16.float() - e).abs().max() <= 0.05 * (1 + e.abs().max())
+
+
+def test_spiralpp_up_tables_equal_a_dense_operator_built_by_loops_and_the_product_is_thread_independent():
+    """forward_up's sparse operator S against a dense one built entry by entry (S[i, j L + l] =
+    U[s_l(i), j]), its product's gradient by gradcheck (float64), and the product bit for bit
+    the same on 1 and 2 threads (each row sums its non-zeros in a fixed order)."""
+    from fwk.graph import torch_sparse
+    from fwk_spiralpp import UpGather
+
+    h = get_registry().get("sampler", "quadric")(factors=[4]).build(two_components())
+    conv = get_registry().get("conv", "spiral++")(4, 3, h, 0)
+    U = torch_sparse(h.up[0]).coalesce()
+    S, St = conv._up_tables(U)
+    n, n_c = U.shape
+    L = conv.length
+    parents = {}
+    for (r, j), v in zip(U.indices().t().tolist(), U.values().tolist()):
+        parents.setdefault(r, []).append((j, v))
+    dense = torch.zeros(n, n_c * L)
+    for i, spiral in enumerate(conv.index.tolist()):
+        for l, s in enumerate(spiral):
+            for j, v in parents.get(s, []):
+                dense[i, j * L + l] += v
+    assert torch.allclose(S.to_dense(), dense, atol=0) and torch.allclose(St.to_dense(), dense.t(), atol=0)
+    z = torch.randn(n_c * L, 2, dtype=torch.float64, requires_grad=True)
+    S64, St64 = S.to(torch.float64), St.to(torch.float64)
+    assert torch.autograd.gradcheck(lambda v: UpGather.apply(v, S64, St64), (z,), fast_mode=True)
+    threads = torch.get_num_threads()
+    big = torch.randn(n_c * L, 4096)
+    try:
+        torch.set_num_threads(1)
+        one = UpGather.apply(big, S, St)
+        torch.set_num_threads(2)
+        two = UpGather.apply(big, S, St)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one, two)
