@@ -157,7 +157,9 @@ class GatherLinear(torch.autograd.Function):
             gx = gxs[0]
             for t in gxs[1:]:
                 gx += t
-            gx = gx.view(n_in, b, c) if rowwise else gx.view(n_in, c, b).transpose(1, 2)
+            # vertex-major (n, b, c) like the activations: a (n, c, b) layout handed on made the
+            # previous layer's ELU backward 3x slower (mixed layouts; 7.9 ms a step for (16, 11248, 8))
+            gx = gx.view(n_in, b, c) if rowwise else gx.view(n_in, c, b).transpose(1, 2).contiguous()
         return gx, gW, gb, None, None, None
 
 
