@@ -33,7 +33,6 @@ import warnings
 import numpy as np
 import torch
 from torch import nn
-from torch.nn import functional as F
 from torch.autograd.function import once_differentiable
 
 from fwk.errors import RecipeError
