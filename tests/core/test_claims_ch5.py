@@ -96,3 +96,29 @@ def test_the_chapter_5_run_gives_the_pages_verdicts(tmp_path, capsys):
             "DAME for 0 of 3: does not hold (one seed).") in out
     assert ("C14, pb-dr-norm-two-step against every DT source: lower L1 for 3 of 3 expressions: holds; lower DAME "
             "for 1 of 3: partly (one seed).") in out
+
+
+def test_c9_over_seeds_counts_the_seeds_whose_k_differ_across_expressions(tmp_path, capsys):
+    """In a run with seeds, metrics.json gives a k every seed chose as one number and different
+    choices as {"by_seed": ...}: C9 lists the k per seed and counts the seeds on which they differ
+    across expressions (the rule's holds / partly / does not hold over those seeds)."""
+    run = tmp_path / "ch5-seeds"
+    run.mkdir()
+    row = {"pbs": _m(1e-3, 1e-2, 1e-2), "dt-0": _m(2e-3, 2e-2, 1e-2)}
+    per = {"smile": row, "frown": row}
+    cases = {"differ-on-one": ({"smile": 1000, "frown": {"by_seed": {"0": 1000, "1": 300, "2": 1000}}},
+                               "smile 1000 / 1000 / 1000, frown 1000 / 300 / 1000 (seeds 0, 1, 2): the k differ "
+                               "across expressions on 1 of 3 seeds: partly."),
+                 "never": ({"smile": 1000, "frown": 1000},
+                           "smile 1000 / 1000 / 1000, frown 1000 / 1000 / 1000 (seeds 0, 1, 2): the k differ "
+                           "across expressions on 0 of 3 seeds: does not hold."),
+                 "always": ({"smile": {"by_seed": {"0": 20, "1": 40, "2": 20}}, "frown": 1000},
+                            "smile 20 / 40 / 20, frown 1000 / 1000 / 1000 (seeds 0, 1, 2): the k differ across "
+                            "expressions on 3 of 3 seeds: holds.")}
+    for name, (k, words) in cases.items():
+        (run / "metrics.json").write_text(json.dumps({"blendshapes": per, "pbs": {"pbs": {"k": k}}, "seeds": [0, 1, 2]}))
+        assert _module().main([str(run)]) == 0
+        out = capsys.readouterr().out
+        assert f"C9, pbs: chosen k {words}" in out, (name, out)
+        if name == "differ-on-one":  # the table's k column: one k per seed where they differ
+            assert "| pbs | dt-0 | frown | 1000 / 300 / 1000 |" in out and "| pbs | dt-0 | smile | 1000 |" in out
