@@ -1,4 +1,4 @@
-"""Claims C1 and C2 (thesis 3.5.1, 3.5.2) from a finished chapter 3 grid run (issue 13).
+"""Claims C1, C2, C12, C13 and C15 (thesis 3.5) from a finished chapter 3 grid run (issues 13, 26).
 
     python benchmarks/claims_ch3.py RUN [--split test]
 
@@ -19,7 +19,10 @@ RUN is a run of ``recipes/thesis/ch3/plateau.yaml`` (members ``<conv>-<represent
   and whether the pair the thesis names as the fair balance on Facsimile's test set (LSA-3DMM and
   the Mesh Autoencoder (vcconv), each with Euclidean Std.) is on it;
 * C15 (a run of ``recipes/thesis/ch3/feast-variance.yaml``, whose ``mean-shape`` member is the
-  baseline): how many FeaStNet members have both L1 and DAME below the mean shape's.
+  baseline): how many FeaStNet members have both L1 and DAME below the mean shape's;
+* C12 (a run with raw-DR members ``<conv>-dr`` beside ``<conv>-dr-norm``,
+  ``recipes/thesis/ch3/plateau-dr.yaml``): per conv, whether normalising DR lowers (positive) or
+  raises (negative) the majority of L1, L2, DAME and FMPD, against the thesis's sign (``c12``).
 
 Verdicts: ``_claims.RULE`` (printed): a verdict "holds" when its comparison goes the claim's way
 for more than half of the complete convs, "partly" for some, "does not hold" for none; on one
@@ -38,14 +41,20 @@ from _claims import CLOSE, RULE, lower, margin, pct, qualify, seeded, training, 
 from fwk.evaluation.core import pareto_front  # noqa: E402
 
 REPS = ("euclidean", "euclidean-std", "dr-norm")
+#: raw DR (``<conv>-dr``): C12's run (``recipes/thesis/ch3/plateau-dr.yaml``) has it beside DR Norm.
+OPTIONAL_REPS = ("dr",)
 CONVS = ("spiral", "spiralpp", "feast", "lsa", "vcconv")
+METRICS = ("l1", "l2", "dame", "fmpd")
+#: thesis 3.5.2 (l. 1441), Facsimile's test set: the overall impact of normalising DR per model
+C12_THESIS = {"spiral": "negative", "spiralpp": "negative", "feast": "negative", "lsa": "positive",
+              "vcconv": "positive"}
 
 
 def load(run: Path, split: str) -> dict:
     """{(conv, rep): {metric: mean, "epochs": ..., "ended": ..., "verdict": ...}} of finished members."""
     out = {}
     for conv in CONVS:
-        for rep in REPS:
+        for rep in REPS + OPTIONAL_REPS:
             f = run / f"{conv}-{rep}" / "metrics.json"
             if not f.exists():
                 continue
@@ -68,8 +77,9 @@ def main(argv=None) -> int:
     print(f"{a.split}, evaluation space, mean over meshes ({a.run.name})\n")
     print("| conv | representation | L1 ×1e-3 | L2 ×1e-5 | DAME ×1e-2 | FMPD ×1e-2 | epochs | ended by | verdict | fit min |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    shown = REPS + tuple(rep for rep in OPTIONAL_REPS if any(k[1] == rep for k in rows))
     for conv in CONVS:
-        for rep in REPS:
+        for rep in shown:
             r = rows.get((conv, rep))
             if r is None:
                 print(f"| {conv} | {rep} | missing | | | | | | | |")
@@ -89,11 +99,49 @@ def main(argv=None) -> int:
     print(f"\n{RULE}\n")
     for c in ("C1", "C2"):
         print(res[c])
+    print(c12(rows))
     front, line = c13(rows)
     print(f"\nL1/DAME front over the {len(rows)} finished members: {', '.join(f'{c}-{r}' for c, r in front)}.")
     print(line)
     print(c15(rows, mean_shape(a.run, a.split)))
     return 0
+
+
+def c12(rows: dict) -> str:
+    """C12 (thesis 3.5.2, l. 1441: normalising DR helps the Mesh Autoencoder and LSA-3DMM and hurts
+    FeaStNet, Neural 3DMM and SpiralNet++ on Facsimile's test set). Per conv with both a ``dr`` and a
+    ``dr-norm`` member, normalisation's impact over the four metrics (L1, L2, DAME, FMPD): positive
+    when DR Norm. is lower on at least 3 of them, negative when raw DR is, else mixed (ties count for
+    neither). The thesis's own words follow this count: the Mesh Autoencoder lower on L1, L2 and DAME
+    (FMPD +36 %), LSA-3DMM on L1, L2 and FMPD (DAME +36 %), the other three higher on all four. The
+    claim holds for a conv when the impact has the thesis's sign."""
+    convs = [c for c in CONVS if (c, "dr") in rows and (c, "dr-norm") in rows]
+    if not convs:
+        return "C12 (normalising DR helps vcconv and lsa, hurts spiral, spiral++ and feast): not measured (no conv has both a dr and a dr-norm member)."
+    parts, close, seeds, n_match, n_match_t = [], [], False, 0, 0
+
+    def impact(c):
+        down, up = sum(x is True for x in c), sum(x is False for x in c)
+        return "positive" if down >= 3 else "negative" if up >= 3 else "mixed"
+
+    for conv in convs:
+        raw, norm = rows[conv, "dr"], rows[conv, "dr-norm"]
+        pair = {k: (_pair(norm, k), _pair(raw, k)) for k in METRICS}
+        c = [lower(*pair[k]) for k in METRICS]
+        seeds |= seeded(*pair["l1"])
+        got = impact(c)
+        ok = got == C12_THESIS[conv]
+        n_match += ok
+        n_match_t += ok and impact([lower(*pair[k], CLOSE) for k in METRICS]) == got
+        if ok:
+            close += [f"{conv} {k.upper()} {pct(margin(*pair[k]))}" for k, x in zip(METRICS, c)
+                      if x is not None and margin(*pair[k]) < CLOSE]
+        ratios = ", ".join(f"{k.upper()} {norm[k] / raw[k]:.2f}x" for k in METRICS)
+        parts.append(f"{conv} {got} (DR Norm. over DR: {ratios}; thesis: {C12_THESIS[conv]})")
+    k = len(convs)
+    word = verdict(n_match, k)
+    return (f"C12 (normalising DR: the impact over L1, L2, DAME and FMPD has the thesis's sign): {n_match} of {k} "
+            f"convs ({'; '.join(parts)}): {qualify(word, close, f'{n_match_t} of {k}, {verdict(n_match_t, k)}', seeds)}.")
 
 
 def mean_shape(run: Path, split: str) -> dict | None:

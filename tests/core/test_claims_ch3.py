@@ -147,3 +147,38 @@ def test_the_feast_variance_run_gives_the_pages_c15(tmp_path, capsys):
     assert "C15 (FeaStNet learns: L1 and DAME below the mean shape's, 11.963e-3 / 1.978e-2): 1 of 3 feast members" in out
     assert out.rstrip().endswith(": partly.")
     assert "| feast | yes | yes | yes | yes | yes | yes |" in out  # C1 and C2 the thesis's way (FMPD as DAME here)
+
+
+def test_c12_counts_the_convs_where_normalising_dr_has_the_thesis_sign(tmp_path, capsys):
+    """C12 per conv with both DR and DR Norm.: normalisation's impact is positive when DR Norm. is
+    lower on at least 3 of L1, L2, DAME and FMPD, negative when raw DR is, else mixed; the claim
+    counts the convs whose impact has the thesis's sign (vcconv, lsa positive; the rest negative).
+    The thesis's own Facsimile test numbers (3.5.2, l. 1439-1441) give its own signs by this count."""
+    run = tmp_path / "plateau-dr"
+    # vcconv: the thesis's Mesh Autoencoder (L1 1.3x lower, L2 1.94x lower, DAME 2 % lower, FMPD 36 % higher)
+    _member(run, "vcconv-dr", 1.3, 1.02, l2=1.94, fmpd=1.0)
+    _member(run, "vcconv-dr-norm", 1.0, 1.0, l2=1.0, fmpd=1.36)
+    # lsa: the thesis's LSA-3DMM (L1 1.13x, L2 1.2x lower, DAME 36 % higher, FMPD 2.82x lower)
+    _member(run, "lsa-dr", 1.13, 1.0, l2=1.2, fmpd=3.82)
+    _member(run, "lsa-dr-norm", 1.0, 1.36, l2=1.0, fmpd=1.0)
+    # spiral: normalisation helps on everything here (the thesis: hurts): no
+    _member(run, "spiral-dr", 2.0, 2.0, l2=2.0, fmpd=2.0)
+    _member(run, "spiral-dr-norm", 1.0, 1.0, l2=1.0, fmpd=1.0)
+    # feast: mixed, two and two (the thesis: negative): no
+    _member(run, "feast-dr", 1.0, 2.0, l2=1.0, fmpd=2.0)
+    _member(run, "feast-dr-norm", 2.0, 1.0, l2=2.0, fmpd=1.0)
+    _member(run, "spiralpp-dr", 1.0, 1.0)  # no DR Norm. partner: not counted
+    assert _module().main([str(run)]) == 0
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if x.startswith("C12"))
+    assert "2 of 4 convs" in line and line.endswith(": partly (one seed; deciding margins under 10 %: vcconv DAME 2 %; "
+                                                   "counting those as ties: 1 of 4, partly).")  # vcconv mixed then
+    assert "vcconv positive (DR Norm. over DR: L1 0.77x" in line and "feast mixed" in line and "spiral positive" in line
+    assert "| spiralpp | dr | 1000.000 |" in out  # raw DR rows are shown where the run has them
+    # none with both: not measured, and the table has no dr rows
+    run2 = tmp_path / "plateau-2"
+    _member(run2, "lsa-dr-norm", 1.0, 0.1)
+    assert _module().main([str(run2)]) == 0
+    out = capsys.readouterr().out
+    assert "C12 (normalising DR helps vcconv and lsa, hurts spiral, spiral++ and feast): not measured" in out
+    assert "| dr |" not in out
