@@ -214,3 +214,21 @@ def test_spiralpp_up_tables_equal_a_dense_operator_built_by_loops_and_the_produc
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(one, two)
+
+
+def test_spiralpp_copies_after_forward_up():
+    """A model copied (copy.deepcopy, pickle) after forward_up built its sparse operator copies
+    without it (CSR tensors cannot be deep-copied) and rebuilds it: the same output."""
+    import copy
+    import pickle
+
+    from fwk.graph import torch_sparse
+
+    h = get_registry().get("sampler", "quadric")(factors=[4]).build(two_components())
+    conv = get_registry().get("conv", "spiral++")(4, 3, h, 0)
+    U = torch_sparse(h.up[0]).coalesce()
+    x = torch.randn(2, U.shape[1], 4)
+    y = conv.forward_up(x, U)
+    assert conv._up is not None
+    for other in (copy.deepcopy(conv), pickle.loads(pickle.dumps(conv))):
+        assert torch.equal(other.forward_up(x, U), y)

@@ -214,6 +214,13 @@ class SpiralPP(nn.Module):
         self.layer = nn.Linear(in_channels * length, out_channels)
         self.reset_parameters()
 
+    def __getstate__(self):
+        """Copies and pickles leave forward_up's operator out (rebuilt on the next call): CSR
+        tensors have no storage to copy."""
+        state = dict(self.__dict__)
+        state["_up"] = None
+        return state
+
     def reset_parameters(self) -> None:
         """W Xavier-uniform, b = 0."""
         nn.init.xavier_uniform_(self.layer.weight)
