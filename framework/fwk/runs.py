@@ -66,6 +66,10 @@ SIDE_BY_SIDE = "side_by_side"
 #: True while this process resumes a run started before that: fwk.sidebyside.plan then fits its
 #: models one after another, as they were when it started
 ONE_AFTER_ANOTHER = [False]
+#: versions.json's mark of a run started by an fwk that runs a recipe's seeds side by side (fwk.seeds)
+SEEDS_SIDE_BY_SIDE = "seeds_side_by_side"
+#: True while this process resumes a run started before that: its seeds run one after another
+SEEDS_ONE_AFTER_ANOTHER = [False]
 
 
 def _default_device() -> str:
@@ -427,14 +431,15 @@ def check_recipe_hash(run_dir, what: str = "") -> None:
                        f"start a new run with the edited recipe")
 
 
-def _started_side_by_side(run_dir: Path) -> bool:
-    """Whether the run's versions.json carries ``SIDE_BY_SIDE`` (written as a run starts since
-    models are fitted side by side); an unreadable one counts as a new run's."""
+def _started_side_by_side(run_dir: Path, mark: str = SIDE_BY_SIDE) -> bool:
+    """Whether the run's versions.json carries ``mark`` (``SIDE_BY_SIDE``: written as a run starts
+    since models are fitted side by side; ``SEEDS_SIDE_BY_SIDE``: since seeds run side by side);
+    an unreadable one counts as a new run's."""
     try:
         stored = json.loads((Path(run_dir) / "versions.json").read_text())
     except (OSError, ValueError):
         return True
-    return not isinstance(stored, dict) or SIDE_BY_SIDE in stored
+    return not isinstance(stored, dict) or mark in stored
 
 
 def fix_threads(ctx: RunContext, created: bool) -> tuple[int, str]:
@@ -570,13 +575,18 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
                 plain["source"] = resolved.source  # the recipe file: relative paths resolve from it
             ctx.write_text("recipe.yaml", yaml.safe_dump(plain, sort_keys=False))
             ctx.write_json("versions.json", {**versions(registry), RECIPE_HASH: recipe_hash(run_dir),
-                                             SIDE_BY_SIDE: True})
+                                             SIDE_BY_SIDE: True, SEEDS_SIDE_BY_SIDE: True})
         ctx.log(f"fwk run {resolved.name}: task {resolved.task.name}, run directory {run_dir}")
         fix_threads(ctx, created)
         if resume and not _started_side_by_side(run_dir):
             ONE_AFTER_ANOTHER[0] = True
             ctx.log("this run started before fwk fitted models side by side (2026-12-03): its models are fitted "
                     "one after another, as when it started")
+        if resume and not _started_side_by_side(run_dir, SEEDS_SIDE_BY_SIDE) and resolved.seeds \
+                and not fans_out_seeds(resolved.task.cls):
+            SEEDS_ONE_AFTER_ANOTHER[0] = True
+            ctx.log("this run started before fwk ran seeds side by side (2026-12-03): its seeds run one after "
+                    "another, as when it started")
         if resume:
             for tmp in run_dir.rglob(".*.tmp"):  # writes a killed process cut short (this one holds the lock)
                 tmp.unlink()
@@ -611,5 +621,6 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
         if outer_pin is None:
             unpin()  # this run's count ends with it (a run inside a run keeps the outer one's)
             ONE_AFTER_ANOTHER[0] = False
+            SEEDS_ONE_AFTER_ANOTHER[0] = False
     lock.release()
     return run_dir

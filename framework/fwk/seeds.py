@@ -25,9 +25,12 @@ take a ``split``) and no ``seeds:``; a seed's sub-run is an ordinary run of it, 
   ``fwk sample`` use a seed's sub-run (``<run>/seed-<s>``), which holds the models: given ``<run>``,
   the first seed's, or ``--seed-run S`` (``fwk.lifecycle.seed_sub_run``).
 
-The seeds run one after another in this process (the dataset's cache, ``fwk.cache``, serves
-every seed after the first; the split and preprocessing are recomputed per seed, identically,
-in well under a second). A seed whose sub-run holds ``metrics.json`` is finished: ``fwk run
+The seeds run side by side, each in a process forked from the run's, when the run has T >= 2
+threads (``seed_rounds``: rounds of min(T, seeds) seeds, T // k threads each for a round of k;
+``train.side_by_side: false``, a GPU, DDP or another system than Linux: one after another in
+this process, as ``fwk.sidebyside.plan`` rules for models). The dataset's cache (``fwk.cache``)
+serves every seed after the first; the split and preprocessing are recomputed per seed,
+identically, in well under a second. A seed whose sub-run holds ``metrics.json`` is finished: ``fwk run
 --resume`` reruns only the others, each resumed from its checkpoints. Every model is trained
 once per seed, the closed-form ones (``pca``, ``dt``) too: their numbers are the same on every
 seed (sd 0), which shows the split did not move. A grid (``fwk_grid``) fans its members' seeds
@@ -112,22 +115,46 @@ def seed_finished(sub: Path) -> bool:
     return (sub / "metrics.json").exists() and not (sub / FAILED).exists()
 
 
+def seed_rounds(ctx, seeds: list) -> list[tuple[list, int]] | None:
+    """[(the seeds of a round, each one's threads)] when the run's seeds run side by side, else
+    None (one after another, each with the run's T threads).
+
+    With ``fwk.sidebyside.plan``'s w = min(T, number of seeds) workers, the seeds are cut in the
+    recipe's order into rounds of w; a round of k seeds runs them in k forked processes with
+    T // k threads each (a round of one runs in the run's process). Which round a seed is in, and
+    so its thread count, depends on T and the recipe only, also on a resume with fewer seeds left:
+    a run's numbers depend on T and the recipe only. At T = 2 every model trains with one thread
+    either way (seeds side by side: one after another in each seed's process; a lone seed: its
+    models side by side), so the models are the ones seeds one after another fit, bit for bit;
+    what changes is the wall time (a seed's long model no longer leaves the second core idle while
+    it trains alone) and the thread count of each seed's predictions and metrics."""
+    from .runs import SEEDS_ONE_AFTER_ANOTHER
+    from .sidebyside import plan
+
+    p = None if SEEDS_ONE_AFTER_ANOTHER[0] else plan(ctx, len(seeds))
+    if p is None:
+        return None
+    w, _, T = p
+    return [(seeds[i:i + w], T // len(seeds[i:i + w])) for i in range(0, len(seeds), w)]
+
+
 def run_seeds(resolved, ctx) -> None:
-    """``fwk run`` of a recipe with ``seeds``: each seed's member recipe in its sub-run, one
-    after another (finished ones skipped), then the run's combined metrics.json and report.md."""
+    """``fwk run`` of a recipe with ``seeds``: each seed's member recipe in its sub-run (finished
+    ones skipped), side by side where ``seed_rounds`` says so, else one after another; then the
+    run's combined metrics.json and report.md."""
     members = member_seeds(resolved)
     ctx.log(f"seeds {', '.join(map(str, members))} on the split of seed {split_seed(resolved.data)}")
-    for i, (s, data) in enumerate(members.items()):
+    order = list(members)
+
+    def one(s):
         sub = ctx.run_dir / SEED_DIR.format(s)
-        if seed_finished(sub):
-            ctx.log(f"seed {s}: finished before, not run again")
-            continue
+        data = members[s]
         member = resolve(data, ctx.registry)
         sub_ctx = ctx.child(sub.name)
         sub_ctx.seed, sub_ctx.recipe, sub_ctx.train = member.seed, member.data, member.train
         sub_ctx.source = member.source
         atomic_write_bytes(sub / "recipe.yaml", yaml.safe_dump(plain_recipe(data), sort_keys=False).encode())
-        ctx.log(f"[seed {s}: {i + 1}/{len(members)}] {sub}")
+        ctx.log(f"[seed {s}: {order.index(s) + 1}/{len(members)}] {sub}")
         try:
             member.task.build().run(sub_ctx)
         except BaseException as exc:
@@ -137,7 +164,57 @@ def run_seeds(resolved, ctx) -> None:
                 pass
             raise
         (sub / FAILED).unlink(missing_ok=True)
-    write_seeds_report(ctx, list(members), split_seed(resolved.data), registry=ctx.registry)
+
+    def todo(seeds):
+        left = []
+        for s in seeds:
+            if seed_finished(ctx.run_dir / SEED_DIR.format(s)):
+                ctx.log(f"seed {s}: finished before, not run again")
+            else:
+                left.append(s)
+        return left
+
+    rounds = seed_rounds(ctx, order)
+    if rounds is None:
+        for s in todo(order):
+            one(s)
+    else:
+        T = rounds[0][1] * len(rounds[0][0])
+        ctx.log(f"seeds side by side: {len(rounds[0][0])} at a time, each with {rounds[0][1]} of the run's {T} "
+                f"threads" + (f" (the last {len(rounds[-1][0])} with {rounds[-1][1]})" if rounds[-1][1] != rounds[0][1]
+                              else "") + "; train.side_by_side: false runs them one after another")
+        for seeds, threads in rounds:
+            left = todo(seeds)
+            if len(seeds) == 1:  # a round of one: in this process, with the run's threads
+                for s in left:
+                    one(s)
+            elif left:
+                _forked_seeds(ctx, left, len(seeds), threads, T, one)
+    write_seeds_report(ctx, order, split_seed(resolved.data), registry=ctx.registry)
+
+
+def _forked_seeds(ctx, seeds, workers, threads, T, one) -> None:
+    """Run ``one(s)`` for each seed in forked processes, ``workers`` at a time with ``threads``
+    threads each; the first failure is raised once the running ones end (``fwk run --resume``
+    runs what is left)."""
+    from .sidebyside import _reraise, run_forked
+
+    why = (f"{workers} seeds side by side on the run's {T} threads, {threads} each; "
+           "train.side_by_side: false runs them one after another")
+    first: list = []
+
+    def done(name, out):
+        if not out.get("ok") and not first:
+            first.append((name, out))
+            ctx.log(f"[{name}] failed; no other seed starts, those still running finish (their work is kept for "
+                    "fwk run --resume), then the run stops")
+
+    jobs = {f"seed {s}": (lambda s=s: one(s)) for s in seeds}
+    run_forked(jobs, workers, threads, why, ctx.log_file, stop_on_error=True, on_done=done,
+               prefixes={name: f"[{name}] " for name in jobs})
+    if first:
+        name, out = first[0]
+        _reraise(name, out, what=name, doing="", one_at_a_time="runs one seed at a time")
 
 
 def write_seeds_report(ctx, seeds, split_seed: int | None = None, title: str | None = None, registry=None) -> Path:

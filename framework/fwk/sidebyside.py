@@ -231,18 +231,23 @@ def run_forked(jobs: dict, workers: int, threads: int, why: str, log_file, stop_
     return outcomes
 
 
-def _reraise(label: str, out: dict) -> None:
+def _reraise(label: str, out: dict, what: str | None = None, doing: str = "fitting ",
+             one_at_a_time: str = "fits one model at a time") -> None:
+    """Raise in the run's process what a child's outcome ``out`` says: an fwk error with its class,
+    Ctrl-C as KeyboardInterrupt, a bug with the child's traceback, a killed child with its signal.
+    ``what``: whom the message names (``models.<label>``); ``doing``: what its process did."""
+    what = what or f"models.{label}"
     if out.get("killed"):
-        why = ("out of memory? train.side_by_side: false fits one model at a time" if "SIGKILL" in out["killed"]
+        why = (f"out of memory? train.side_by_side: false {one_at_a_time}" if "SIGKILL" in out["killed"]
                else "stopped from outside")
-        raise FwkError(f"models.{label}: its side-by-side fitting process {out['killed']} without a result ({why})")
+        raise FwkError(f"{what}: its side-by-side {doing}process {out['killed']} without a result ({why})")
     if out.get("fwk"):
         cls = getattr(_errors, out.get("kind", ""), None)
         cls = cls if isinstance(cls, type) and issubclass(cls, FwkError) else FwkError
         raise cls(out.get("message", ""))
     if out.get("kind") == "KeyboardInterrupt":
         raise KeyboardInterrupt
-    raise RuntimeError(f"models.{label}: fitting failed in its side-by-side process:\n{out.get('traceback', '')}")
+    raise RuntimeError(f"{what}: {doing}failed in its side-by-side process:\n{out.get('traceback', '')}")
 
 
 def fit_side_by_side(jobs: dict, ctx, workers: int, threads: int, T: int) -> dict[str, float]:

@@ -244,3 +244,62 @@ def test_a_run_started_before_side_by_side_resumes_one_after_another(tmp_path, e
     assert ONE_AFTER_ANOTHER == [False]  # the rule ends with the run
     again = _run(tmp_path, recipe, 2, "new", env)  # a new run in the same process: side by side
     assert _epoch_threads(again)["ae2"] == [1, 1, 1]
+
+
+def test_seeds_side_by_side_fit_the_models_of_seeds_one_after_another_bit_for_bit(tmp_path, env):
+    """A recipe's seeds side by side (fwk.seeds.seed_rounds): at 2 threads, seeds 0 and 1 in two
+    processes with one thread each, then seed 2 alone with the run's two (its models side by side,
+    one thread each): every seed's every model is bit for bit the one a 1-thread run fits, and
+    the seeds' combined metrics are written."""
+    recipe = {**RECON, "seeds": [0, 1, 2], "models": {"ae": AE, "pca": RECON["models"]["pca"]}}
+    one = _run(tmp_path, recipe, 1, "one", env)
+    two = _run(tmp_path, recipe, 2, "two", env)
+    log = (two / "log.txt").read_text()
+    assert ("seeds side by side: 2 at a time, each with 1 of the run's 2 threads (the last 1 with 2); "
+            "train.side_by_side: false runs them one after another") in log
+    assert "[seed 0] " in log and "[seed 1] " in log  # the forked seeds' lines, named
+    last = log[log.index("[seed 2: 3/3]"):]  # the lone last seed, in the run's process: its models side by side
+    assert last.splitlines()[3].startswith("fitting 2 models side by side, 2 at a time with 1 thread each")
+    for s in (0, 1, 2):
+        a, b = _states(one / f"seed-{s}"), _states(two / f"seed-{s}")
+        assert set(a) == set(b) == {"ae", "pca"}
+        _same(a, b, f"seed {s}")
+        seen = _epoch_threads(two / f"seed-{s}")
+        assert seen and all(set(v) == {1} for v in seen.values()), (s, seen)
+    m = json.loads((two / "metrics.json").read_text())
+    assert m["seeds"] == [0, 1, 2] and "seed_sd" in m["models"]["ae"]["test"]["l1"]
+    v = json.loads((two / "versions.json").read_text())
+    assert v["seeds_side_by_side"] is True
+
+
+def test_a_failing_seed_fails_the_run_which_resumes_and_an_older_run_resumes_its_seeds_in_turn(tmp_path, env):
+    """A seed whose model raises in its side-by-side process fails the run with the error's class
+    (the other seed finishes); the resume runs what is left. A run started before seeds ran side
+    by side (versions.json without the mark) resumes them one after another."""
+    recipe = {**RECON, "seeds": [0, 1], "models": {"ae": AE, "ae2": {**AE, "channels": [4]}}}
+    cls = get_registry().get("model", "ae")
+    real = cls.fit
+
+    def fit(self, data, ctx):
+        if ctx.seed == 1 and ctx.scope == "ae2":
+            raise DataError("ae2 refuses seed 1")
+        return real(self, data, ctx)
+
+    env.setattr(cls, "fit", fit)
+    with pytest.raises(DataError, match="ae2 refuses seed 1"):
+        _run(tmp_path, recipe, 2, "broken", env)
+    (run,) = (tmp_path / "broken" / "runs").iterdir()
+    assert (run / "FAILED").exists() and (run / "seed-0" / "metrics.json").exists()
+    assert (run / "seed-1" / "FAILED").exists()
+    env.setattr(cls, "fit", real)
+    v = json.loads((run / "versions.json").read_text())
+    assert v.pop("seeds_side_by_side") is True
+    (run / "versions.json").write_text(json.dumps(v))
+    execute(None, resume=str(run), quiet=True)
+    log = (run / "log.txt").read_text()
+    assert "seed 0: finished before, not run again" in log
+    assert "this run started before fwk ran seeds side by side (2026-12-03): its seeds run one after another" in log
+    assert (run / "metrics.json").exists() and set(_states(run / "seed-1")) == {"ae", "ae2"}
+    from fwk.runs import SEEDS_ONE_AFTER_ANOTHER
+
+    assert SEEDS_ONE_AFTER_ANOTHER == [False]
