@@ -56,20 +56,14 @@ from .plugins import get_registry
 from .recipes import Spec, load_recipe, make_spec, read_recipe_file, resolve, to_plain
 from .registry import Registry
 from .safeio import refuse_pickled
+from .forked import LOG_PREFIX, ONE_AFTER_ANOTHER, SEEDS_ONE_AFTER_ANOTHER  # noqa: F401  (set while a run resumes)
 from .seeds import fans_out_seeds, run_seeds
 
 SCOPED = ("checkpoints", "tb", "curves")  # per network, under the model's label
-#: what this process puts before each line it writes to a log file (set in a forked side-by-side child)
-LOG_PREFIX = [""]
 #: versions.json's mark of a run started by an fwk that fits models side by side (fwk.sidebyside)
 SIDE_BY_SIDE = "side_by_side"
-#: True while this process resumes a run started before that: fwk.sidebyside.plan then fits its
-#: models one after another, as they were when it started
-ONE_AFTER_ANOTHER = [False]
 #: versions.json's mark of a run started by an fwk that runs a recipe's seeds side by side (fwk.seeds)
 SEEDS_SIDE_BY_SIDE = "seeds_side_by_side"
-#: True while this process resumes a run started before that: its seeds run one after another
-SEEDS_ONE_AFTER_ANOTHER = [False]
 
 
 def _default_device() -> str:

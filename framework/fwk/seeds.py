@@ -28,7 +28,7 @@ take a ``split``) and no ``seeds:``; a seed's sub-run is an ordinary run of it, 
 The seeds run side by side, each in a process forked from the run's, when the run has T >= 2
 threads (``seed_rounds``: rounds of min(T, seeds) seeds, T // k threads each for a round of k;
 ``train.side_by_side: false``, a GPU, DDP or another system than Linux: one after another in
-this process, as ``fwk.sidebyside.plan`` rules for models). The dataset's cache (``fwk.cache``)
+this process, as ``fwk.forked.plan`` rules for models). The dataset's cache (``fwk.cache``)
 serves every seed after the first; the split and preprocessing are recomputed per seed,
 identically, in well under a second. A seed whose sub-run holds ``metrics.json`` is finished: ``fwk run
 --resume`` reruns only the others, each resumed from its checkpoints. Every model is trained
@@ -50,6 +50,7 @@ from .cache import atomic_write_bytes
 from .errors import FwkError
 from .evaluation.report import standard_scatters, write_report
 from .evaluation.seeds import SEED_DIR, seed_runs, seeds_results
+from .forked import SEEDS_ONE_AFTER_ANOTHER, plan, run_or_raise
 from .recipes import resolve
 
 #: the file a seed's sub-run holds while it failed (the run-state file of fwk.runs)
@@ -119,7 +120,7 @@ def seed_rounds(ctx, seeds: list) -> list[tuple[list, int]] | None:
     """[(the seeds of a round, each one's threads)] when the run's seeds run side by side, else
     None (one after another, each with the run's T threads).
 
-    With ``fwk.sidebyside.plan``'s w = min(T, number of seeds) workers, the seeds are cut in the
+    With ``fwk.forked.plan``'s w = min(T, number of seeds) workers, the seeds are cut in the
     recipe's order into rounds of w; a round of k seeds runs them in k forked processes with
     T // k threads each (a round of one runs in the run's process). Which round a seed is in, and
     so its thread count, depends on T and the recipe only, also on a resume with fewer seeds left:
@@ -128,9 +129,6 @@ def seed_rounds(ctx, seeds: list) -> list[tuple[list, int]] | None:
     models side by side), so the models are the ones seeds one after another fit, bit for bit;
     what changes is the wall time (a seed's long model no longer leaves the second core idle while
     it trains alone) and the thread count of each seed's predictions and metrics."""
-    from .runs import SEEDS_ONE_AFTER_ANOTHER
-    from .sidebyside import plan
-
     p = None if SEEDS_ONE_AFTER_ANOTHER[0] else plan(ctx, len(seeds))
     if p is None:
         return None
@@ -197,24 +195,11 @@ def _forked_seeds(ctx, seeds, workers, threads, T, one) -> None:
     """Run ``one(s)`` for each seed in forked processes, ``workers`` at a time with ``threads``
     threads each; the first failure is raised once the running ones end (``fwk run --resume``
     runs what is left)."""
-    from .sidebyside import _reraise, run_forked
-
     why = (f"{workers} seeds side by side on the run's {T} threads, {threads} each; "
            "train.side_by_side: false runs them one after another")
-    first: list = []
-
-    def done(name, out):
-        if not out.get("ok") and not first:
-            first.append((name, out))
-            ctx.log(f"[{name}] failed; no other seed starts, those still running finish (their work is kept for "
-                    "fwk run --resume), then the run stops")
-
     jobs = {f"seed {s}": (lambda s=s: one(s)) for s in seeds}
-    run_forked(jobs, workers, threads, why, ctx.log_file, stop_on_error=True, on_done=done,
-               prefixes={name: f"[{name}] " for name in jobs})
-    if first:
-        name, out = first[0]
-        _reraise(name, out, what=name, doing="", one_at_a_time="runs one seed at a time")
+    run_or_raise(jobs, ctx, workers, threads, why, "seed", prefixes={name: f"[{name}] " for name in jobs},
+                 what="{label}", doing="", one_at_a_time="runs one seed at a time")
 
 
 def write_seeds_report(ctx, seeds, split_seed: int | None = None, title: str | None = None, registry=None) -> Path:
