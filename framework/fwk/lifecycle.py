@@ -158,10 +158,10 @@ def fit_models(models: dict, data, ctx: RunContext) -> dict[str, float]:
     side by side in forked processes where one model cannot use the run's threads
     (``fwk.sidebyside``: CPU, two or more models, ``train.side_by_side``), else one after
     another. Returns label -> seconds spent fitting (or loading) it."""
-    from . import sidebyside
+    from . import forked, sidebyside
 
     seconds: dict[str, float] = {}
-    how = sidebyside.plan(ctx, len(models))
+    how = forked.plan(ctx, len(models))
     todo = [lb for lb in models if not (ctx.resume and has_state(ctx.run_dir, lb))]
     if how is not None and todo:
         workers, threads, T = how  # todo holds no saved state, so fit_or_resume fits each

@@ -56,7 +56,7 @@ from .plugins import get_registry
 from .recipes import Spec, load_recipe, make_spec, read_recipe_file, resolve, to_plain
 from .registry import Registry
 from .safeio import refuse_pickled
-from .forked import LOG_PREFIX, ONE_AFTER_ANOTHER, SEEDS_ONE_AFTER_ANOTHER  # noqa: F401  (set while a run resumes)
+from .forked import LOG_PREFIX, ONE_AFTER_ANOTHER, SEEDS_ONE_AFTER_ANOTHER
 from .seeds import fans_out_seeds, run_seeds
 
 SCOPED = ("checkpoints", "tb", "curves")  # per network, under the model's label

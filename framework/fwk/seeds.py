@@ -116,9 +116,9 @@ def seed_finished(sub: Path) -> bool:
     return (sub / "metrics.json").exists() and not (sub / FAILED).exists()
 
 
-def seed_rounds(ctx, seeds: list) -> list[tuple[list, int]] | None:
-    """[(the seeds of a round, each one's threads)] when the run's seeds run side by side, else
-    None (one after another, each with the run's T threads).
+def seed_rounds(ctx, seeds: list) -> tuple[list[tuple[list, int]], int] | None:
+    """([(the seeds of a round, each one's threads)], the run's threads T) when the run's seeds
+    run side by side, else None (one after another, each with the run's T threads).
 
     With ``fwk.forked.plan``'s w = min(T, number of seeds) workers, the seeds are cut in the
     recipe's order into rounds of w; a round of k seeds runs them in k forked processes with
@@ -133,7 +133,7 @@ def seed_rounds(ctx, seeds: list) -> list[tuple[list, int]] | None:
     if p is None:
         return None
     w, _, T = p
-    return [(seeds[i:i + w], T // len(seeds[i:i + w])) for i in range(0, len(seeds), w)]
+    return [(seeds[i:i + w], T // len(seeds[i:i + w])) for i in range(0, len(seeds), w)], T
 
 
 def run_seeds(resolved, ctx) -> None:
@@ -172,12 +172,12 @@ def run_seeds(resolved, ctx) -> None:
                 left.append(s)
         return left
 
-    rounds = seed_rounds(ctx, order)
-    if rounds is None:
+    how = seed_rounds(ctx, order)
+    if how is None:
         for s in todo(order):
             one(s)
     else:
-        T = rounds[0][1] * len(rounds[0][0])
+        rounds, T = how
         ctx.log(f"seeds side by side: {len(rounds[0][0])} at a time, each with {rounds[0][1]} of the run's {T} "
                 f"threads" + (f" (the last {len(rounds[-1][0])} with {rounds[-1][1]})" if rounds[-1][1] != rounds[0][1]
                               else "") + "; train.side_by_side: false runs them one after another")

@@ -40,8 +40,7 @@ signal. A child dies with the run's process
 """
 from __future__ import annotations
 
-# the machinery lives in fwk.forked (below the run's layer, which the seeds share); re-exported here
-from .forked import LOG_PREFIX, ONE_AFTER_ANOTHER, _Prefixed, plan, reraise, run_forked, run_or_raise  # noqa: F401
+from .forked import run_or_raise  # the machinery, below the runs layer: the seeds share it
 
 
 def fit_side_by_side(jobs: dict, ctx, workers: int, threads: int, T: int) -> dict[str, float]:

@@ -15,7 +15,7 @@ from fwk.errors import DataError, FwkError, RecipeError
 from fwk.plugins import get_registry
 from fwk.runs import execute
 from fwk.safeio import load_state
-from fwk.sidebyside import plan
+from fwk.forked import plan
 
 AE = {"name": "ae", "channels": [8], "latent": 4, "sampler": {"name": "quadric", "factors": [4]}}
 RECON = {"name": "sbs", "task": "reconstruct", "seed": 0,
@@ -134,6 +134,21 @@ def test_the_plan(monkeypatch):
         TrainConfig(side_by_side="yes")
 
 
+def test_seed_rounds(monkeypatch):
+    """Rounds of min(T, seeds) seeds, T // k threads for a round of k, and the run's T itself
+    (not derived from a round: 3 threads over 2 seeds give 1 each)."""
+    from fwk.seeds import seed_rounds
+
+    class Ctx:
+        train, device = TrainConfig(), "cpu"
+
+    for T, seeds, want in ((2, [0, 1, 2], ([([0, 1], 1), ([2], 2)], 2)), (3, [0, 1], ([([0, 1], 1)], 3)),
+                           (4, [5, 6, 7, 8, 9], ([([5, 6, 7, 8], 1), ([9], 4)], 4)), (1, [0, 1], None),
+                           (2, [0], None)):
+        monkeypatch.setenv("FWK_THREADS", str(T))
+        assert seed_rounds(Ctx(), seeds) == want, (T, seeds)
+
+
 def _break(monkeypatch, how):
     """The ae model's fit fails for the model with 4 channels (ae2) in the way ``how``."""
     cls = get_registry().get("model", "ae")
@@ -175,7 +190,7 @@ def test_a_failing_child_fails_the_run_which_resumes(tmp_path, env, how):
 def test_a_prefixed_stream_starts_every_line_with_the_prefix():
     import io
 
-    from fwk.sidebyside import _Prefixed
+    from fwk.forked import _Prefixed
 
     out = io.StringIO()
     w = _Prefixed(out, "[a] ")

@@ -150,7 +150,7 @@ class Grid:
         if jobs and self.executor.name == "ray":
             outcomes = run_ray(jobs, self.executor, ctx.log)
         elif jobs:
-            from fwk.sidebyside import plan
+            from fwk.forked import plan
 
             # a member's thread count from the run's and the grid's jobs, finished ones included
             how = plan(ctx, sum(len(r.seeds) if r.seeds is not None else 1 for r in resolved.values()))

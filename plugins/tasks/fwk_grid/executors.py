@@ -153,7 +153,7 @@ def run_member(job: dict, registry=None) -> dict:
 def run_local(jobs: list[dict], log, registry=None, side_by_side=None) -> dict[str, dict]:
     """Run the members one after another in this process (with ``registry``, default the
     process-wide one): {name: outcome}. ``side_by_side``: (workers, threads, T, log file) of
-    ``fwk.sidebyside.plan``: the members run ``workers`` at a time instead, each in a process
+    ``fwk.forked.plan``: the members run ``workers`` at a time instead, each in a process
     forked from this one with ``threads`` of the run's T threads (``run_forked``)."""
     if side_by_side is not None:
         return _run_forked(jobs, log, registry, *side_by_side)
@@ -170,7 +170,7 @@ def _run_forked(jobs: list[dict], log, registry, workers: int, threads: int, T: 
     """``run_local``'s members side by side: ``run_member`` in forked children (``fwk.sidebyside``),
     ``workers`` at a time with ``threads`` threads each, logged as they finish; a child that ends
     without an outcome (killed) is a failed member."""
-    from fwk.sidebyside import run_forked
+    from fwk.forked import run_forked
 
     why = (f"{workers} grid members side by side on the run's {T} threads, {threads} each; "
            "train.side_by_side: false runs them one after another")
