@@ -32,6 +32,13 @@ class TestFullyConvolutionalSpiralNetworks(NetworkFactoryContract):
     params = {"conv": "spiral++", "sampler": QUADRIC, "channels": [8, 8], "latent": 8, "fully_convolutional": True}
 
 
+class TestLatentVerticesVCConvNetworks(NetworkFactoryContract):
+    component = VAE  # the chapter 5 and Deep Spectral Meshes network's shape, small
+    params = {"conv": {"name": "vcconv", "weight_num": 4, "radius": 2}, "residual_rate": 0.5,
+              "sampler": {"name": "simple", "levels": 2, "stride": 2, "radius": 2}, "channels": [8, 8, 4],
+              "latent_vertices": 5}
+
+
 class TestLatentVerticesLSANetworks(NetworkFactoryContract):
     component = VAE
     params = {"conv": "lsa", "sampler": {"name": "simple", "levels": 2}, "channels": [8, 8, 4],

@@ -128,3 +128,31 @@ def test_vcconv_strided_and_transposed_shapes_and_naive_reference():
                 W = sum(plain.coef[i, k, m] * plain.basis[m] for m in range(4))
                 acc = acc + x[1, idx[i, k]] @ W
         assert torch.allclose(y[1, i], acc, atol=1e-5)
+
+
+def test_the_device_check_passes_a_conv_and_catches_a_device_dependent_one():
+    """``assert_cuda_matches_cpu`` with the CPU as the 'other' device (no GPU needed): a conv
+    passes; a module whose copy computes differently fails on the value."""
+    import torch
+
+    from fwk.testing.conv import assert_cuda_matches_cpu
+
+    t = TestVCConvOnQuadric()
+    h = t.hierarchy()
+    assert_cuda_matches_cpu(t.make(3, 8, 0, hierarchy=h), lambda c: c, torch.randn(2, h.levels[0].n_vertices, 3),
+                            device="cpu")
+
+    class Drifting(torch.nn.Linear):  # each copy adds its own offset
+        def __deepcopy__(self, memo):
+            other = Drifting(self.in_features, self.out_features)
+            other.load_state_dict(self.state_dict())
+            other.offset = 1.0
+            return other
+
+        offset = 0.0
+
+        def forward(self, x):
+            return super().forward(x) + self.offset
+
+    with pytest.raises(AssertionError, match="tensor 0"):
+        assert_cuda_matches_cpu(Drifting(3, 4), lambda m: m, torch.randn(5, 3), device="cpu")

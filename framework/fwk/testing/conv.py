@@ -1,5 +1,5 @@
 """ConvContract: the conv role (``fwk.protocols.Conv``), shapes, gradients, batch independence,
-determinism, ``reset_parameters``, 3 and 9 channels, CUDA; the strided / transposed role when
+determinism, ``reset_parameters``, 3 and 9 channels, CUDA against the CPU (where a device is); the strided / transposed role when
 the class declares ``strided = True``; the fused pooling role (``FusedPoolingConv``) when it
 declares ``fuses_pooling = True``.
 
@@ -161,9 +161,59 @@ class ConvContract:
         finally:
             torch.set_num_threads(before)
 
-    def test_cuda_when_available(self):
+    def test_cuda_matches_cpu_when_available(self):
+        """On a CUDA device the conv gives the CPU's values and gradients (x and every parameter):
+        plain on levels 0 and 1, strided down and up where it plays that role, fused pooling
+        where it fuses; and a bfloat16 autocast pass there is finite and near float32's."""
         if not torch.cuda.is_available():
             pytest.skip("no CUDA device on this machine")
-        conv = self.make(3, 8).cuda()
-        x = torch.randn(2, self.hierarchy().levels[0].n_vertices, 3, device="cuda")
-        assert conv(x).is_cuda
+        h = self.hierarchy()
+        n = [lv.n_vertices for lv in h.levels]
+        cases = [(self.make(3, 8, level, hierarchy=h), (lambda c: c), n[level], 3) for level in (0, 1)]
+        if self.component.strided:
+            for mode, n_in, c_in, c_out in (("down", n[0], 3, 12), ("up", n[1], 12, 3)):
+                conv = self.make(c_in, c_out, 0, hierarchy=h, mode=mode, residual_rate=self.residual_rate)
+                cases.append((conv, (lambda c: c), n_in, c_in))
+        if plays(self.component, FusedPoolingConv) and self.component.fuses_pooling:
+            D, U = torch_sparse(h.down[0]).coalesce(), torch_sparse(h.up[0])
+            kept = D.indices()[1]
+            conv = self.make(6, 5, 0, hierarchy=h)
+            on = lambda c, t: t.to(next(c.parameters()).device)  # the model hands them on its device
+            cases.append((conv, (lambda c, kept=kept: lambda v: c(v, rows=on(c, kept))), n[0], 6))
+            cases.append((conv, (lambda c, U=U: lambda v: c.forward_up(v, on(c, U))), n[1], 6))
+        for conv, call, n_in, c_in in cases:
+            assert_cuda_matches_cpu(conv, call, torch.randn(2, n_in, c_in))
+
+
+def assert_cuda_matches_cpu(module: torch.nn.Module, call, x: torch.Tensor, rtol: float = 1e-4,
+                            device: str = "cuda") -> None:
+    """``call(module)(x)`` on the CPU and on a copy of ``module`` moved to CUDA agree in value and
+    in the gradients of x and of every parameter (a random cotangent; rtol of each tensor's largest
+    magnitude); under bfloat16 autocast on CUDA the output is finite and within 5 % of float32's
+    scale. ``call(m)`` returns the function of x to test (``lambda m: m`` for ``m(x)``); ``device``:
+    the other device (``cpu`` checks the check itself where no GPU is)."""
+    import copy
+
+    with torch.no_grad():  # non-zero biases and non-trivial weights, whatever the initialisation
+        for p in module.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    gpu = copy.deepcopy(module).to(device)
+    outs, g = [], None
+    for m, dev in ((module, "cpu"), (gpu, device)):
+        xi = x.detach().to(dev).requires_grad_()
+        y = call(m)(xi)
+        if g is None:  # one cotangent for both devices
+            g = torch.randn_like(y)
+        got = torch.autograd.grad((y * g.to(dev)).sum(), [xi, *m.parameters()], allow_unused=True)
+        outs.append([y.detach().cpu(), *[None if t is None else t.detach().cpu() for t in got]])
+    for i, (a, b) in enumerate(zip(*outs)):
+        assert (a is None) == (b is None), f"tensor {i}: a gradient on one device only"
+        if a is not None:
+            assert b.dtype == a.dtype and b.shape == a.shape, (i, a.dtype, b.dtype)
+            err = (a - b).abs().max().item()
+            assert err <= rtol * (1 + a.abs().max().item()), f"tensor {i} (0: the output, 1: x's gradient): {err:.3g}"
+    with torch.autocast(device, dtype=torch.bfloat16):
+        y16 = call(gpu)(x.to(device))
+    y32 = outs[0][0]
+    assert torch.isfinite(y16).all()
+    assert (y16.float().cpu() - y32).abs().max().item() <= 0.05 * (1 + y32.abs().max().item())

@@ -20,6 +20,7 @@ import torch
 from fwk.protocols import NetworkFactory, plays
 from fwk.testing import build
 from fwk.runs import make_test_context
+from fwk.testing.conv import assert_cuda_matches_cpu
 from fwk.testing.model import tiny_fit_data
 
 
@@ -97,3 +98,14 @@ class NetworkFactoryContract:
             if x.is_sparse:
                 x, y = x.to_dense(), y.to_dense()
             assert torch.equal(x, y), k
+
+    def test_cuda_matches_cpu_when_available(self, template):
+        """On a CUDA device the encoder (its mean) and the decoder give the CPU's values and
+        gradients, and run under bfloat16 autocast (``fwk.testing.conv.assert_cuda_matches_cpu``)."""
+        if not torch.cuda.is_available():
+            pytest.skip("no CUDA device on this machine")
+        m = self.make()
+        torch.manual_seed(0)
+        enc, dec = m.build_encoder(template, 3), m.build_decoder(template, 3)
+        assert_cuda_matches_cpu(enc, lambda e: lambda v: e(v)[0], torch.randn(2, template.n_vertices, 3))
+        assert_cuda_matches_cpu(dec, lambda d: d, torch.randn(2, m.latent_size))
