@@ -155,14 +155,14 @@ def mean_shape(run: Path, split: str) -> dict | None:
 
 
 def c15(rows: dict, base: dict | None) -> str:
-    """C15 (FeaStNet learns): for each finished feast member, whether its L1 and its DAME are
+    """C15 (FeaStNet moves off the mean shape; fwk's reading of tables 3.3-3.5, not the thesis's words): for each finished feast member, whether its L1 and its DAME are
     both below the mean shape's (a network that stays at the mean shape has neither)."""
     feast = [(rep, rows[("feast", rep)]) for rep in REPS if ("feast", rep) in rows]
     if base is None or not feast:
-        return "C15 (FeaStNet learns): not measured (no mean-shape member, or no finished feast member)."
+        return "C15 (FeaStNet moves off the mean shape): not measured (no mean-shape member, or no finished feast member)."
     learned = [rep for rep, r in feast if r["l1"] < base["l1"] and r["dame"] < base["dame"]]
     parts = ", ".join(f"{rep} L1 {r['l1'] * 1e3:.3f} / DAME {r['dame'] * 1e2:.3f}" for rep, r in feast)
-    return (f"C15 (FeaStNet learns: L1 and DAME below the mean shape's, {base['l1'] * 1e3:.3f}e-3 / "
+    return (f"C15 (FeaStNet moves off the mean shape: L1 and DAME below the mean shape's, {base['l1'] * 1e3:.3f}e-3 / "
             f"{base['dame'] * 1e2:.3f}e-2): {len(learned)} of {len(feast)} feast members ({parts}): "
             f"{verdict(len(learned), len(feast))}.")
 

@@ -121,11 +121,11 @@ def test_c15_counts_the_feast_members_below_the_mean_shape_on_both(tmp_path, cap
     _member(run, "feast-euclidean-std", 8.0, 1.5)       # both below
     _member(run, "feast-dr-norm", 8.5, 1.2)             # both below
     assert _module().main([str(run)]) == 0
-    assert "C15 (FeaStNet learns): not measured (no mean-shape member" in capsys.readouterr().out
+    assert "C15 (FeaStNet moves off the mean shape): not measured (no mean-shape member" in capsys.readouterr().out
     _member(run, "mean-shape", 11.963, 1.978)
     assert _module().main([str(run)]) == 0
     out = capsys.readouterr().out
-    assert ("C15 (FeaStNet learns: L1 and DAME below the mean shape's, 11963.000e-3 / 197.800e-2): 2 of 3 feast "
+    assert ("C15 (FeaStNet moves off the mean shape: L1 and DAME below the mean shape's, 11963.000e-3 / 197.800e-2): 2 of 3 feast "
             "members (euclidean L1 9000.000 / DAME 250.000, euclidean-std L1 8000.000 / DAME 150.000, dr-norm L1 "
             "8500.000 / DAME 120.000): holds.") in out
     _member(run.parent / "none", "feast-euclidean", 12.0, 2.5)
@@ -144,7 +144,7 @@ def test_the_feast_variance_run_gives_the_pages_c15(tmp_path, capsys):
     _member(run, "mean-shape", 11.963e-3, 1.978e-2)
     assert _module().main([str(run)]) == 0
     out = capsys.readouterr().out
-    assert "C15 (FeaStNet learns: L1 and DAME below the mean shape's, 11.963e-3 / 1.978e-2): 1 of 3 feast members" in out
+    assert "C15 (FeaStNet moves off the mean shape: L1 and DAME below the mean shape's, 11.963e-3 / 1.978e-2): 1 of 3 feast members" in out
     assert out.rstrip().endswith(": partly.")
     assert "| feast | yes | yes | yes | yes | yes | yes |" in out  # C1 and C2 the thesis's way (FMPD as DAME here)
 
