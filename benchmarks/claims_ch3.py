@@ -1,9 +1,12 @@
 """Claims C1, C2, C12, C13 and C15 (thesis 3.5) from a finished chapter 3 grid run (issues 13, 26).
 
-    python benchmarks/claims_ch3.py RUN [--split test]
+    python benchmarks/claims_ch3.py RUN [MORE_RUN ...] [--split test]
 
 RUN is a run of ``recipes/thesis/ch3/plateau.yaml`` (members ``<conv>-<representation>``, each with
-``metrics.json``; unfinished members are listed as missing). Prints, in markdown:
+``metrics.json``; unfinished members are listed as missing). Each MORE_RUN's members replace the
+members of the same name before it (a seeds run of some members read after the one-seed run of
+all: ``recipes/thesis/ch3/feast-variance-seeds.yaml`` after ``feast-variance.yaml``); the output
+names the members taken from later runs. Prints, in markdown:
 
 * one row per conv: L1 and DAME (and L2, FMPD) of each representation on the split, mean over
   meshes in the evaluation space, with each member's epochs, what ended its training, the
@@ -19,7 +22,8 @@ RUN is a run of ``recipes/thesis/ch3/plateau.yaml`` (members ``<conv>-<represent
   and whether the pair the thesis names as the fair balance on Facsimile's test set (LSA-3DMM and
   the Mesh Autoencoder (vcconv), each with Euclidean Std.) is on it;
 * C15 (a run of ``recipes/thesis/ch3/feast-variance.yaml``, whose ``mean-shape`` member is the
-  baseline): how many FeaStNet members have both L1 and DAME below the mean shape's;
+  baseline): how many FeaStNet members have both L1 and DAME below the mean shape's (ties and
+  one-seed margins as for the others);
 * C12 (a run with raw-DR members ``<conv>-dr`` beside ``<conv>-dr-norm``,
   ``recipes/thesis/ch3/plateau-dr.yaml``): per conv, whether normalising DR lowers (positive) or
   raises (negative) the majority of L1, L2, DAME and FMPD, against the thesis's sign (``c12``).
@@ -71,10 +75,18 @@ def load(run: Path, split: str) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
+    ap.add_argument("more", type=Path, nargs="*", help="runs whose members replace those of the same name")
     ap.add_argument("--split", default="test")
     a = ap.parse_args(argv)
-    rows = load(a.run, a.split)
-    print(f"{a.split}, evaluation space, mean over meshes ({a.run.name})\n")
+    runs = [a.run, *a.more]
+    rows, base = {}, None
+    for run in runs:
+        got = load(run, a.split)
+        for r in got.values():
+            r["run"] = run.name
+        rows.update(got)
+        base = mean_shape(run, a.split) or base
+    print(f"{a.split}, evaluation space, mean over meshes ({', '.join(r.name for r in runs)})\n")
     print("| conv | representation | L1 ×1e-3 | L2 ×1e-5 | DAME ×1e-2 | FMPD ×1e-2 | epochs | ended by | verdict | fit min |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     shown = REPS + tuple(rep for rep in OPTIONAL_REPS if any(k[1] == rep for k in rows))
@@ -103,7 +115,10 @@ def main(argv=None) -> int:
     front, line = c13(rows)
     print(f"\nL1/DAME front over the {len(rows)} finished members: {', '.join(f'{c}-{r}' for c, r in front)}.")
     print(line)
-    print(c15(rows, mean_shape(a.run, a.split)))
+    if a.more:
+        later = [f"{c}-{r} ({v['run']})" for (c, r), v in rows.items() if v["run"] != a.run.name]
+        print(f"\nMembers from later runs: {', '.join(later) or 'none'}.")
+    print(c15(rows, base))
     return 0
 
 
@@ -151,7 +166,9 @@ def mean_shape(run: Path, split: str) -> dict | None:
     if not f.exists():
         return None
     (res,) = json.loads(f.read_text())["models"].values()
-    return {k: v["mean"] for k, v in res[split].items()}
+    out = {k: v["mean"] for k, v in res[split].items()}
+    out["_sd"] = {k: v.get("seed_sd") for k, v in res[split].items()}
+    return out
 
 
 def c15(rows: dict, base: dict | None) -> str:
@@ -160,11 +177,26 @@ def c15(rows: dict, base: dict | None) -> str:
     feast = [(rep, rows[("feast", rep)]) for rep in REPS if ("feast", rep) in rows]
     if base is None or not feast:
         return "C15 (FeaStNet moves off the mean shape): not measured (no mean-shape member, or no finished feast member)."
-    learned = [rep for rep, r in feast if r["l1"] < base["l1"] and r["dame"] < base["dame"]]
-    parts = ", ".join(f"{rep} L1 {r['l1'] * 1e3:.3f} / DAME {r['dame'] * 1e2:.3f}" for rep, r in feast)
+    n = n_ties = 0
+    close, seeds, parts = [], False, []
+    for rep, r in feast:
+        comps = [(name, _pair(r, m), _pair(base, m)) for name, m in (("L1", "l1"), ("DAME", "dame"))]
+        below = [lower(a, b) for _, a, b in comps]
+        ok = all(x is True for x in below)
+        n += ok
+        n_ties += ok and all(lower(a, b, CLOSE) is True for _, a, b in comps)
+        close += [f"{rep} {name} {pct(margin(a, b))}" for name, a, b in comps if ok and margin(a, b) < CLOSE]
+        seeds |= seeded(_pair(r, "l1"), _pair(r, "dame"))
+        sd = {m: "" if r.get("_sd", {}).get(m) is None else f" ± {r['_sd'][m] * k:.3f}"
+              for m, k in (("l1", 1e3), ("dame", 1e2))}
+        parts.append(f"{rep} L1 {r['l1'] * 1e3:.3f}{sd['l1']} / DAME {r['dame'] * 1e2:.3f}{sd['dame']}")
+    k = len(feast)
+    word = qualify(verdict(n, k), close, f"{n_ties} of {k}, {verdict(n_ties, k)}", seeds)
+    one = [rep for rep, r in feast if not seeded(_pair(r, "l1"), _pair(r, "dame"))]
+    if seeds and one:  # a seeds run read after a one-seed one: say which members have one seed
+        word = f"{word[:-1]}; on one seed: {', '.join(one)})"
     return (f"C15 (FeaStNet moves off the mean shape: L1 and DAME below the mean shape's, {base['l1'] * 1e3:.3f}e-3 / "
-            f"{base['dame'] * 1e2:.3f}e-2): {len(learned)} of {len(feast)} feast members ({parts}): "
-            f"{verdict(len(learned), len(feast))}.")
+            f"{base['dame'] * 1e2:.3f}e-2): {n} of {k} feast members ({', '.join(parts)}): {word}.")
 
 
 def _pair(r: dict, k: str):
