@@ -234,6 +234,10 @@ def c1_c2(rows: dict) -> dict:
             "C2": "Euclidean Std. lower L1 and DAME than Euclidean"}
     out = {"convs": convs}
     for claim in ("C1", "C2"):
+        if not k:
+            out[claim] = (f"{claim} ({what[claim]}): not measured (no conv with all of "
+                          f"{', '.join(REPS)} finished).")
+            continue
         word = verdict(n[claim][0], k)
         as_ties = f"{n[claim][1]} of {k}, {verdict(n[claim][1], k)}"
         out[claim] = (f"{claim} ({what[claim]}): {n[claim][0]} of {k} complete convs: "

@@ -214,3 +214,14 @@ def test_a_seeds_run_of_some_members_replaces_them_and_decides_c15_over_seeds(tm
     below = seeds_run("seeds-below", 1.80e-2, 0.05e-2)
     assert _module().main([str(one), str(below)]) == 0
     assert "1 of 3 feast members" in capsys.readouterr().out
+
+
+def test_a_run_without_complete_convs_measures_neither_c1_nor_c2(tmp_path, capsys):
+    """plateau-dr.yaml's run has DR and DR Norm. only: C1 and C2 are not measured, not 'does not hold'."""
+    run = tmp_path / "plateau-dr-1"
+    _member(run, "spiral-dr-norm", 3.94e-3, 1.832e-2)
+    _member(run, "spiral-dr", 4.742e-3, 1.977e-2)
+    assert _module().main([str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "C1 (a Euclidean-based representation lower L1 and DR Norm. lower DAME): not measured (no conv with all of" in out
+    assert "C2 (Euclidean Std. lower L1 and DAME than Euclidean): not measured" in out
