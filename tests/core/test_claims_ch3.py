@@ -225,3 +225,51 @@ def test_a_run_without_complete_convs_measures_neither_c1_nor_c2(tmp_path, capsy
     out = capsys.readouterr().out
     assert "C1 (a Euclidean-based representation lower L1 and DR Norm. lower DAME): not measured (no conv with all of" in out
     assert "C2 (Euclidean Std. lower L1 and DAME than Euclidean): not measured" in out
+
+
+def test_the_pages_c15_over_seeds(tmp_path, capsys):
+    """docs/methods/claims.md's C15 row: feast-variance-20261203-142530 (one seed, as the page prints
+    it) read with feast-variance-seeds-20261204-162320 (DR Norm. and the mean shape over seeds 0-2,
+    mean ± sd as the page prints them) give the page's words."""
+    one = tmp_path / "feast-variance-20261203-142530"
+    for rep, (l1, dame) in {"euclidean": (11.714, 4.423), "euclidean-std": (4.721, 2.244),
+                            "dr-norm": (5.725, 1.932)}.items():
+        _member(one, f"feast-{rep}", l1 * 1e-3, dame * 1e-2)
+    _member(one, "mean-shape", 11.963e-3, 1.978e-2)
+    seeds = tmp_path / "feast-variance-seeds-20261204-162320"
+    for member, (l1, l1_sd, dame, dame_sd) in {"feast-dr-norm": (5.630e-3, 0.123e-3, 1.931e-2, 0.002e-2),
+                                                "mean-shape": (11.963e-3, 0.0, 1.978e-2, 0.0)}.items():
+        (seeds / member).mkdir(parents=True)
+        res = {"test": {"l1": {"mean": l1, "seed_sd": l1_sd}, "l2": {"mean": 1.0, "seed_sd": 0.0},
+                        "dame": {"mean": dame, "seed_sd": dame_sd}, "fmpd": {"mean": 1.0, "seed_sd": 0.0}}}
+        (seeds / member / "metrics.json").write_text(json.dumps({"models": {"ae": res}}))
+    assert _module().main([str(one), str(seeds)]) == 0
+    out = capsys.readouterr().out
+    assert ("C15 (FeaStNet moves off the mean shape: L1 and DAME below the mean shape's, 11.963e-3 / 1.978e-2): 1 of 3 "
+            "feast members (euclidean L1 11.714 / DAME 4.423, euclidean-std L1 4.721 / DAME 2.244, dr-norm L1 5.630 ± "
+            "0.123 / DAME 1.931 ± 0.002): partly (over seeds; differences within the seeds' sd are ties; on one seed: "
+            "euclidean, euclidean-std).") in out
+
+
+#: plateau-dr-20261204-154334's test split as docs/methods/claims.md's C12 row prints it:
+#: L1 x1e-3, L2 x1e-5, DAME x1e-2, FMPD x1e-2, raw DR then DR Norm.
+PLATEAU_DR = {"spiral": ((4.742, 4.320, 1.977, 15.092), (3.940, 2.934, 1.832, 16.500)),
+              "spiralpp": ((6.958, 9.435, 2.016, 15.997), (5.831, 6.457, 1.932, 17.673)),
+              "feast": ((11.817, 29.281, 1.978, 21.814), (11.865, 29.745, 1.979, 21.760)),
+              "lsa": ((4.514, 3.764, 1.844, 17.994), (4.112, 3.137, 1.763, 18.336)),
+              "vcconv": ((4.644, 4.115, 1.895, 12.755), (4.292, 3.545, 1.739, 14.788))}
+
+
+def test_the_plateau_dr_run_gives_the_pages_c12(tmp_path, capsys):
+    run = tmp_path / "plateau-dr-20261204-154334"
+    for conv, pair in PLATEAU_DR.items():
+        for rep, (l1, l2, dame, fmpd) in zip(("dr", "dr-norm"), pair):
+            _member(run, f"{conv}-{rep}", l1 * 1e-3, dame * 1e-2, l2=l2 * 1e-5, fmpd=fmpd * 1e-2)
+    assert _module().main([str(run)]) == 0
+    out = capsys.readouterr().out
+    assert ("C12 (normalising DR: the impact over L1, L2, DAME and FMPD has the thesis's sign): 3 of 5 convs (spiral "
+            "positive") in out
+    assert "spiralpp positive (DR Norm. over DR: L1 0.84x, L2 0.68x, DAME 0.96x, FMPD 1.10x; thesis: negative)" in out
+    # the run's own digits give feast DAME 0.056 % and vcconv DAME 8.9 %; the page's rounded ones 0.051 % and 9 %
+    assert ("holds (one seed; deciding margins under 10 %: feast L1 0.41 %, feast L2 1.6 %, feast DAME " in out
+            and "counting those as ties: 0 of 5, does not hold)." in out)
