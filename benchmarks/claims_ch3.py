@@ -172,8 +172,10 @@ def mean_shape(run: Path, split: str) -> dict | None:
 
 
 def c15(rows: dict, base: dict | None) -> str:
-    """C15 (FeaStNet moves off the mean shape; fwk's reading of tables 3.3-3.5, not the thesis's words): for each finished feast member, whether its L1 and its DAME are
-    both below the mean shape's (a network that stays at the mean shape has neither)."""
+    """C15 (FeaStNet moves off the mean shape; fwk's reading of tables 3.3-3.5, not the thesis's
+    words): for each finished feast member, whether its L1 and its DAME are both below the mean
+    shape's (a network that stays at the mean shape has neither), ties and one-seed margins as for
+    the other claims (``_claims.lower``, ``qualify``)."""
     feast = [(rep, rows[("feast", rep)]) for rep in REPS if ("feast", rep) in rows]
     if base is None or not feast:
         return "C15 (FeaStNet moves off the mean shape): not measured (no mean-shape member, or no finished feast member)."

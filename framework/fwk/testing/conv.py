@@ -1,7 +1,7 @@
 """ConvContract: the conv role (``fwk.protocols.Conv``), shapes, gradients, batch independence,
-determinism, ``reset_parameters``, 3 and 9 channels, CUDA against the CPU (where a device is); the strided / transposed role when
-the class declares ``strided = True``; the fused pooling role (``FusedPoolingConv``) when it
-declares ``fuses_pooling = True``.
+determinism, ``reset_parameters``, 3 and 9 channels, CUDA against the CPU (where a device is);
+the strided / transposed role when the class declares ``strided = True``; the fused pooling role
+(``FusedPoolingConv``) when it declares ``fuses_pooling = True``.
 
 Subclass it in a test module::
 
