@@ -41,6 +41,10 @@ class TestConditionalPBOnLinearNets(BlendshapeModelContract):
     """pb borrows the networks; conditional: its decoders read a foreign code (latent + one-hot: latent_in)."""
     component = get_registry().get("model", "pb")  # by role through the registry, never an import of the plugin
     params = {"network": {"name": "linear-net", "latent": 4}, "conditional": True}
+    # conditional pb's predict_all decodes every expression in one batch (pb.predict_many): its
+    # products have other shapes than one expression's and may round differently (1e-8 measured on
+    # an AVX-512 EPYC, bit-equal elsewhere); everything else stays bit-for-bit
+    batches_expressions = True
 
 
 def test_registered_through_its_own_entry_point():

@@ -16,7 +16,9 @@ context from ``fwk.runs.make_test_context``. The suite checks:
 * the roles: an instance plays ``Model`` and ``BlendshapeModel``; the class declares every
   member of the role (``fwk.protocols.plays``: ``fwk apply`` chooses a model from its class);
   ``expressions`` is None until set or fitted, then lists what the model was trained for;
-* ``predict`` and ``predict_all`` (with and without ``target``) agree, (b, n, 3) and finite;
+* ``predict`` and ``predict_all`` (with and without ``target``) agree, (b, n, 3) and finite (to
+  ``atol`` where the class sets ``batches_expressions``: its ``predict_all`` runs the expressions
+  through one network pass, whose matrix products round differently from one expression's);
 * the state round trip: ``model.state_dict()`` written and read back in the run directory's safe
   format (``fwk.safeio``: tensors, arrays and plain data only) into a new instance through
   ``load_state_dict(d, ctx=None)`` gives the same predictions;
@@ -67,6 +69,7 @@ class BlendshapeModelContract:
     train: dict = {"epochs": 1, "batch_size": 4}
     exact: bool = True
     atol: float = 1e-6
+    batches_expressions: bool = False  # predict_all in one network pass: agrees with predict to atol
 
     # ------------------------------------------------------------------ helpers
     def _fit(self, tmp_path, seed: int = 0):
@@ -118,13 +121,14 @@ class BlendshapeModelContract:
         both = m.predict_all(N, EXPRESSIONS)
         assert list(both) == EXPRESSIONS
         for e in EXPRESSIONS:
-            assert same(both[e], m.predict(N, e), self.exact, self.atol), e
+            assert same(both[e], m.predict(N, e), self.exact and not self.batches_expressions, self.atol), e
         # with the ground truth as target (how the blendshapes task scores)
         targets = {e: self._val(data, e)[1] for e in EXPRESSIONS}
         with_t = m.predict_all(N, EXPRESSIONS, target=targets)
         for e in EXPRESSIONS:
             assert with_t[e].shape == N.shape and np.all(np.isfinite(with_t[e]))
-            assert same(with_t[e], m.predict(N, e, target=targets[e]), self.exact, self.atol), e
+            assert same(with_t[e], m.predict(N, e, target=targets[e]), self.exact and not self.batches_expressions,
+                        self.atol), e
         # one neutral at a time gives the same as the batch
         assert same(m.predict(N[:1], e0), P[:1], False, max(self.atol, 1e-5))
 
