@@ -209,8 +209,8 @@ def test_a_seeds_run_of_some_members_replaces_them_and_decides_c15_over_seeds(tm
     out = capsys.readouterr().out
     assert "Members from later runs: feast-dr-norm (seeds-tie)." in out
     assert ("0 of 3 feast members (euclidean L1 11.714 / DAME 4.423, euclidean-std L1 4.721 / DAME 2.244, dr-norm "
-            "L1 5.800 ± 0.200 / DAME 1.950 ± 0.050): does not hold (over seeds; differences within the seeds' sd "
-            "are ties; on one seed: euclidean, euclidean-std).") in out
+            "L1 5.800 ± 0.200 / DAME 1.950 ± 0.050): does not hold (one seed; every deciding margin 10 % or more; "
+            "over seeds: dr-norm).") in out
     below = seeds_run("seeds-below", 1.80e-2, 0.05e-2)
     assert _module().main([str(one), str(below)]) == 0
     assert "1 of 3 feast members" in capsys.readouterr().out
@@ -247,8 +247,7 @@ def test_the_pages_c15_over_seeds(tmp_path, capsys):
     out = capsys.readouterr().out
     assert ("C15 (FeaStNet moves off the mean shape: L1 and DAME below the mean shape's, 11.963e-3 / 1.978e-2): 1 of 3 "
             "feast members (euclidean L1 11.714 / DAME 4.423, euclidean-std L1 4.721 / DAME 2.244, dr-norm L1 5.630 ± "
-            "0.123 / DAME 1.931 ± 0.002): partly (over seeds; differences within the seeds' sd are ties; on one seed: "
-            "euclidean, euclidean-std).") in out
+            "0.123 / DAME 1.931 ± 0.002): partly (one seed; every deciding margin 10 % or more; over seeds: dr-norm).") in out
 
 
 #: plateau-dr-20261204-154334's test split as docs/methods/claims.md's C12 row prints it:
