@@ -272,3 +272,24 @@ def test_the_plateau_dr_run_gives_the_pages_c12(tmp_path, capsys):
     # the run's own digits give feast DAME 0.056 % and vcconv DAME 8.9 %; the page's rounded ones 0.051 % and 9 %
     assert ("holds (one seed; deciding margins under 10 %: feast L1 0.41 %, feast L2 1.6 %, feast DAME " in out
             and "counting those as ties: 0 of 5, does not hold)." in out)
+
+
+def test_the_pages_c2_with_feastnet_over_seeds(tmp_path, capsys):
+    """docs/methods/claims.md's C2 row: chapter 3's run (one seed, CH3) read with FeaStNet's
+    Euclidean and Eucl. Std. members over seeds 0-2 (plateau-feast-seeds-20261204-173639, mean ± sd
+    as the page prints them): feast's 9.9 % L1 margin is settled, C2 holds 4 of 5 either way."""
+    run = tmp_path / "plateau-20261201-205355"
+    for conv, reps in CH3.items():
+        for rep, (l1, dame) in reps.items():
+            _member(run, f"{conv}-{rep}", l1 * 1e-3, dame * 1e-2)
+    seeds = tmp_path / "plateau-feast-seeds-20261204-173639"
+    for member, (l1, l1_sd, dame, dame_sd) in {"feast-euclidean": (13.089e-3, 0.063e-3, 6.207e-2, 0.447e-2),
+                                                "feast-euclidean-std": (11.967e-3, 0.004e-3, 1.978e-2, 0.0)}.items():
+        (seeds / member).mkdir(parents=True)
+        res = {"test": {"l1": {"mean": l1, "seed_sd": l1_sd}, "l2": {"mean": 1.0, "seed_sd": 0.0},
+                        "dame": {"mean": dame, "seed_sd": dame_sd}, "fmpd": {"mean": 1.0, "seed_sd": 0.0}}}
+        (seeds / member / "metrics.json").write_text(json.dumps({"models": {"ae": res}}))
+    assert _module().main([str(run), str(seeds)]) == 0
+    out = capsys.readouterr().out
+    assert ("C2 (Euclidean Std. lower L1 and DAME than Euclidean): 4 of 5 complete convs: holds (one seed; every "
+            "deciding margin 10 % or more; over seeds: feast).") in out
