@@ -43,6 +43,14 @@ def test_c1_and_c2_per_conv(tmp_path, capsys):
     assert "Rule: A is lower than B when" in out
 
 
+def _seeds_member(run, name, l1, l1_sd, dame, dame_sd):
+    """A finished member of a seeds run: L1 and DAME means with their seed sd (L2, FMPD 1.0, sd 0)."""
+    (run / name).mkdir(parents=True)
+    res = {"test": {"l1": {"mean": l1, "seed_sd": l1_sd}, "l2": {"mean": 1.0, "seed_sd": 0.0},
+                    "dame": {"mean": dame, "seed_sd": dame_sd}, "fmpd": {"mean": 1.0, "seed_sd": 0.0}}}
+    (run / name / "metrics.json").write_text(json.dumps({"models": {"ae": res}}))
+
+
 # docs/methods/claims.md, "Chapter 3 at the budget's plateau": the test split of plateau-20261201-205355
 # (L1 x1e-3, DAME x1e-2), as the page prints them
 CH3 = {"spiral": {"euclidean": (15.25, 83.11), "euclidean-std": (3.936, 8.211), "dr-norm": (3.939, 1.832)},
@@ -197,11 +205,8 @@ def test_a_seeds_run_of_some_members_replaces_them_and_decides_c15_over_seeds(tm
 
     def seeds_run(name, dame, sd):
         run = tmp_path / name
-        for member, (l1, d, s) in {"feast-dr-norm": (5.8e-3, dame, sd), "mean-shape": (11.963e-3, 1.978e-2, 0.0)}.items():
-            (run / member).mkdir(parents=True)
-            res = {"test": {"l1": {"mean": l1, "seed_sd": 0.2e-3 if s else 0.0}, "l2": {"mean": 1.0, "seed_sd": 0.0},
-                            "dame": {"mean": d, "seed_sd": s}, "fmpd": {"mean": 1.0, "seed_sd": 0.0}}}
-            (run / member / "metrics.json").write_text(json.dumps({"models": {"ae": res}}))
+        _seeds_member(run, "feast-dr-norm", 5.8e-3, 0.2e-3, dame, sd)
+        _seeds_member(run, "mean-shape", 11.963e-3, 0.0, 1.978e-2, 0.0)
         return run
 
     tie = seeds_run("seeds-tie", 1.95e-2, 0.05e-2)  # 0.028e-2 below the mean shape, sd 0.05e-2: a tie
@@ -237,12 +242,8 @@ def test_the_pages_c15_over_seeds(tmp_path, capsys):
         _member(one, f"feast-{rep}", l1 * 1e-3, dame * 1e-2)
     _member(one, "mean-shape", 11.963e-3, 1.978e-2)
     seeds = tmp_path / "feast-variance-seeds-20261204-162320"
-    for member, (l1, l1_sd, dame, dame_sd) in {"feast-dr-norm": (5.630e-3, 0.123e-3, 1.931e-2, 0.002e-2),
-                                                "mean-shape": (11.963e-3, 0.0, 1.978e-2, 0.0)}.items():
-        (seeds / member).mkdir(parents=True)
-        res = {"test": {"l1": {"mean": l1, "seed_sd": l1_sd}, "l2": {"mean": 1.0, "seed_sd": 0.0},
-                        "dame": {"mean": dame, "seed_sd": dame_sd}, "fmpd": {"mean": 1.0, "seed_sd": 0.0}}}
-        (seeds / member / "metrics.json").write_text(json.dumps({"models": {"ae": res}}))
+    _seeds_member(seeds, "feast-dr-norm", 5.630e-3, 0.123e-3, 1.931e-2, 0.002e-2)
+    _seeds_member(seeds, "mean-shape", 11.963e-3, 0.0, 1.978e-2, 0.0)
     assert _module().main([str(one), str(seeds)]) == 0
     out = capsys.readouterr().out
     assert ("C15 (FeaStNet moves off the mean shape: L1 and DAME below the mean shape's, 11.963e-3 / 1.978e-2): 1 of 3 "
@@ -283,12 +284,8 @@ def test_the_pages_c2_with_feastnet_over_seeds(tmp_path, capsys):
         for rep, (l1, dame) in reps.items():
             _member(run, f"{conv}-{rep}", l1 * 1e-3, dame * 1e-2)
     seeds = tmp_path / "plateau-feast-seeds-20261204-173639"
-    for member, (l1, l1_sd, dame, dame_sd) in {"feast-euclidean": (13.089e-3, 0.063e-3, 6.207e-2, 0.447e-2),
-                                                "feast-euclidean-std": (11.967e-3, 0.004e-3, 1.978e-2, 0.0)}.items():
-        (seeds / member).mkdir(parents=True)
-        res = {"test": {"l1": {"mean": l1, "seed_sd": l1_sd}, "l2": {"mean": 1.0, "seed_sd": 0.0},
-                        "dame": {"mean": dame, "seed_sd": dame_sd}, "fmpd": {"mean": 1.0, "seed_sd": 0.0}}}
-        (seeds / member / "metrics.json").write_text(json.dumps({"models": {"ae": res}}))
+    _seeds_member(seeds, "feast-euclidean", 13.089e-3, 0.063e-3, 6.207e-2, 0.447e-2)
+    _seeds_member(seeds, "feast-euclidean-std", 11.967e-3, 0.004e-3, 1.978e-2, 0.0)
     assert _module().main([str(run), str(seeds)]) == 0
     out = capsys.readouterr().out
     assert ("C2 (Euclidean Std. lower L1 and DAME than Euclidean): 4 of 5 complete convs: holds (one seed; every "
