@@ -100,3 +100,13 @@ def qualify(word: str, close_margins: list[str], word_as_ties: str, seeds: bool)
         return f"{word} (one seed; every deciding margin 10 % or more)"
     return (f"{word} (one seed; deciding margins under 10 %: {', '.join(close_margins)}; "
             f"counting those as ties: {word_as_ties})")
+
+
+def qualify_cases(word: str, close_margins: list[str], word_as_ties: str, on_seeds: list[str], n: int) -> str:
+    """``qualify`` for a verdict over n cases of which ``on_seeds`` carry seeds (a seeds run of some
+    cases read after a one-seed run of all): over seeds when all do, else the one-seed wording (its
+    close margins from the one-seed cases) naming the cases decided over seeds."""
+    words = qualify(word, close_margins, word_as_ties, len(on_seeds) == n)
+    if on_seeds and len(on_seeds) < n:
+        words = f"{words[:-1]}; over seeds: {', '.join(on_seeds)})"
+    return words

@@ -41,7 +41,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _claims import CLOSE, RULE, lower, margin, pct, qualify, seeded, training, verdict, yes  # noqa: E402
+from _claims import (CLOSE, RULE, lower, margin, pct, qualify, qualify_cases, seeded, training,  # noqa: E402
+                     verdict, yes)
 from fwk.evaluation.core import pareto_front  # noqa: E402
 
 REPS = ("euclidean", "euclidean-std", "dr-norm")
@@ -196,9 +197,7 @@ def c15(rows: dict, base: dict | None) -> str:
               for m, k in (("l1", 1e3), ("dame", 1e2))}
         parts.append(f"{rep} L1 {r['l1'] * 1e3:.3f}{sd['l1']} / DAME {r['dame'] * 1e2:.3f}{sd['dame']}")
     k = len(feast)
-    word = qualify(verdict(n, k), close, f"{n_ties} of {k}, {verdict(n_ties, k)}", len(on_seeds) == k)
-    if on_seeds and len(on_seeds) < k:  # a seeds run of some members read after a one-seed run
-        word = f"{word[:-1]}; over seeds: {', '.join(on_seeds)})"
+    word = qualify_cases(verdict(n, k), close, f"{n_ties} of {k}, {verdict(n_ties, k)}", on_seeds, k)
     return (f"C15 (FeaStNet moves off the mean shape: L1 and DAME below the mean shape's, {base['l1'] * 1e3:.3f}e-3 / "
             f"{base['dame'] * 1e2:.3f}e-2): {n} of {k} feast members ({', '.join(parts)}): {word}.")
 
@@ -246,9 +245,7 @@ def c1_c2(rows: dict) -> dict:
             continue
         word = verdict(n[claim][0], k)
         as_ties = f"{n[claim][1]} of {k}, {verdict(n[claim][1], k)}"
-        words = qualify(word, close[claim], as_ties, len(seeded_convs) == k)
-        if seeded_convs and len(seeded_convs) < k:  # a seeds run of some convs read after a one-seed run
-            words = f"{words[:-1]}; over seeds: {', '.join(seeded_convs)})"
+        words = qualify_cases(word, close[claim], as_ties, seeded_convs, k)
         out[claim] = f"{claim} ({what[claim]}): {n[claim][0]} of {k} complete convs: {words}."
     return out
 
