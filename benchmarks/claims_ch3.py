@@ -256,16 +256,48 @@ BALANCED = (("lsa", "euclidean-std"), ("vcconv", "euclidean-std"))
 
 
 def c13(rows: dict) -> tuple[list, str]:
-    """The L1/DAME front over the finished members and the C13 line: how many of BALANCED are on it."""
+    """The L1/DAME front over the finished members (by means) and the C13 line: how many of BALANCED
+    are on it. A balanced member is *off* when another member is lower on both L1 and DAME, *on* when
+    every other member is higher on at least one of them, and *tied* otherwise (a member as low as it
+    on both within the seeds' sd: neither on nor off), each comparison by the rule (``lower``). The
+    deciding margin of an off member is its nearest dominator's smaller margin; of an on member the
+    smallest margin by which it escapes a member (the nearest to dominating it); one-seed margins
+    under 10 % are listed with the count they would give as ties."""
     keys = list(rows)
     front = [keys[i] for i in pareto_front([(rows[k]["l1"], rows[k]["dame"]) for k in keys])]
     present = [b for b in BALANCED if b in rows]
-    on = [b for b in present if b in front]
-    names = ", ".join(f"{c}-{r}: {'on' if b in front else 'off'}" for b in present for c, r in [b])
-    return front, (f"C13 (the thesis's balanced pair on the L1/DAME front: {names or 'none finished'}): "
-                   f"{len(on)} of {len(present)}: {verdict(len(on), len(present)) if present else 'not measured'} "
-                   f"(a front by means, one seed unless the run has seeds).")
-
+    names, close, on_seeds, n_on, n_on_t = [], [], [], 0, 0
+    for b in present:
+        me, others = rows[b], [k for k in keys if k != b]
+        pairs = {k: {m: (_pair(rows[k], m), _pair(me, m)) for m in ("l1", "dame")} for k in others}
+        if seeded(_pair(me, "l1")):
+            on_seeds.append(f"{b[0]}-{b[1]}")
+        doms = [k for k in others if all(lower(*pairs[k][m]) is True for m in ("l1", "dame"))]
+        beats = {k: [m for m in ("l1", "dame") if lower(*pairs[k][m]) is False] for k in others}  # b lower on m
+        if doms:  # the nearest dominator: the one whose smaller margin is largest is least close; take the smallest
+            k = min(doms, key=lambda k: min(margin(*pairs[k][m]) for m in ("l1", "dame")))
+            m = min(("l1", "dame"), key=lambda m: margin(*pairs[k][m]))
+            state, deciding = "off", (f"{k[0]}-{k[1]} below it on both, {m.upper()} by", margin(*pairs[k][m]))
+        elif all(beats[k] for k in others):
+            k = min(others, key=lambda k: max(margin(*pairs[k][m]) for m in beats[k]))
+            m = max(beats[k], key=lambda m: margin(*pairs[k][m]))
+            state, deciding = "on", (f"below {k[0]}-{k[1]} on {m.upper()} by", margin(*pairs[k][m]))
+        else:
+            tied = [f"{k[0]}-{k[1]}" for k in others if not beats[k]]  # b below them on nothing beyond the sd
+            state, deciding = "tied", (f"below {', '.join(tied)} on neither beyond the seeds' sd", None)
+        text, mg = deciding
+        names.append(f"{b[0]}-{b[1]}: {state} ({text}{'' if mg is None else ' ' + pct(mg)})")
+        n_on += state == "on"
+        close_one = mg is not None and mg < CLOSE and not seeded(_pair(me, "l1"))
+        n_on_t += state == "on" and not close_one
+        if close_one:
+            close.append(f"{b[0]}-{b[1]} {pct(mg)}")
+    if not present:
+        return front, "C13 (the thesis's balanced pair on the L1/DAME front): not measured (none finished)."
+    k = len(present)
+    word = qualify_cases(verdict(n_on, k), close, f"{n_on_t} of {k}, {verdict(n_on_t, k)}", on_seeds, k)
+    return front, (f"C13 (the thesis's balanced pair on the L1/DAME front over the {len(rows)} finished members: "
+                   f"{'; '.join(names)}): {n_on} of {k}: {word}.")
 
 if __name__ == "__main__":
     raise SystemExit(main())

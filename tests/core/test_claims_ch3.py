@@ -75,8 +75,34 @@ def test_the_chapter_3_run_gives_the_pages_verdicts(tmp_path, capsys):
     assert ("C2 (Euclidean Std. lower L1 and DAME than Euclidean): 4 of 5 complete convs: holds (one seed; deciding "
             "margins under 10 %: feast L1 9.9 %; counting those as ties: 3 of 5, holds).") in out
     assert "| feast | no | no | no | no | yes | yes |" in out  # DR Norm.'s L1 11.87 below Std.'s 11.97, DAME 1.979 > 1.978
-    assert ("C13 (the thesis's balanced pair on the L1/DAME front: lsa-euclidean-std: on, vcconv-euclidean-std: off): "
-            "1 of 2: partly") in out
+    assert ("C13 (the thesis's balanced pair on the L1/DAME front over the 15 finished members: lsa-euclidean-std: on "
+            "(below spiral-dr-norm on L1 by 10 %); vcconv-euclidean-std: off (lsa-euclidean-std below it on both, L1 by "
+            "5.5 %)): 1 of 2: partly (one seed; deciding margins under 10 %: vcconv-euclidean-std 5.5 %; counting those "
+            "as ties: 1 of 2, partly).") in out
+
+
+def test_c13_with_seeds_on_off_and_tied(tmp_path, capsys):
+    """C13 over seeds: a balanced member below another on both beyond the larger sd is off; one the
+    others cannot reach on both is on; one as low as another on both within the sd is tied (neither)."""
+    run = tmp_path / "c13-seeds"
+    _seeds_member(run, "lsa-euclidean-std", 3.6e-3, 0.02e-3, 3.2e-2, 0.05e-2)
+    _seeds_member(run, "vcconv-euclidean-std", 3.7e-3, 0.05e-3, 6.5e-2, 0.2e-2)  # L1 0.1 above, sd 0.05: off
+    _seeds_member(run, "lsa-dr-norm", 4.1e-3, 0.03e-3, 1.76e-2, 0.01e-2)
+    assert _module().main([str(run)]) == 0
+    out = capsys.readouterr().out
+    # lsa-dr-norm comes nearest to lsa-euclidean-std (below it on DAME; lsa Eucl. Std. below on L1 by 14 %)
+    assert ("lsa-euclidean-std: on (below lsa-dr-norm on L1 by 14 %); vcconv-euclidean-std: off "
+            "(lsa-euclidean-std below it on both, L1 by 2.8 %)): 1 of 2: partly (over seeds; differences within the "
+            "seeds' sd are ties).") in out
+    tied = tmp_path / "c13-tied"
+    _seeds_member(tied, "lsa-euclidean-std", 3.6e-3, 0.02e-3, 3.2e-2, 0.05e-2)
+    _seeds_member(tied, "vcconv-euclidean-std", 3.64e-3, 0.05e-3, 6.5e-2, 0.2e-2)  # L1 within the sd
+    assert _module().main([str(tied)]) == 0
+    out = capsys.readouterr().out
+    # neither is off (no member below either beyond the sd on both); vcconv is beaten on DAME but ties
+    # lsa on L1, so it escapes nobody on anything: tied; lsa is below vcconv on DAME: on
+    assert ("lsa-euclidean-std: on (below vcconv-euclidean-std on DAME by 1e+02 %); vcconv-euclidean-std: tied "
+            "(below lsa-euclidean-std on neither beyond the seeds' sd)): 1 of 2: partly") in out
 
 
 def test_seeds_make_ties(tmp_path, capsys):
