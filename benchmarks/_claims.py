@@ -4,6 +4,7 @@ comparison and a verdict are made (``RULE``)."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 
@@ -11,14 +12,18 @@ def training(m: dict, label: str, run: Path | None = None) -> dict:
     """Epochs, what ended them, the plateau rule's verdicts and the training minutes of model
     ``label``'s networks in ``m`` (the metrics.json of ``run``): the networks named ``label`` or
     ``label/<network>`` (a model that trains a network of another kind, e.g. vcconv's AE an
-    ``ae/vae``).
+    ``ae/vae``), in a seeds run every seed's (``seed-<s>/label...``: one entry per seed, the
+    minutes summed over the seeds).
 
     Minutes are the sum of the epochs' own seconds, which a resumed run keeps from before its
     kill: the networks' ``train_s``; for a run older than that record, the epochs' seconds in
     ``run/curves/<label>/``; failing both, the model's ``timing.fit_s`` (which counts only the
     last attempt of a resumed run); None when nothing says."""
-    nets = {k: v for k, v in m.get("training", {}).get("networks", {}).items()
-            if k == label or k.startswith(label + "/")}
+    def own(k):  # label's networks; in a seeds run each seed's, keyed seed-<s>/<label>[/<network>]
+        k = re.sub(r"^seed-\d+/", "", k)
+        return k == label or k.startswith(label + "/")
+
+    nets = {k: v for k, v in m.get("training", {}).get("networks", {}).items() if own(k)}
     if not nets:
         return {"epochs": "", "ended": "", "verdict": "", "minutes": None}
     secs = [v.get("train_s") for v in nets.values()]

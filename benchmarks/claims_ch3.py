@@ -97,8 +97,8 @@ def main(argv=None) -> int:
             if r is None:
                 print(f"| {conv} | {rep} | missing | | | | | | | |")
                 continue
-            print(f"| {conv} | {rep} | {r['l1'] * 1e3:.3f} | {r['l2'] * 1e5:.3f} | {r['dame'] * 1e2:.3f} | "
-                  f"{r['fmpd'] * 1e2:.3f} | {r['epochs']} | {r['ended']} | {r['verdict']} | "
+            cells = " | ".join(_cell(r, k, f) for k, f in (("l1", 1e3), ("l2", 1e5), ("dame", 1e2), ("fmpd", 1e2)))
+            print(f"| {conv} | {rep} | {cells} | {r['epochs']} | {r['ended']} | {r['verdict']} | "
                   f"{'' if r['fit_min'] is None else format(r['fit_min'], '.1f')} |")
     print("\n| conv | C1: Euclidean-based lower L1 | lower L2 | C1: DR Norm. lower DAME | lower FMPD | "
           "C2: Std. lower L1 | C2: Std. lower DAME |")
@@ -134,7 +134,7 @@ def c12(rows: dict) -> str:
     convs = [c for c in CONVS if (c, "dr") in rows and (c, "dr-norm") in rows]
     if not convs:
         return "C12 (normalising DR helps vcconv and lsa, hurts spiral, spiral++ and feast): not measured (no conv has both a dr and a dr-norm member)."
-    parts, close, seeds, n_match, n_match_t = [], [], False, 0, 0
+    parts, close, on_seeds, n_match, n_match_t = [], [], [], 0, 0
 
     def impact(c):
         down, up = sum(x is True for x in c), sum(x is False for x in c)
@@ -144,20 +144,23 @@ def c12(rows: dict) -> str:
         raw, norm = rows[conv, "dr"], rows[conv, "dr-norm"]
         pair = {k: (_pair(norm, k), _pair(raw, k)) for k in METRICS}
         c = [lower(*pair[k]) for k in METRICS]
-        seeds |= seeded(*pair["l1"])
+        both = seeded(pair["l1"][0]) and seeded(pair["l1"][1])  # ties by the seeds' sd only when both have seeds
+        if both:
+            on_seeds.append(conv)
         got = impact(c)
         ok = got == C12_THESIS[conv]
         n_match += ok
-        n_match_t += ok and impact([lower(*pair[k], CLOSE) for k in METRICS]) == got
-        if ok:
+        n_match_t += ok and (both or impact([lower(*pair[k], CLOSE) for k in METRICS]) == got)
+        if ok and not both:
             close += [f"{conv} {k.upper()} {pct(margin(*pair[k]))}" for k, x in zip(METRICS, c)
                       if x is not None and margin(*pair[k]) < CLOSE]
-        ratios = ", ".join(f"{k.upper()} {norm[k] / raw[k]:.2f}x" for k in METRICS)
+        ratios = ", ".join(f"{k.upper()} {norm[k] / raw[k]:.2f}x{'' if x is not None else ' (tie)'}"
+                           for k, x in zip(METRICS, c))
         parts.append(f"{conv} {got} (DR Norm. over DR: {ratios}; thesis: {C12_THESIS[conv]})")
     k = len(convs)
-    word = verdict(n_match, k)
+    word = qualify_cases(verdict(n_match, k), close, f"{n_match_t} of {k}, {verdict(n_match_t, k)}", on_seeds, k)
     return (f"C12 (normalising DR: the impact over L1, L2, DAME and FMPD has the thesis's sign): {n_match} of {k} "
-            f"convs ({'; '.join(parts)}): {qualify(word, close, f'{n_match_t} of {k}, {verdict(n_match_t, k)}', seeds)}.")
+            f"convs ({'; '.join(parts)}): {word}.")
 
 
 def mean_shape(run: Path, split: str) -> dict | None:
@@ -200,6 +203,12 @@ def c15(rows: dict, base: dict | None) -> str:
     word = qualify_cases(verdict(n, k), close, f"{n_ties} of {k}, {verdict(n_ties, k)}", on_seeds, k)
     return (f"C15 (FeaStNet moves off the mean shape: L1 and DAME below the mean shape's, {base['l1'] * 1e3:.3f}e-3 / "
             f"{base['dame'] * 1e2:.3f}e-2): {n} of {k} feast members ({', '.join(parts)}): {word}.")
+
+
+def _cell(r: dict, k: str, f: float) -> str:
+    """A table cell: the mean scaled by f, with ± the seeds' sd for a seeds member."""
+    sd = r.get("_sd", {}).get(k)
+    return f"{r[k] * f:.3f}" + ("" if sd is None else f" ± {sd * f:.3f}")
 
 
 def _pair(r: dict, k: str):
@@ -270,25 +279,28 @@ def c13(rows: dict) -> tuple[list, str]:
     for b in present:
         me, others = rows[b], [k for k in keys if k != b]
         pairs = {k: {m: (_pair(rows[k], m), _pair(me, m)) for m in ("l1", "dame")} for k in others}
-        if seeded(_pair(me, "l1")):
-            on_seeds.append(f"{b[0]}-{b[1]}")
+        vs = None  # the member of the deciding comparison
         doms = [k for k in others if all(lower(*pairs[k][m]) is True for m in ("l1", "dame"))]
         beats = {k: [m for m in ("l1", "dame") if lower(*pairs[k][m]) is False] for k in others}  # b lower on m
         if doms:  # the nearest dominator: the one whose smaller margin is largest is least close; take the smallest
             k = min(doms, key=lambda k: min(margin(*pairs[k][m]) for m in ("l1", "dame")))
             m = min(("l1", "dame"), key=lambda m: margin(*pairs[k][m]))
-            state, deciding = "off", (f"{k[0]}-{k[1]} below it on both, {m.upper()} by", margin(*pairs[k][m]))
+            state, deciding, vs = "off", (f"{k[0]}-{k[1]} below it on both, {m.upper()} by", margin(*pairs[k][m])), k
         elif all(beats[k] for k in others):
             k = min(others, key=lambda k: max(margin(*pairs[k][m]) for m in beats[k]))
             m = max(beats[k], key=lambda m: margin(*pairs[k][m]))
-            state, deciding = "on", (f"below {k[0]}-{k[1]} on {m.upper()} by", margin(*pairs[k][m]))
+            state, deciding, vs = "on", (f"below {k[0]}-{k[1]} on {m.upper()} by", margin(*pairs[k][m])), k
         else:
             tied = [f"{k[0]}-{k[1]}" for k in others if not beats[k]]  # b below them on nothing beyond the sd
             state, deciding = "tied", (f"below {', '.join(tied)} on neither beyond the seeds' sd", None)
         text, mg = deciding
         names.append(f"{b[0]}-{b[1]}: {state} ({text}{'' if mg is None else ' ' + pct(mg)})")
         n_on += state == "on"
-        close_one = mg is not None and mg < CLOSE and not seeded(_pair(me, "l1"))
+        # a one-seed comparison (either side without seeds) cannot show a tie: its margin under 10 % is listed
+        both = seeded(_pair(me, "l1")) and (vs is None or seeded(_pair(rows[vs], "l1")))
+        if both:  # decided over seeds
+            on_seeds.append(f"{b[0]}-{b[1]}")
+        close_one = mg is not None and mg < CLOSE and not both
         n_on_t += state == "on" and not close_one
         if close_one:
             close.append(f"{b[0]}-{b[1]} {pct(mg)}")

@@ -316,3 +316,53 @@ def test_the_pages_c2_with_feastnet_over_seeds(tmp_path, capsys):
     out = capsys.readouterr().out
     assert ("C2 (Euclidean Std. lower L1 and DAME than Euclidean): 4 of 5 complete convs: holds (one seed; every "
             "deciding margin 10 % or more; over seeds: feast).") in out
+
+
+#: plateau-lsa-vcconv-seeds-20261204-183832's test split, mean and sd over seeds 0-2, as
+#: docs/methods/claims.md prints them: L1 x1e-3, L2 x1e-5, DAME x1e-2, FMPD x1e-2
+LSA_VCCONV_SEEDS = {"lsa-euclidean-std": ((3.592, 0.023), (2.409, 0.034), (3.282, 0.083), (22.651, 1.206)),
+                    "lsa-dr-norm": ((4.185, 0.068), (3.228, 0.119), (1.769, 0.006), (18.325, 0.106)),
+                    "lsa-dr": ((4.293, 0.194), (3.382, 0.332), (1.825, 0.017), (17.996, 0.036)),
+                    "vcconv-euclidean-std": ((3.792, 0.017), (2.867, 0.025), (6.579, 0.015), (62.791, 0.170)),
+                    "vcconv-dr-norm": ((4.194, 0.094), (3.379, 0.130), (1.737, 0.003), (14.652, 0.201)),
+                    "vcconv-dr": ((4.747, 0.093), (4.274, 0.146), (1.895, 0.002), (12.382, 0.331))}
+
+
+def _seeds_member4(run, name, values):
+    """A finished seeds member with all four metrics' means and sds ((mean, sd) x L1, L2, DAME, FMPD, page units)."""
+    (run / name).mkdir(parents=True)
+    res = {"test": {k: {"mean": m * f, "seed_sd": sd * f} for k, f, (m, sd) in
+                    zip(("l1", "l2", "dame", "fmpd"), (1e-3, 1e-5, 1e-2, 1e-2), values)}}
+    (run / name / "metrics.json").write_text(json.dumps({"models": {"ae": res}}))
+
+
+def test_the_pages_c12_and_c13_with_lsa_and_vcconv_over_seeds(tmp_path, capsys):
+    """docs/methods/claims.md's C12 and C13 rows: plateau-dr's run (one seed) read with the LSA and
+    vcconv members over seeds 0-2. C12: LSA's normalisation is mixed over seeds (L1 and L2 ties, DAME
+    lower, FMPD higher), vcconv positive as the thesis says: 2 of 5, partly (feast's margins on one
+    seed). C13 over seeds: vcconv Eucl. Std. off (LSA Eucl. Std. below it on both beyond the sd), LSA
+    Eucl. Std. on against spiral DR Norm.'s one seed by 9.7 % and, over the spiral seeds run's 3 seeds
+    (the page's C1 numbers), by 12 % beyond the sd."""
+    one = tmp_path / "plateau-dr-20261204-154334"
+    for conv, pair in PLATEAU_DR.items():
+        for rep, (l1, l2, dame, fmpd) in zip(("dr", "dr-norm"), pair):
+            _member(one, f"{conv}-{rep}", l1 * 1e-3, dame * 1e-2, l2=l2 * 1e-5, fmpd=fmpd * 1e-2)
+    seeds = tmp_path / "plateau-lsa-vcconv-seeds-20261204-183832"
+    for name, values in LSA_VCCONV_SEEDS.items():
+        _seeds_member4(seeds, name, values)
+    assert _module().main([str(one), str(seeds)]) == 0
+    out = capsys.readouterr().out
+    assert "| lsa | dr | 4.293 ± 0.194 | 3.382 ± 0.332 | 1.825 ± 0.017 | 17.996 ± 0.036 |" in out
+    assert ("lsa mixed (DR Norm. over DR: L1 0.97x (tie), L2 0.95x (tie), DAME 0.97x, FMPD 1.02x; thesis: positive); "
+            "vcconv positive (DR Norm. over DR: L1 0.88x, L2 0.79x, DAME 0.92x, FMPD 1.18x; thesis: positive)): "
+            "partly (one seed; deciding margins under 10 %: feast L1 0.41 %, feast L2 1.6 %, feast DAME ") in out
+    assert "counting those as ties: 1 of 5, partly; over seeds: lsa, vcconv)." in out
+    assert ("lsa-euclidean-std: on (below spiral-dr-norm on L1 by 9.7 %); vcconv-euclidean-std: off (lsa-euclidean-std "
+            "below it on both, L1 by 5.6 %)): 1 of 2: partly (one seed; deciding margins under 10 %: lsa-euclidean-std "
+            "9.7 %; counting those as ties: 0 of 2, does not hold; over seeds: vcconv-euclidean-std).") in out
+    spiral = tmp_path / "plateau-spiral-seeds-20261203-092723"  # C1's spiral seeds run, as SPIRAL_SEEDS
+    _seeds_member4(spiral, "spiral-dr-norm", tuple(SPIRAL_SEEDS["dr-norm"][k] for k in ("l1", "l2", "dame", "fmpd")))
+    assert _module().main([str(one), str(seeds), str(spiral)]) == 0
+    out = capsys.readouterr().out
+    assert ("lsa-euclidean-std: on (below spiral-dr-norm on L1 by 12 %); vcconv-euclidean-std: off (lsa-euclidean-std "
+            "below it on both, L1 by 5.6 %)): 1 of 2: partly (over seeds; differences within the seeds' sd are ties).") in out

@@ -34,3 +34,13 @@ def test_fit_s_when_nothing_else_and_none_when_nothing():
     assert claims.training(m, "ae")["minutes"] == pytest.approx(1.5)
     assert claims.training({"training": {"networks": {"ae": _net()}}}, "ae")["minutes"] is None
     assert claims.training({}, "ae") == {"epochs": "", "ended": "", "verdict": "", "minutes": None}
+
+
+def test_a_seeds_run_counts_every_seeds_networks():
+    # a seeds run's metrics.json keys each seed's networks seed-<s>/<label>[/<network>]; another model's stay out
+    m = {"training": {"networks": {"seed-0/ae/vae": _net(train_s=60.0), "seed-1/ae/vae": _net(train_s=30.0),
+                                   "seed-10/ae": _net(train_s=30.0), "seed-0/aex": _net(train_s=999.0),
+                                   "seed-0/dsm/ae": _net(train_s=999.0)}}}
+    t = load_benchmark("_claims").training(m, "ae")
+    assert t["minutes"] == pytest.approx(2.0)
+    assert t["epochs"] == "3/5, 3/5, 3/5"
