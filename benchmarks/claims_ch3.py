@@ -41,7 +41,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _claims import (CLOSE, RULE, lower, margin, pct, qualify, qualify_cases, seeded, training,  # noqa: E402
+from _claims import (CLOSE, RULE, lower, margin, pct, qualify_cases, seeded, training,  # noqa: E402
                      verdict, yes)
 from fwk.evaluation.core import pareto_front  # noqa: E402
 
@@ -264,52 +264,61 @@ def c1_c2(rows: dict) -> dict:
 BALANCED = (("lsa", "euclidean-std"), ("vcconv", "euclidean-std"))
 
 
+def _c13_state(rows: dict, b: tuple, close: float | None):
+    """(state, words, deciding margin or None, deciding member or None) of balanced member b: *off*
+    when another member is lower on both L1 and DAME, *on* when it is lower than every other member
+    on L1 or DAME, *tied* otherwise; each comparison by the rule (``lower``; with ``close``, a
+    one-seed margin under it is a tie too, as the verdicts' "counting those as ties")."""
+    me, others = rows[b], [k for k in rows if k != b]
+
+    def cmp(k, m):  # is k lower than b on m? (None: a tie)
+        a, c = _pair(rows[k], m), _pair(me, m)
+        return lower(a, c, None if seeded(a) and seeded(c) else close)
+
+    def mg(k, m):
+        return margin(_pair(rows[k], m), _pair(me, m))
+
+    doms = [k for k in others if cmp(k, "l1") is True and cmp(k, "dame") is True]
+    beats = {k: [m for m in ("l1", "dame") if cmp(k, m) is False] for k in others}  # where b is the lower
+    if doms:  # the nearest dominator: the smallest of its two margins
+        k = min(doms, key=lambda k: min(mg(k, m) for m in ("l1", "dame")))
+        m = min(("l1", "dame"), key=lambda m: mg(k, m))
+        return "off", f"{k[0]}-{k[1]} below it on both, {m.upper()} by", mg(k, m), k
+    if all(beats[k] for k in others):  # the nearest contender: the smallest of its best escapes
+        k = min(others, key=lambda k: max(mg(k, m) for m in beats[k]))
+        m = max(beats[k], key=lambda m: mg(k, m))
+        return "on", f"below {k[0]}-{k[1]} on {m.upper()} by", mg(k, m), k
+    tied = ", ".join(f"{k[0]}-{k[1]}" for k in others if not beats[k])
+    return "tied", f"below {tied} on neither beyond the seeds' sd", None, None
+
+
 def c13(rows: dict) -> tuple[list, str]:
     """The L1/DAME front over the finished members (by means) and the C13 line: how many of BALANCED
-    are on it. A balanced member is *off* when another member is lower on both L1 and DAME, *on* when
-    every other member is higher on at least one of them, and *tied* otherwise (a member as low as it
-    on both within the seeds' sd: neither on nor off), each comparison by the rule (``lower``). The
-    deciding margin of an off member is its nearest dominator's smaller margin; of an on member the
-    smallest margin by which it escapes a member (the nearest to dominating it); one-seed margins
-    under 10 % are listed with the count they would give as ties."""
+    are on it, each on, off or tied (``_c13_state``) with its deciding margin (an off member's
+    nearest dominator's smaller margin; an on member's smallest escape from another); a deciding
+    comparison without seeds on both sides and a margin under 10 % is listed, and the count is
+    given again with those margins as ties."""
     keys = list(rows)
     front = [keys[i] for i in pareto_front([(rows[k]["l1"], rows[k]["dame"]) for k in keys])]
     present = [b for b in BALANCED if b in rows]
-    names, close, on_seeds, n_on, n_on_t = [], [], [], 0, 0
-    for b in present:
-        me, others = rows[b], [k for k in keys if k != b]
-        pairs = {k: {m: (_pair(rows[k], m), _pair(me, m)) for m in ("l1", "dame")} for k in others}
-        vs = None  # the member of the deciding comparison
-        doms = [k for k in others if all(lower(*pairs[k][m]) is True for m in ("l1", "dame"))]
-        beats = {k: [m for m in ("l1", "dame") if lower(*pairs[k][m]) is False] for k in others}  # b lower on m
-        if doms:  # the nearest dominator: the one whose smaller margin is largest is least close; take the smallest
-            k = min(doms, key=lambda k: min(margin(*pairs[k][m]) for m in ("l1", "dame")))
-            m = min(("l1", "dame"), key=lambda m: margin(*pairs[k][m]))
-            state, deciding, vs = "off", (f"{k[0]}-{k[1]} below it on both, {m.upper()} by", margin(*pairs[k][m])), k
-        elif all(beats[k] for k in others):
-            k = min(others, key=lambda k: max(margin(*pairs[k][m]) for m in beats[k]))
-            m = max(beats[k], key=lambda m: margin(*pairs[k][m]))
-            state, deciding, vs = "on", (f"below {k[0]}-{k[1]} on {m.upper()} by", margin(*pairs[k][m])), k
-        else:
-            tied = [f"{k[0]}-{k[1]}" for k in others if not beats[k]]  # b below them on nothing beyond the sd
-            state, deciding = "tied", (f"below {', '.join(tied)} on neither beyond the seeds' sd", None)
-        text, mg = deciding
-        names.append(f"{b[0]}-{b[1]}: {state} ({text}{'' if mg is None else ' ' + pct(mg)})")
-        n_on += state == "on"
-        # a one-seed comparison (either side without seeds) cannot show a tie: its margin under 10 % is listed
-        both = seeded(_pair(me, "l1")) and (vs is None or seeded(_pair(rows[vs], "l1")))
-        if both:  # decided over seeds
-            on_seeds.append(f"{b[0]}-{b[1]}")
-        close_one = mg is not None and mg < CLOSE and not both
-        n_on_t += state == "on" and not close_one
-        if close_one:
-            close.append(f"{b[0]}-{b[1]} {pct(mg)}")
     if not present:
         return front, "C13 (the thesis's balanced pair on the L1/DAME front): not measured (none finished)."
+    names, close, on_seeds, n_on, n_on_t = [], [], [], 0, 0
+    for b in present:
+        state, text, mg, vs = _c13_state(rows, b, None)
+        name = f"{b[0]}-{b[1]}"
+        names.append(f"{name}: {state} ({text}{'' if mg is None else ' ' + pct(mg)})")
+        n_on += state == "on"
+        n_on_t += _c13_state(rows, b, CLOSE)[0] == "on"
+        if seeded(_pair(rows[b], "l1")) and (vs is None or seeded(_pair(rows[vs], "l1"))):
+            on_seeds.append(name)  # decided over seeds
+        elif mg is not None and mg < CLOSE:
+            close.append(f"{name} {pct(mg)}")
     k = len(present)
     word = qualify_cases(verdict(n_on, k), close, f"{n_on_t} of {k}, {verdict(n_on_t, k)}", on_seeds, k)
     return front, (f"C13 (the thesis's balanced pair on the L1/DAME front over the {len(rows)} finished members: "
                    f"{'; '.join(names)}): {n_on} of {k}: {word}.")
+
 
 if __name__ == "__main__":
     raise SystemExit(main())
