@@ -137,6 +137,27 @@ def test_resume_reruns_only_unfinished_seeds(tmp):
     assert _json(run / "metrics.json")["models"] == want
 
 
+def test_seeds_trained_elsewhere_join_a_run_by_resume(tmp, three):
+    """docs/recipes.md, Seeds: a one-seed run's seed-<s>/ sub-run copied into a run of all the seeds
+    (its recipe.yaml the one fwk wrote there) is finished there; --resume trains only the others and
+    combines them: the numbers of the run trained in one go."""
+    import shutil
+
+    one = execute(str(tmp / "tiny.yaml"), ["seeds=[1]"], runs_dir=str(tmp / "elsewhere"), quiet=True)
+    run = execute(str(tmp / "tiny.yaml"), ["seeds=3"], runs_dir=str(tmp / "joined"), quiet=True)
+    for s in (1, 2):  # as if the run had been stopped after seed 0: seed 1 comes from elsewhere, seed 2 trains
+        shutil.rmtree(run / f"seed-{s}")
+    (run / "metrics.json").unlink()
+    (run / "FAILED").write_text("killed\n")
+    (run / "seed-1").mkdir()
+    assert (one / "seed-1" / "recipe.yaml").read_text() == (three / "seed-1" / "recipe.yaml").read_text()
+    shutil.copytree(one / "seed-1", run / "seed-1", dirs_exist_ok=True)
+    execute(None, resume=str(run), quiet=True)
+    log = (run / "log.txt").read_text().split("resuming")[-1]
+    assert "seed 1: finished before, not run again" in log and "[seed 2: 3/3]" in log
+    assert _json(run / "metrics.json")["models"] == _json(three / "metrics.json")["models"]
+
+
 # ------------------------------------------------------------------------- the test
 
 def naive_wilcoxon(a, b) -> float:
