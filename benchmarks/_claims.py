@@ -60,6 +60,12 @@ def stat(x) -> tuple[float, float | None]:
     return float(x), None
 
 
+def fmt(x, factor: float = 1.0) -> str:
+    """A value for a table, scaled by ``factor`` to 3 decimals, with ' ± sd' when it carries a seeds' sd."""
+    m, sd = stat(x)
+    return f"{m * factor:.3f}" + ("" if sd is None else f" ± {sd * factor:.3f}")
+
+
 def margin(a, b) -> float:
     """|a - b| over the smaller of the two means: the higher one's excess over the lower."""
     (ma, _), (mb, _) = stat(a), stat(b)

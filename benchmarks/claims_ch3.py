@@ -41,7 +41,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _claims import (CLOSE, RULE, lower, margin, pct, qualify_cases, seeded, training,  # noqa: E402
+from _claims import (CLOSE, RULE, fmt, lower, margin, pct, qualify_cases, seeded, training,  # noqa: E402
                      verdict, yes)
 from fwk.evaluation.core import pareto_front  # noqa: E402
 
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
             if r is None:
                 print(f"| {conv} | {rep} | missing | | | | | | | |")
                 continue
-            cells = " | ".join(_cell(r, k, f) for k, f in (("l1", 1e3), ("l2", 1e5), ("dame", 1e2), ("fmpd", 1e2)))
+            cells = " | ".join(fmt(_pair(r, k), f) for k, f in (("l1", 1e3), ("l2", 1e5), ("dame", 1e2), ("fmpd", 1e2)))
             print(f"| {conv} | {rep} | {cells} | {r['epochs']} | {r['ended']} | {r['verdict']} | "
                   f"{'' if r['fit_min'] is None else format(r['fit_min'], '.1f')} |")
     print("\n| conv | C1: Euclidean-based lower L1 | lower L2 | C1: DR Norm. lower DAME | lower FMPD | "
@@ -203,12 +203,6 @@ def c15(rows: dict, base: dict | None) -> str:
     word = qualify_cases(verdict(n, k), close, f"{n_ties} of {k}, {verdict(n_ties, k)}", on_seeds, k)
     return (f"C15 (FeaStNet moves off the mean shape: L1 and DAME below the mean shape's, {base['l1'] * 1e3:.3f}e-3 / "
             f"{base['dame'] * 1e2:.3f}e-2): {n} of {k} feast members ({', '.join(parts)}): {word}.")
-
-
-def _cell(r: dict, k: str, f: float) -> str:
-    """A table cell: the mean scaled by f, with ± the seeds' sd for a seeds member."""
-    sd = r.get("_sd", {}).get(k)
-    return f"{r[k] * f:.3f}" + ("" if sd is None else f" ± {sd * f:.3f}")
 
 
 def _pair(r: dict, k: str):

@@ -41,7 +41,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _claims import CLOSE, RULE, lower, margin, pct, qualify, seeded, verdict  # noqa: E402
+from _claims import CLOSE, RULE, fmt, lower, margin, pct, qualify, seeded, verdict  # noqa: E402
 
 
 def by_seed(k, seeds=("0",)) -> dict:
@@ -88,7 +88,6 @@ def main(argv=None) -> int:
         n_yes = n_ties = n_l1 = 0
         close, seeds = [], False
         for e in exprs:
-            v = {k: (mean(e, e2e, k), mean(e, two, k)) for k in ("l1", "dame", "fmpd")}
             c = {k: lower(get(e, e2e, k), get(e, two, k)) for k in ("dame", "fmpd")}
             ok = c["dame"] is True and c["fmpd"] is True
             n_yes += ok
@@ -98,9 +97,9 @@ def main(argv=None) -> int:
             close += [f"{e} {k.upper()} {pct(margin(get(e, e2e, k), get(e, two, k)))}" for k in ("dame", "fmpd")
                       if ok and margin(get(e, e2e, k), get(e, two, k)) < CLOSE]
             word = yes(ok) if (c["dame"] is not None and c["fmpd"] is not None) else "tie"
-            print(f"| {e2e} | {two} | {e} | {v['l1'][0] * 1e3:.3f} / {v['l1'][1] * 1e3:.3f} | "
-                  f"{v['dame'][0] * 1e2:.3f} / {v['dame'][1] * 1e2:.3f} | "
-                  f"{v['fmpd'][0] * 1e2:.3f} / {v['fmpd'][1] * 1e2:.3f} | {word} |")
+            cells = " | ".join(f"{fmt(get(e, e2e, k), f)} / {fmt(get(e, two, k), f)}"
+                               for k, f in (("l1", 1e3), ("dame", 1e2), ("fmpd", 1e2)))
+            print(f"| {e2e} | {two} | {e} | {cells} | {word} |")
         n = len(exprs)
         verdicts.append(f"C5, {e2e} against {two}: end-to-end lower on both perceptual metrics for {n_yes} of "
                         f"{n} expressions: {qualify(verdict(n_yes, n), close, f'{n_ties} of {n}, {verdict(n_ties, n)}', seeds)}. "
@@ -128,8 +127,9 @@ def main(argv=None) -> int:
                 for x in lo:
                     lo[x] &= c[x] is True
                 seeds |= seeded(get(e, p, "l1"))
-                print(f"| {p} | {d} | {e} | {k} | {l1[0] * 1e3:.3f} / {l1[1] * 1e3:.3f} | {(l1[1] / l1[0] - 1) * 100:+.1f} % "
-                      f"| {dame[0] * 1e2:.3f} / {dame[1] * 1e2:.3f} | {(dame[1] / dame[0] - 1) * 100:+.1f} % | "
+                print(f"| {p} | {d} | {e} | {k} | {fmt(get(e, p, 'l1'), 1e3)} / {fmt(get(e, d, 'l1'), 1e3)} | "
+                      f"{(l1[1] / l1[0] - 1) * 100:+.1f} % | {fmt(get(e, p, 'dame'), 1e2)} / {fmt(get(e, d, 'dame'), 1e2)} | "
+                      f"{(dame[1] / dame[0] - 1) * 100:+.1f} % | "
                       f"{yes(c['l1'] is True and c['dame'] is True)} |")
             got["both"].append(lo["l1"] and lo["dame"])
             got_t.append(lo["l1"] and lo["dame"] and all(lower(get(e, p, x), get(e, d, x), CLOSE) is True

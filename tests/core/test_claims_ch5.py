@@ -122,3 +122,21 @@ def test_c9_over_seeds_counts_the_seeds_whose_k_differ_across_expressions(tmp_pa
         assert f"C9, pbs: chosen k {words}" in out, (name, out)
         if name == "differ-on-one":  # the table's k column: one k per seed where they differ
             assert "| pbs | dt-0 | frown | 1000 / 300 / 1000 |" in out and "| pbs | dt-0 | smile | 1000 |" in out
+
+
+def test_tables_carry_the_seeds_sd(tmp_path, capsys):
+    """A seeds run's table cells are mean ± sd (the page quotes them); a one-seed run's stay means."""
+    run = tmp_path / "ch5-sd"
+    run.mkdir()
+    s = lambda m, sd: {"mean": m, "seed_sd": sd}  # noqa: E731
+    row = {"pbs": {"l1": s(1e-3, 0.02e-3), "dame": s(1e-2, 0.001e-2), "fmpd": s(1e-2, 0.0)},
+           "dt-0": {"l1": s(2e-3, 0.0), "dame": s(2e-2, 0.0), "fmpd": s(1e-2, 0.0)},
+           "pbs:pb-x": {"l1": s(1.1e-3, 0.03e-3), "dame": s(1.5e-2, 0.01e-2), "fmpd": s(2e-2, 0.1e-2)},
+           "pb-x-two-step": {"l1": s(1.2e-3, 0.01e-3), "dame": s(1.4e-2, 0.02e-2), "fmpd": s(3e-2, 0.2e-2)}}
+    (run / "metrics.json").write_text(json.dumps({"blendshapes": {"smile": row}, "pbs": {"pbs": {"k": {"smile": 50}}},
+                                                  "seeds": [0, 1, 2]}))
+    assert _module().main([str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "| pbs | dt-0 | smile | 50 | 1.000 ± 0.020 / 2.000 ± 0.000 | +100.0 % | 1.000 ± 0.001 / 2.000 ± 0.000 |" in out
+    assert ("| pbs:pb-x | pb-x-two-step | smile | 1.100 ± 0.030 / 1.200 ± 0.010 | 1.500 ± 0.010 / 1.400 ± 0.020 | "
+            "2.000 ± 0.100 / 3.000 ± 0.200 | no |") in out
