@@ -75,6 +75,17 @@ def _default_device() -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
+def _check_cuda() -> None:
+    """``--device cuda`` asked for where torch sees no CUDA device: one line, before any work
+    (Lightning's ``auto`` accelerator would otherwise train on the CPU without a word)."""
+    import torch
+
+    if not torch.cuda.is_available():
+        build = f"built with CUDA {torch.version.cuda}" if torch.version.cuda else "a CPU-only build"
+        raise FwkError(f"--device cuda: torch {torch.__version__} ({build}) sees no CUDA device here; "
+                       "run with --device cpu (or without --device), or install a CUDA build of torch")
+
+
 def _json_default(o):
     if isinstance(o, (np.integer,)):
         return int(o)
@@ -515,6 +526,8 @@ def execute(recipe_path: str, overrides: list[str] | None = None, runs_dir: str 
     """``fwk run``: validate the recipe and the output folders first, then create the run
     directory and run (see the module docstring for what a run directory holds when it fails).
     The process registers among those that share the cores (``fwk.engine.threads``)."""
+    if device == "cuda":
+        _check_cuda()
     registry = registry or get_registry()
     register()
     outer_pin = pinned()  # a run inside a run (from Python) keeps the outer run's thread count

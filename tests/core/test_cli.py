@@ -110,3 +110,17 @@ def test_a_model_supplied_conv_argument_is_refused_in_a_recipe(tmp_path, capsys)
     assert main(["--quiet", "run", str(r), "--runs-dir", str(tmp_path / "runs")]) == 2
     assert "models.ae.conv.activation: supplied by the model that builds vcconv, not a recipe parameter" \
         in capsys.readouterr().err
+
+
+def test_device_cuda_without_cuda_is_one_line_and_no_run(tmp_path, capsys, monkeypatch):
+    """--device cuda where torch sees no CUDA device is refused before any work (Lightning's auto
+    accelerator would train on the CPU without a word): exit 2, one line, no run directory."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    runs = tmp_path / "runs"
+    assert main(["run", str(REPO / "recipes" / "smoke" / "reconstruct.yaml"), "--device", "cuda",
+                 "--runs-dir", str(runs)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--device cuda: torch" in err and "sees no CUDA device here" in err
+    assert not runs.exists() or not any(runs.iterdir())
