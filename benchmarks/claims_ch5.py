@@ -8,6 +8,8 @@ their labels: ``<x>-two-step`` is a two-step PB whose end-to-end partner is the 
 ``pbs:pb-dr-norm``); the cut-selecting models are those with a k sweep (metrics.json ``pbs``);
 Deformation Transfer is every label starting with ``dt``. Prints, in markdown:
 
+* every model's L1, DAME and FMPD per expression (mean, ± the seeds' sd with seeds), the page's
+  chapter 5 table;
 * C5 per pair and expression (thesis 5.2.3, table 5.1, l. 2117-2131): DAME and FMPD (and L1) of
   end-to-end against two-step, and whether end-to-end is lower on both perceptual metrics. C5
   "holds" for a pair when it is on more than half of the expressions. Also how many expressions
@@ -37,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -65,6 +68,25 @@ def pairs(labels) -> list[tuple[str, str]]:
     return out
 
 
+#: the metrics of the overview table and the factor each is printed in
+SCALES = {"l1": 1e3, "dame": 1e2, "fmpd": 1e2}
+
+
+def overview(per: dict, exprs: list, labels: list) -> str:
+    """One row per expression and metric, one column per model (docs/methods/claims.md's chapter 5
+    table): mean (± the seeds' sd) scaled by SCALES, the lowest mean in bold."""
+    lines = [f"| expression | metric | {' | '.join(labels)} |", "| --- | --- |" + " --- |" * len(labels)]
+    for e in exprs:
+        for k, f in SCALES.items():
+            vals = {lb: per[e].get(lb, {}).get(k) for lb in labels}
+            means = {lb: v["mean"] for lb, v in vals.items() if v is not None}
+            best = min(means.values()) if means else None
+            cells = ["" if v is None else (f"**{fmt(v, f)}**" if v["mean"] == best else fmt(v, f))
+                     for v in vals.values()]
+            lines.append(f"| {e} | {k.upper()} ×1e-{round(math.log10(f))} | {' | '.join(cells)} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
@@ -78,6 +100,9 @@ def main(argv=None) -> int:
     yes = lambda b: "yes" if b else "no"  # noqa: E731
 
     get = lambda e, lb, k: per[e].get(lb, {}).get(k)  # noqa: E731
+    print(f"Every model ({a.run.name}, {a.split}, mean over subjects, evaluation space; ± the seeds' sd in a run "
+          f"with seeds; the lowest mean in bold)\n")
+    print(overview(per, exprs, labels))
     print(RULE + "\n")
     print(f"C5: end-to-end against two-step PB ({a.run.name}, {a.split}, mean over subjects, evaluation space)\n")
     print("| end-to-end | two-step | expression | L1 ×1e-3 e2e / 2-step | DAME ×1e-2 e2e / 2-step | "

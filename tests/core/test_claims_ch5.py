@@ -138,5 +138,8 @@ def test_tables_carry_the_seeds_sd(tmp_path, capsys):
     assert _module().main([str(run)]) == 0
     out = capsys.readouterr().out
     assert "| pbs | dt-0 | smile | 50 | 1.000 ± 0.020 / 2.000 ± 0.000 | +100.0 % | 1.000 ± 0.001 / 2.000 ± 0.000 |" in out
+    assert "| expression | metric | pbs | dt-0 | pbs:pb-x | pb-x-two-step |" in out  # the page's overview table
+    assert "| smile | L1 ×1e-3 | **1.000 ± 0.020** | 2.000 ± 0.000 | 1.100 ± 0.030 | 1.200 ± 0.010 |" in out
+    assert "| smile | DAME ×1e-2 | **1.000 ± 0.001** | 2.000 ± 0.000 | 1.500 ± 0.010 | 1.400 ± 0.020 |" in out
     assert ("| pbs:pb-x | pb-x-two-step | smile | 1.100 ± 0.030 / 1.200 ± 0.010 | 1.500 ± 0.010 / 1.400 ± 0.020 | "
             "2.000 ± 0.100 / 3.000 ± 0.200 | no |") in out
