@@ -43,12 +43,16 @@ def test_c1_and_c2_per_conv(tmp_path, capsys):
     assert "Rule: A is lower than B when" in out
 
 
+def _seeds_metrics(run, name, values):
+    """A finished member of a seeds run: {metric: (mean, seed sd)} on the test split."""
+    (run / name).mkdir(parents=True)
+    res = {"test": {k: {"mean": m, "seed_sd": sd} for k, (m, sd) in values.items()}}
+    (run / name / "metrics.json").write_text(json.dumps({"models": {"ae": res}}))
+
+
 def _seeds_member(run, name, l1, l1_sd, dame, dame_sd):
     """A finished member of a seeds run: L1 and DAME means with their seed sd (L2, FMPD 1.0, sd 0)."""
-    (run / name).mkdir(parents=True)
-    res = {"test": {"l1": {"mean": l1, "seed_sd": l1_sd}, "l2": {"mean": 1.0, "seed_sd": 0.0},
-                    "dame": {"mean": dame, "seed_sd": dame_sd}, "fmpd": {"mean": 1.0, "seed_sd": 0.0}}}
-    (run / name / "metrics.json").write_text(json.dumps({"models": {"ae": res}}))
+    _seeds_metrics(run, name, {"l1": (l1, l1_sd), "l2": (1.0, 0.0), "dame": (dame, dame_sd), "fmpd": (1.0, 0.0)})
 
 
 # docs/methods/claims.md, "Chapter 3 at the budget's plateau": the test split of plateau-20261201-205355
@@ -330,10 +334,8 @@ LSA_VCCONV_SEEDS = {"lsa-euclidean-std": ((3.592, 0.023), (2.409, 0.034), (3.282
 
 def _seeds_member4(run, name, values):
     """A finished seeds member with all four metrics' means and sds ((mean, sd) x L1, L2, DAME, FMPD, page units)."""
-    (run / name).mkdir(parents=True)
-    res = {"test": {k: {"mean": m * f, "seed_sd": sd * f} for k, f, (m, sd) in
-                    zip(("l1", "l2", "dame", "fmpd"), (1e-3, 1e-5, 1e-2, 1e-2), values)}}
-    (run / name / "metrics.json").write_text(json.dumps({"models": {"ae": res}}))
+    _seeds_metrics(run, name, {k: (m * f, sd * f) for k, f, (m, sd) in
+                               zip(("l1", "l2", "dame", "fmpd"), (1e-3, 1e-5, 1e-2, 1e-2), values)})
 
 
 def test_the_pages_c12_and_c13_with_lsa_and_vcconv_over_seeds(tmp_path, capsys):
