@@ -8,6 +8,16 @@ import re
 from pathlib import Path
 
 
+def networks(m: dict, label: str) -> dict:
+    """{key: record} of model ``label``'s networks in metrics.json's training section: keyed
+    ``label`` or ``label/<network>``, in a seeds run each seed's ``seed-<s>/label[/<network>]``."""
+    def own(k):
+        k = re.sub(r"^seed-\d+/", "", k)
+        return k == label or k.startswith(label + "/")
+
+    return {k: v for k, v in m.get("training", {}).get("networks", {}).items() if own(k)}
+
+
 def training(m: dict, label: str, run: Path | None = None) -> dict:
     """Epochs, what ended them, the plateau rule's verdicts and the training minutes of model
     ``label``'s networks in ``m`` (the metrics.json of ``run``): the networks named ``label`` or
@@ -19,11 +29,7 @@ def training(m: dict, label: str, run: Path | None = None) -> dict:
     kill: the networks' ``train_s``; for a run older than that record, the epochs' seconds in
     ``run/curves/<label>/``; failing both, the model's ``timing.fit_s`` (which counts only the
     last attempt of a resumed run); None when nothing says."""
-    def own(k):  # label's networks; in a seeds run each seed's, keyed seed-<s>/<label>[/<network>]
-        k = re.sub(r"^seed-\d+/", "", k)
-        return k == label or k.startswith(label + "/")
-
-    nets = {k: v for k, v in m.get("training", {}).get("networks", {}).items() if own(k)}
+    nets = networks(m, label)
     if not nets:
         return {"epochs": "", "ended": "", "verdict": "", "minutes": None}
     secs = [v.get("train_s") for v in nets.values()]

@@ -17,14 +17,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 from pathlib import Path
 
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _claims import lower  # noqa: E402
+from _claims import lower, networks  # noqa: E402
 
 #: recipe keys that may differ between the two runs
 FREE = ("name",)
@@ -49,15 +48,19 @@ def summaries(m: dict, split: str) -> dict:
     return out
 
 
-def train_seconds(m: dict) -> dict:
-    """{model: mean over seeds of its networks' summed train_s} (networks keyed seed-<s>/<model>[/...])."""
-    per = {}
-    for key, net in m.get("training", {}).get("networks", {}).items():
-        got = re.match(r"^seed-(\d+)/([^/]+)", key)
-        if got and net.get("train_s") is not None:
-            per.setdefault(got.group(2), {}).setdefault(got.group(1), 0.0)
-            per[got.group(2)][got.group(1)] += net["train_s"]
-    return {model: sum(s.values()) / len(s) for model, s in per.items()}
+def train_seconds(m: dict, models) -> dict:
+    """{model: mean over seeds of its networks' summed train_s} for the models that train networks
+    (``_claims.networks``: keyed seed-<s>/<model>[/...])."""
+    out = {}
+    for model in models:
+        per = {}
+        for key, net in networks(m, model).items():
+            if net.get("train_s") is not None:
+                seed = key.split("/", 1)[0]
+                per[seed] = per.get(seed, 0.0) + net["train_s"]
+        if per:
+            out[model] = sum(per.values()) / len(per)
+    return out
 
 
 def recipe_differences(a: dict, b: dict) -> list[str]:
@@ -110,10 +113,11 @@ def main(argv=None) -> int:
         if not tie:
             beyond.setdefault(k[0], []).append(f"{k[1]} {k[2]} {rel * 100:+.1f} %")
         print(f"| {k[0]} | {k[1]} | {k[2]} | {_fmt(a)} | {_fmt(b)} | {rel * 100:+.2f} % | {'yes' if tie else 'no'} |")
-    ta, tb = train_seconds(ma), train_seconds(mb)
+    models = list(dict.fromkeys(k[0] for k in keys))
+    ta, tb = train_seconds(ma, models), train_seconds(mb, models)
     print(f"\nRule: a difference within the larger of the two runs' seed sd is within the spread (a tie). "
           f"{pb} is adoptable for a model when all of its metrics are.\n")
-    for model in dict.fromkeys(k[0] for k in keys):
+    for model in models:
         n = sum(1 for k in keys if k[0] == model)
         t = "" if model not in ta or model not in tb else \
             f"; training {ta[model]:.0f} s against {tb[model]:.0f} s a seed ({ta[model] / tb[model]:.2f}x)"
