@@ -406,7 +406,18 @@ def test_ict_held_out_identity_remeshed(tmp_path_factory, monkeypatch):
     jawOpen -6 %, mouthSmile_L 0 %, eyeBlink_L -27 %; as-similar-as-possible (a scale per vertex)
     1.56 mm, alike. A geometric prior alone levels off near 1.4 mm on the face. What is left:
     correspondence that sees creases (curvature), or landmarks along the lips and the alar
-    creases. Where that DAME lies (measured 2026-12-03, the true expressions carried
+    creases. Curvature tried (2026-12-04): after the fit, the registered vertices slid along the
+    scan's surface by a tangential flow that matches the template's mean curvature (smoothed by
+    heat diffusion at 6, then 3 mm) to the scan's at the vertex's place (Horn-Schunck: linearised
+    residual, a graph-Laplacian smoothness on the flow, the landmarks pinned, 5 Gauss-Newton steps a
+    scale): the face's vertex error 2.15 -> 1.83 mm (lips 1.80 -> 1.53, eyes 2.02 -> 1.52) and the
+    true expressions carried through it unchanged in DAME (transfer 1.92x / 2.39x / 1.14x against
+    1.92x / 2.36x / 1.14x), while the model's predictions on the slid neutral went wrong (L1 6.7x the
+    direct rig's; not investigated); a weaker smoothness (10x less, down to 1.5 mm) left the vertex
+    error at 2.15 mm, the rig's DAME (transfer) at 2.05x / 2.48x / 1.41x and the barycentric carry's
+    up to 19 % worse. Curvature agrees after the flow (its residual down 2-3x) without
+    the correspondence becoming right: on these faces it does not pin the places where the
+    expressions bend. Where that DAME lies (measured 2026-12-03, the true expressions carried
     barycentrically through the default registration, DAME 3.73 / 1.25 / 0.53e-3): on the edges
     the subdivision adds, flat in the truth, 51 / 51 / 45 %; on the halves of ICT's own edges 49 /
     49 / 55 %, which alone are 1.1x / 1.4x / 0.9x of the direct rig's DAME: a carry that placed
