@@ -417,7 +417,13 @@ def test_ict_held_out_identity_remeshed(tmp_path_factory, monkeypatch):
     error at 2.15 mm, the rig's DAME (transfer) at 2.05x / 2.48x / 1.41x and the barycentric carry's
     up to 19 % worse. Curvature agrees after the flow (its residual down 2-3x) without
     the correspondence becoming right: on these faces it does not pin the places where the
-    expressions bend. Where that DAME lies (measured 2026-12-03, the true expressions carried
+    expressions bend. Nor does a better fit of the mouth alone: the 10 landmarks held at beta 100
+    through every step bring the lips' vertex error 1.80 -> 1.17 mm and the eyes' 2.02 -> 1.43 mm, and
+    the rig's DAME stays 2.06x / 2.43x / 1.28x. The truth's carried DAME is spread over the face
+    (per-vertex DAME map times vertex area): the worst 2 % of the scan's vertices hold 25 % of
+    jawOpen's (cheeks, jaw and under the chin as well as the lips), 39 % of mouthSmile_L's and 67 % of
+    eyeBlink_L's (the upper eyelid); those vertices' registration error is 3.3-3.8 mm (eyelid 2.7 mm)
+    against 2.15 mm over the face. Where that DAME lies (measured 2026-12-03, the true expressions carried
     barycentrically through the default registration, DAME 3.73 / 1.25 / 0.53e-3): on the edges
     the subdivision adds, flat in the truth, 51 / 51 / 45 %; on the halves of ICT's own edges 49 /
     49 / 55 %, which alone are 1.1x / 1.4x / 0.9x of the direct rig's DAME: a carry that placed
