@@ -35,10 +35,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _ict import face_head  # noqa: E402
-from training import SPIRALPP_AE, VCCONV_VAE, VCCONV_VAE_CH5, BATCH, networks, stepper  # noqa: E402
+from training import MAIN_JOB_PB, SPIRALPP_AE, VCCONV_VAE, VCCONV_VAE_CH5, BATCH, networks, stepper  # noqa: E402
 
-MAIN_JOB_PB = {"name": "vae", "conv": {"name": "spiral++", "length": 9}, "channels": [8, 16, 32], "latent": 16,
-               "sampler": {"name": "quadric", "factors": [4, 4, 4]}}
 NETWORKS = {"main job PB": MAIN_JOB_PB, "vcconv ch5": VCCONV_VAE_CH5, "vcconv VAE": VCCONV_VAE,
             "spiral++ AE": SPIRALPP_AE}
 

@@ -12,6 +12,8 @@ vertices) when ICT-FaceKit is present, else a synthetic head of the same size (p
   128, 8], 8 latent vertices, weight_num 35, residual rate 0.5, ``simple`` sampler with 4 levels;
 * ``vcconv ch5``: the same VAE at the chapter 5 study's and the ICT rig's width, channels
   [3, 8, 16, 32, 32, 2] (``recipes/thesis/ch5/base.yaml``), today's code only;
+* ``main job PB``: the main job's PB network (spiral++ VAE [3, 8, 16, 32], latent 16, ``quadric``
+  factors [4, 4, 4]), at this template's size, today's code only;
 * ``spiral++ AE``: channels [3, 16, 32, 64, 128], latent 64, ``quadric`` sampler, factors
   [4, 4, 4, 4], spirals of length 9 (today: each pooling fused into its conv, spiral++ playing
   ``fwk.protocols.FusedPoolingConv``).
@@ -19,12 +21,12 @@ vertices) when ICT-FaceKit is present, else a synthetic head of the same size (p
 A step is forward, L1 loss, backward and an Adam step (fused, as ``fwk.engine.trainer`` trains;
 the frozen code's with torch's per-parameter Adam, as it trained). The versions alternate step by step after
 one warm-up step each; the table gives the median step time of each, their ratio, the GFLOP per
-step (3x the dense products of one forward pass, counted by ``torch.utils.flop_counter``; the
-sparse pooling left out, see ``gflop``) and the achieved rate against an fp32 matmul (2048^3)
+step (3x the dense products of one forward pass, counted by ``torch.utils.flop_counter``;
+sparse products left out, see ``gflop``) and the achieved rate against an fp32 matmul (2048^3)
 measured in the same process with the same threads.
 
-``--bf16`` also times today's code under CPU autocast (bfloat16, what ``train.precision:
-bf16-mixed`` gives Lightning) and trains both precisions for a few steps from the same
+``--bf16`` also times today's code (every row) under CPU autocast (bfloat16, what ``train.precision:
+bf16-mixed`` gives Lightning) and, for the first two rows, trains both precisions for a few steps from the same
 initialisation to report the per-step loss deviation. ``--feast`` adds the FeaStNet AE (the
 spiral++ AE's layout with conv ``feast``, 8 heads: the thesis's FeaStNet), torch_geometric's
 ``FeaStConv.forward`` (per-edge messages; ``order: edges``, the model pooling after each conv) as
@@ -64,6 +66,9 @@ FEAST_AE = {**SPIRALPP_AE, "conv": {"name": "feast", "heads": 8}}
 #: the chapter 5 study's and the ICT rig's network (recipes/thesis/ch5/base.yaml): 1/16 of the thesis's width
 VCCONV_VAE_CH5 = {**VCCONV_VAE, "channels": [8, 16, 32, 32, 2], "sampler": {"name": "simple", "levels": 4,
                                                                            "stride": 2, "radius": 2}}
+#: the main job's PB network (recipes/pbs_face_compression.yaml's two networks), timed at this template's size
+MAIN_JOB_PB = {"name": "vae", "conv": {"name": "spiral++", "length": 9}, "channels": [8, 16, 32], "latent": 16,
+               "sampler": {"name": "quadric", "factors": [4, 4, 4]}}
 OTHER_CONVS = {"spiral": {"name": "spiral"}, "feast": {"name": "feast", "heads": 8}, "lsa": {"name": "lsa"}}
 
 
@@ -221,15 +226,26 @@ def main():
                   f"per-step loss deviation (relative) max {max(dev):.2e}, "
                   f"steps {', '.join(f'{d:.1e}' for d in dev)}")
         result[key] = r
-    # the width the chapter 5 study and the rig train (issue 28's first target), today's code only
-    torch.manual_seed(0)
-    enc, dec, _ = networks(VCCONV_VAE_CH5, t)
-    g = gflop(enc, dec, x)
-    ts = alternate({"after": stepper(enc, dec, x)}, a.steps)["after"]
-    r = {"after_ms": 1e3 * ts, "gflop_after": g, "gflops_after": g / ts, "of_matmul": g / ts / rate}
-    print(f"{'vcconv ch5':<13} {'':>10} {r['after_ms']:>9.0f} {'':>6} {'':>13} {g:>12.1f} {r['gflops_after']:>14.1f} "
-          f"{100 * r['of_matmul']:>9.0f}%   (channels [8, 16, 32, 32, 2]: the chapter 5 study's and the rig's)")
-    result["vcconv_vae_ch5"] = r
+    # the width the chapter 5 study and the rig train, and the main job's network: today's code only
+    for label, key, spec, what in (("vcconv ch5", "vcconv_vae_ch5", VCCONV_VAE_CH5,
+                                    "channels [8, 16, 32, 32, 2]: the chapter 5 study's and the rig's"),
+                                   ("main job PB", "main_job_pb", MAIN_JOB_PB,
+                                    "spiral++ VAE [8, 16, 32]: recipes/pbs_face_compression.yaml's")):
+        torch.manual_seed(0)
+        enc, dec, _ = networks(spec, t)
+        g = gflop(enc, dec, x)
+        steps = {"after": stepper(enc, dec, x)}
+        if a.bf16:
+            steps["after_bf16"] = stepper(copy.deepcopy(enc), copy.deepcopy(dec), x, bf16=True)
+        ts = alternate(steps, a.steps)
+        r = {"after_ms": 1e3 * ts["after"], "gflop_after": g, "gflops_after": g / ts["after"],
+             "of_matmul": g / ts["after"] / rate}
+        print(f"{label:<13} {'':>10} {r['after_ms']:>9.0f} {'':>6} {'':>13} {g:>12.1f} {r['gflops_after']:>14.1f} "
+              f"{100 * r['of_matmul']:>9.0f}%   ({what})")
+        if a.bf16:
+            r.update({"after_bf16_ms": 1e3 * ts["after_bf16"], "bf16_speedup": ts["after"] / ts["after_bf16"]})
+            print(f"{'  bf16':<13} {'':>10} {r['after_bf16_ms']:>9.0f} {r['bf16_speedup']:>6.2f}x over fp32")
+        result[key] = r
     if a.feast:
         result["feast_ae"] = feast_row(t, x, a.steps, rate)
     if a.all:
