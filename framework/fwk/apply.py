@@ -522,7 +522,7 @@ def register_scan(run_dir, scan, landmarks, out, units=None, seed_run: int | Non
     """``fwk register``: writes ``out/neutral.obj`` (the run's template topology and UVs, in the
     scan's frame and units), ``out/correspondence.npz`` (``Registration.arrays``) and
     ``out/report.md``; returns them."""
-    from .rig.register import FADE, FIT_TOLERANCE, render_residual
+    from .rig.register import FADE, FIT_TOLERANCE, LANDMARK_OFF, render_residual
 
     scan, out = Path(scan), Path(out)
     check_dir(out, "--out", min_free_mb=0)
@@ -543,7 +543,11 @@ def register_scan(run_dir, scan, landmarks, out, units=None, seed_run: int | Non
              f"- units: one scan unit = {reg.unit:.4g} {app.units}" + (f" ({reg.unit_name}, detected from the "
              f"landmarks' size)" if units is None and reg.unit_name else " (given)" if units is not None else
              " (no named unit fits: the scan was brought to the template's landmark size)"),
-             f"- landmarks: {len(reg.template_landmarks)} pairs",
+             f"- landmarks: {len(reg.template_landmarks)} pairs; each one's distance from where the others' "
+             f"similarity places it: at most {sm['landmark_residual_max']:.4g} {unit}"
+             + (f"; **likely misplaced: {', '.join(f'landmark {i + 1} (template vertex {reg.template_landmarks[i]})' for i in sm['landmarks_off'])}** "
+                f"(farther than {LANDMARK_OFF:g} of the landmarks' spread): check the landmark file"
+                if sm["landmarks_off"] else " (none farther than {:g} of the landmarks' spread)".format(LANDMARK_OFF)),
              f"- residual (scan vertex to the registered template's surface), fitted vertices: mean "
              f"{sm['residual_mean']:.4g}, max {sm['residual_max']:.4g} {unit}; all vertices: mean "
              f"{sm['residual_mean_all']:.4g}, max {sm['residual_max_all']:.4g}",
@@ -553,6 +557,9 @@ def register_scan(run_dir, scan, landmarks, out, units=None, seed_run: int | Non
              f"(`fitted`, `weight` in correspondence.npz)",
              f"- template vertices with no scan within that distance: {sm['template_missing']} "
              f"(`template_missing`)",
+             f"- folded triangles of the registered template (turned over or collapsed against the template's): "
+             f"{sm['folded']} (`folded`)" + (": **check the landmarks** (a pair given for the wrong side, a point "
+                                             "off the head); the rig bends where they are" if sm["folded"] else ""),
              f"- time: {sm['seconds']:.1f} s", ""]
     try:
         out.mkdir(parents=True, exist_ok=True)

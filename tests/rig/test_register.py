@@ -77,6 +77,47 @@ def test_closest_points_match_brute_force():
         assert np.allclose(bary[p] @ V[F[tri[p]]], q[np.argmin(d)], atol=1e-9)
 
 
+def test_folded_triangles_match_a_triangle_loop():
+    from fwk.rig.register import folded_triangles
+
+    rng = np.random.default_rng(3)
+    x, y = np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 6))
+    M = np.stack([x.ravel(), y.ravel(), 0.1 * x.ravel() * y.ravel()], 1)
+    F = np.array([[j * 6 + i, j * 6 + i + 1, j * 6 + i + 6] for j in range(5) for i in range(5)]
+                 + [[j * 6 + i + 1, j * 6 + i + 7, j * 6 + i + 6] for j in range(5) for i in range(5)])
+    assert not folded_triangles(M, 3.0 * M + 1.0, F).any()  # in the template's frame: scaled and moved, nothing folds
+    Y = M + 0.12 * rng.standard_normal(M.shape)  # rough enough to turn some triangles over
+    Y[7] = Y[8]  # and one collapsed: two corners of a triangle made one
+    got = folded_triangles(M, Y, F)
+    for f, (a, b, c) in enumerate(F):  # naive: each triangle's normals and areas
+        nm, ny = np.cross(M[b] - M[a], M[c] - M[a]), np.cross(Y[b] - Y[a], Y[c] - Y[a])
+        want = float(nm @ ny) < 0 or np.linalg.norm(ny) < 1e-3 * np.linalg.norm(nm)
+        assert got[f] == want, f
+    assert got.any() and not got.all()
+    assert got[[f for f, t in enumerate(F) if 7 in t and 8 in t]].all()
+
+
+def test_landmark_residuals_drop_the_misplaced_ones_and_match_a_direct_fit():
+    from fwk.rig.register import landmark_residuals
+
+    rng = np.random.default_rng(4)
+    A = rng.standard_normal((8, 3))
+    R, s, t = _rotation(rng), 4.0, np.array([1.0, 2.0, 3.0])
+    B = s * A @ R.T + t + 0.01 * rng.standard_normal((8, 3))
+    r, S, off = landmark_residuals(A, B)
+    assert off.size == 0 and S == pytest.approx(np.sqrt(((B - B.mean(0)) ** 2).sum(1).mean()))
+    s1, R1, t1 = similarity(A, B)  # nothing dropped: the plain fit to all of them
+    assert np.allclose(r, np.linalg.norm(s1 * A @ R1.T + t1 - B, axis=1))
+    B2 = B.copy()
+    B2[[2, 6]] = B2[[6, 2]]  # a pair given for each other
+    r2, S2, off2 = landmark_residuals(A, B2)
+    assert off2.tolist() == [2, 6]
+    keep = np.setdiff1d(np.arange(8), [2, 6])
+    s2, R2, t2 = similarity(A[keep], B2[keep])  # the residuals are those of the fit to the others
+    assert np.allclose(r2, np.linalg.norm(s2 * A @ R2.T + t2 - B2, axis=1))
+    assert r2[keep].max() < 0.05 * S2 < 0.3 * S2 < r2[[2, 6]].min()
+
+
 def test_carry_equals_a_vertex_loop():
     rng = np.random.default_rng(2)
     n, p = 30, 50
@@ -192,6 +233,7 @@ def test_template_permuted_in_mm_and_moved_registers_back_exactly(grid_run, move
     assert reg.unit_name == "mm" and reg.unit == pytest.approx(0.1)
     # trimesh's nricp solves in float32: ~1e-6 of the head's size (a 20 cm head in mm: < 1e-4 mm)
     assert sm["residual_max_all"] < 1e-4 and sm["not_fitted"] == 0 and sm["template_missing"] == 0, sm
+    assert sm["folded"] == 0 and reg.folded.shape == (len(app.template.triangles),)
     assert np.allclose(reg.to_scan(reg.neutral)[perm], V, atol=1e-4)  # scan vertex i is template vertex perm[i]
     assert np.allclose(reg.rotation, R, atol=1e-9)
 
@@ -243,6 +285,8 @@ def test_fwk_register_writes_neutral_correspondence_and_report(grid_run, moved_t
     assert z["triangle"].shape == (len(T0),) and z["fitted"].all() and z["distance"].max() < 1e-4
     report = (out / "report.md").read_text()
     assert "residual" in report and "(mm, detected" in report and "not fitted: 0 of" in report
+    assert "folded triangles of the registered template" in report and "check the landmarks" not in report
+    assert not z["folded"].any()
     # the residual render: linked from the report, a picture with the scan in colour (not only white and grey)
     import matplotlib.image as mpimg
 
@@ -266,6 +310,33 @@ def test_fwk_register_refuses_bad_landmarks_in_one_line(grid_run, moved_template
         assert what in err and "\n" not in err, err
         assert main(["apply", str(grid_run), str(scan), "--landmarks", str(bad), "--out", str(tmp_path / "o")]) == 2
         assert what in capsys.readouterr().err
+
+
+def test_fwk_register_reports_a_misplaced_landmark_pair(grid_run, moved_template, tmp_path, capsys):
+    """Two landmarks given for each other: both are named in a warning and in the report, the
+    others not; with the right file nothing is named."""
+    from fwk.cli import main
+
+    tmp, scan, lm, perm, R, t = moved_template
+    items = json.loads(lm.read_text())["landmarks"]
+    # template 7's point (a corner) and 27's (near the centre) swapped; not two corners: the grid is nearly
+    # flat, and a half turn about its diagonal maps corner 7 onto corner 56 (no similarity tells those apart)
+    items[1]["scan"], items[2]["scan"] = items[2]["scan"], items[1]["scan"]
+    bad = tmp_path / "swapped.json"
+    bad.write_text(json.dumps({"landmarks": items}))
+    capsys.readouterr()
+    assert main(["register", str(scan), "--template", str(grid_run), "--landmarks", str(bad),
+                 "--out", str(tmp_path / "s")]) == 0
+    err = capsys.readouterr().err
+    warned = [line for line in err.splitlines() if "likely given for another place" in line]
+    assert len(warned) == 2 and "landmark 2 (template vertex 7)" in warned[0] and \
+        "landmark 3 (template vertex 27)" in warned[1], err
+    report = (tmp_path / "s" / "report.md").read_text()
+    assert "likely misplaced: landmark 2 (template vertex 7), landmark 3 (template vertex 27)" in report, report
+    assert main(["register", str(scan), "--template", str(grid_run), "--landmarks", str(lm),
+                 "--out", str(tmp_path / "r")]) == 0
+    assert "likely given for another place" not in capsys.readouterr().err
+    assert "(none farther than 0.3 of the landmarks' spread)" in (tmp_path / "r" / "report.md").read_text()
 
 
 def test_carry_is_chosen_on_the_command_line_and_an_unknown_one_refused(grid_run, moved_template, tmp_path, capsys):
@@ -353,6 +424,31 @@ def _rigger_landmarks(V: np.ndarray, F: np.ndarray) -> dict:
     peaks = [i for i in range(1, len(z) - 1) if z[i] >= z[i - 1] and z[i] >= z[i + 1]]
     out["lower lip"], out["chin"] = int(below[peaks[0]]), int(below[peaks[1]])
     return out
+
+
+def test_ict_swapped_landmark_pairs_are_named():
+    """On ICT-FaceKit's identities against the generic neutral with the 10 rigger landmarks: none
+    named when right; the two inner eye corners, or the two mouth corners, given for each other:
+    exactly that pair (measured r / S: at most 0.13 right, 0.85-1.05 for a swapped pair)."""
+    if ICT is None:
+        pytest.skip(ICT_SKIP_REASON)
+    from fwk.plugins import get_registry
+    from fwk.rig.register import LANDMARK_OFF, landmark_residuals
+
+    data = get_registry().get("dataset", "ict-facekit")(path=str(ICT), region="face-head", n_subjects=6,
+                                                         shapes=["neutral"]).load()
+    M = np.asarray(data.template.vertices)
+    names = list(RIGGER_LANDMARKS)
+    ids = np.array(list(RIGGER_LANDMARKS.values()))
+    for P in np.asarray(data.positions)[:, 0]:
+        r, S, off = landmark_residuals(M[ids], P[ids])
+        assert off.size == 0 and r.max() < LANDMARK_OFF * S, r / S
+        for a, b in (("eye inner right", "eye inner left"), ("mouth corner right", "mouth corner left")):
+            i, j = names.index(a), names.index(b)
+            sc = ids.copy()
+            sc[[i, j]] = sc[[j, i]]
+            r, S, off = landmark_residuals(M[ids], P[sc])
+            assert off.tolist() == sorted([i, j]), (a, b, r / S)
 
 
 def test_ict_held_out_identity_remeshed(tmp_path_factory, monkeypatch):

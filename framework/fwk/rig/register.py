@@ -62,6 +62,27 @@ points finite: else one line naming the file and the entry.
    Deformation Transfer's is mostly its own smooth field. Where the landmarks sit (these 10, 10
    random vertices, 15) moves DAME by under 0.05x.
 
+7. Folds: a triangle of Y is *folded* when its normal points against the same triangle's on the
+   template (n_Y . n_M < 0) or its area fell below ``MIN_AREA_RATIO`` of the template's
+   (``folded_triangles``). The non-rigid fit's stiffness keeps a good registration free of them
+   (none on the held-out ICT-FaceKit head of tests/rig/test_register.py); landmarks that cross
+   (a left eye corner given for the right) or a scan far from a head fold the fitted surface, and
+   a model predicting on a folded neutral bends the rig there. The count is in the summary, the
+   report and the progress lines, with a warning when there are any. (Not seen in practice:
+   the stiffness held even with two landmarks swapped, below; a check, not a measured failure.)
+8. Misplaced landmarks (``landmark_residuals``): each landmark's distance r_i from where a
+   similarity (its scale free) puts its template point, against the scan landmarks' spread
+   S = sqrt(mean_i |b_i - mean b|^2); the similarity is fitted to the landmarks left after
+   dropping, one at a time, the farthest off while one lies beyond ``LANDMARK_OFF`` S (at least 4
+   kept). A landmark with r_i > ``LANDMARK_OFF`` S is reported as likely misplaced (a warning, not
+   a refusal: an unusual head may differ). Measured on four
+   held-out ICT-FaceKit heads with the 10 landmarks of tests/rig/test_register.py: r_i / S at
+   most 0.13 when they are right; with the two inner eye corners or the two mouth corners given
+   for each other, 0.85-1.05 for the swapped pair and at most 0.13 for the others (a single fit to
+   all ten: up to 0.19 for the others). Nothing else
+   shows such a mistake: with the inner eye corners swapped the fit folded no triangle and left
+   the scan 0.066 cm (mean) from the registered surface, its correspondence wrong around the eyes.
+
 The registration's state is arrays only (``arrays()``, written as ``correspondence.npz``; read
 with ``fwk.safeio.load_npz``).
 """
@@ -104,6 +125,10 @@ FIT_TOLERANCE = 3.0
 FADE = 2.0
 #: nearest registered vertices whose triangles are searched for a scan vertex's closest point
 NEAREST = 8
+#: a registered triangle whose area fell below this fraction of the template's counts as folded
+MIN_AREA_RATIO = 1e-3
+#: a landmark farther than this fraction of the landmarks' spread from the similarity's place is reported
+LANDMARK_OFF = 0.3
 
 
 def _stderr(message: str) -> None:
@@ -178,6 +203,25 @@ def _check_spread(P: np.ndarray, what: str) -> None:
     sv = np.linalg.svd(P - P.mean(0), compute_uv=False)
     if not sv[0] > 0 or sv[1] < 1e-3 * sv[0]:
         raise DataError(f"{what}: the landmarks lie on one line or point; give well spread ones")
+
+
+def landmark_residuals(A: np.ndarray, B: np.ndarray, off: float = LANDMARK_OFF, keep_min: int = 4
+                       ) -> tuple[np.ndarray, float, np.ndarray]:
+    """(r (k,), S, indices off) of step 8: r_i = |s R a_i + t - b_i| for the similarity (scale
+    free) fitted to the landmarks kept after dropping, one at a time, the one farthest off while
+    any kept one lies beyond ``off`` S (at least ``keep_min`` kept), S the spread of all the b_i;
+    off: the landmarks with r_i > ``off`` S. (One fit to all of them would let a swapped pair pull
+    the others off too: with 6 landmarks, 0.32 S for every right one.)"""
+    A, B = np.asarray(A, dtype=np.float64), np.asarray(B, dtype=np.float64)
+    S = float(np.sqrt(((B - B.mean(0)) ** 2).sum(1).mean()))
+    keep = np.ones(len(A), dtype=bool)
+    while True:
+        s, R, t = similarity(A[keep], B[keep])
+        r = np.linalg.norm(s * A @ R.T + t - B, axis=1)
+        worst = int(np.argmax(np.where(keep, r, -1.0)))
+        if keep.sum() <= keep_min or not r[worst] > off * S:
+            return r, S, np.flatnonzero(r > off * S)
+        keep[worst] = False
 
 
 def detect_units(s: float, template_units: str) -> tuple[float, str | None]:
@@ -255,6 +299,16 @@ class Registration:
     template_landmarks: np.ndarray
     scan_landmarks: np.ndarray
     seconds: float
+    folded: np.ndarray | None = None  # (m,) bool: triangles of Y folded against the template's (step 7)
+    landmark_residual: np.ndarray | None = None  # (k,) r_i, scan units (step 8)
+    landmark_spread: float | None = None         # S, scan units
+
+    @property
+    def landmarks_off(self) -> np.ndarray:
+        """Indices (into the landmark file's order) of the landmarks likely misplaced (step 8)."""
+        if self.landmark_residual is None or not self.landmark_spread:
+            return np.zeros(0, dtype=np.int64)
+        return np.flatnonzero(self.landmark_residual > LANDMARK_OFF * self.landmark_spread)
 
     @property
     def fitted(self) -> np.ndarray:
@@ -281,6 +335,10 @@ class Registration:
                 "residual_max": float(d[fit].max()) if fit.any() else float("nan"),
                 "residual_mean_all": float(d.mean()), "residual_max_all": float(d.max()),
                 "tolerance": float(self.tolerance), "template_missing": int(self.template_missing.sum()),
+                "folded": int(self.folded.sum()) if self.folded is not None else 0,
+                "landmarks_off": [int(i) for i in self.landmarks_off],
+                "landmark_residual_max": (float(self.landmark_residual.max()) if self.landmark_residual is not None
+                                          else float("nan")),
                 "unit": float(self.unit), "unit_name": self.unit_name, "seconds": float(self.seconds)}
 
     def arrays(self) -> dict:
@@ -290,7 +348,9 @@ class Registration:
                 "unit": np.float64(self.unit), "neutral_template_frame": self.neutral,
                 "neutral": self.to_scan(self.neutral), "template_triangles": self.triangles,
                 "template_missing": self.template_missing, "template_landmarks": self.template_landmarks,
-                "scan_landmarks": self.scan_landmarks, "tolerance": np.float64(self.tolerance)}
+                "scan_landmarks": self.scan_landmarks, "tolerance": np.float64(self.tolerance),
+                **({"folded": self.folded} if self.folded is not None else {}),
+                **({"landmark_residual": self.landmark_residual} if self.landmark_residual is not None else {})}
 
 
 def render_residual(reg: Registration, scan_triangles: np.ndarray, path, unit: str) -> Path:
@@ -304,6 +364,23 @@ def render_residual(reg: Registration, scan_triangles: np.ndarray, path, unit: s
     cells = [[{"V": X, "scalars": reg.distance, "clim": clim, "bar": bar, "cmap": "inferno", "label": label,
                "view": view} for label, view in (("front", "front"), ("side", "side"))]]
     return render_grid(cells, Template(X, scan_triangles), path)
+
+
+def folded_triangles(template: np.ndarray, registered: np.ndarray, triangles: np.ndarray,
+                     min_area_ratio: float = MIN_AREA_RATIO) -> np.ndarray:
+    """(m,) bool: the triangles of ``registered`` (the template's topology, in its frame: normals
+    are compared as they are, so the two must not be rotated against each other) whose
+    normal points against the template's (n_Y . n_M < 0) or whose area fell below
+    ``min_area_ratio`` of the template's. A triangle degenerate on the template is not judged."""
+    def cross(V):
+        V = np.asarray(V, dtype=np.float64)
+        return np.cross(V[triangles[:, 1]] - V[triangles[:, 0]], V[triangles[:, 2]] - V[triangles[:, 0]])
+
+    triangles = np.asarray(triangles, dtype=np.int64)
+    cm, cy = cross(template), cross(registered)
+    am, ay = np.linalg.norm(cm, axis=1), np.linalg.norm(cy, axis=1)
+    judged = am > 1e-12 * max(float(am.max(initial=0.0)), 1e-300)
+    return judged & (((cm * cy).sum(1) < 0) | (ay < min_area_ratio * am))
 
 
 def median_edge(V: np.ndarray, F: np.ndarray) -> float:
@@ -335,6 +412,7 @@ def register(template: np.ndarray, triangles: np.ndarray, scan: np.ndarray, scan
     _check_spread(M[ids], "landmarks (template side)")
     _check_spread(B, "landmarks (scan side)")
     s0, R, t = similarity(M[ids], B)
+    lm_res, lm_spread, lm_off = landmark_residuals(M[ids], B)  # step 8, scan units
     if units is None:
         u, name = detect_units(s0, template_units)
     else:
@@ -368,11 +446,22 @@ def register(template: np.ndarray, triangles: np.ndarray, scan: np.ndarray, scan
     seconds = time.perf_counter() - t0
     reg = Registration(neutral=Y, triangles=F, scan=V, rotation=R, translation=t, unit=u, unit_name=name,
                        triangle=tri, bary=bary, distance=dist / u, weight=w, tolerance=tol / u,
-                       template_missing=d_tpl > tol, template_landmarks=ids, scan_landmarks=B, seconds=seconds)
+                       template_missing=d_tpl > tol, template_landmarks=ids, scan_landmarks=B, seconds=seconds,
+                       folded=folded_triangles(M, Y, F), landmark_residual=lm_res, landmark_spread=lm_spread)
     if say:
         sm = reg.summary()
         say(f"fwk register: fitted in {t_fit:.1f} s, correspondence {seconds - t_fit:.1f} s: residual mean "
             f"{sm['residual_mean']:.3g}, max {sm['residual_max']:.3g} scan units over {sm['fitted']} fitted scan "
             f"vertices; {sm['not_fitted']} not fitted (> {tol / u:.3g}), {sm['template_missing']} template vertices "
-            f"without scan")
+            f"without scan; {sm['folded']} triangles folded")
+        for i in reg.landmarks_off:
+            ok = np.delete(lm_res, reg.landmarks_off)
+            say(f"fwk register: warning: landmark {i + 1} (template vertex {ids[i]}) lies {lm_res[i]:.3g} scan units "
+                f"from where the other landmarks place it ({lm_res[i] / lm_spread:.2f} of their spread; the others "
+                f"{ok.min() if len(ok) else 0:.3g}-{ok.max() if len(ok) else 0:.3g}): likely given for another place "
+                f"(the other side?); check the landmark file")
+        if sm["folded"]:
+            say(f"fwk register: warning: {sm['folded']} of the registered template's {len(F)} triangles are folded "
+                f"(turned over or collapsed against the template's): check the landmarks (a pair given for the "
+                f"wrong side, a point off the head); the rig bends where they are (`folded` in correspondence.npz)")
     return reg
