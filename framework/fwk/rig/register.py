@@ -65,11 +65,12 @@ points finite: else one line naming the file and the entry.
 7. Folds: a triangle of Y is *folded* when its normal points against the same triangle's on the
    template (n_Y . n_M < 0) or its area fell below ``MIN_AREA_RATIO`` of the template's
    (``folded_triangles``). The non-rigid fit's stiffness keeps a good registration free of them
-   (none on the held-out ICT-FaceKit head of tests/rig/test_register.py); landmarks that cross
-   (a left eye corner given for the right) or a scan far from a head fold the fitted surface, and
-   a model predicting on a folded neutral bends the rig there. The count is in the summary, the
-   report and the progress lines, with a warning when there are any. (Not seen in practice:
-   the stiffness held even with two landmarks swapped, below; a check, not a measured failure.)
+   (none on the held-out ICT-FaceKit head of tests/rig/test_register.py). Landmarks given for the
+   wrong places can fold it: on the rig tests' 8 x 8 grid, two corners' points swapped folded 1 of
+   its 98 triangles; on the ICT-FaceKit head, with the two inner eye corners swapped, the stiffness
+   held and nothing folded (step 8 names that mistake). A model predicting on a folded neutral
+   bends the rig there. The count is in the summary, the report and the progress lines, with a
+   warning when there are any.
 8. Misplaced landmarks (``landmark_residuals``): each landmark's distance r_i from where a
    similarity (its scale free) puts its template point, against the scan landmarks' spread
    S = sqrt(mean_i |b_i - mean b|^2); the similarity is fitted to the landmarks left after
@@ -412,7 +413,7 @@ def register(template: np.ndarray, triangles: np.ndarray, scan: np.ndarray, scan
     _check_spread(M[ids], "landmarks (template side)")
     _check_spread(B, "landmarks (scan side)")
     s0, R, t = similarity(M[ids], B)
-    lm_res, lm_spread, lm_off = landmark_residuals(M[ids], B)  # step 8, scan units
+    lm_res, lm_spread, _ = landmark_residuals(M[ids], B)  # step 8, scan units
     if units is None:
         u, name = detect_units(s0, template_units)
     else:
