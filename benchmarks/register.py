@@ -9,7 +9,11 @@ permuted, in millimetres, rotated and moved, with 10 landmark pairs picked at ra
 per-expression time, the thread count and the load average: the machine is shared, so compare
 numbers of one run, and read a time with its load.
 
-    python benchmarks/register.py [--threads N]
+    python benchmarks/register.py [--threads N] [--trimesh]
+
+``--trimesh`` also registers with trimesh's own ``nricp_amberg`` (``register(fit="trimesh")``),
+alternating with fwk's (fwk, trimesh, fwk), and prints both times and how far the two registered
+templates are apart.
 """
 from __future__ import annotations
 
@@ -31,6 +35,7 @@ def _rotation(rng) -> np.ndarray:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--trimesh", action="store_true", help="also time trimesh's nricp_amberg, alternating")
     args = ap.parse_args()
     import torch
     import trimesh
@@ -55,6 +60,16 @@ def main():
     t0 = time.perf_counter()
     reg = register(M, F, scan, Fs, picks, scan[inv[picks]], template_units=col.units, say=None)
     t_reg = time.perf_counter() - t0
+    if args.trimesh:  # side by side: trimesh's fit, then fwk's again
+        t0 = time.perf_counter()
+        ref = register(M, F, scan, Fs, picks, scan[inv[picks]], template_units=col.units, say=None, fit="trimesh")
+        t_tri = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        register(M, F, scan, Fs, picks, scan[inv[picks]], template_units=col.units, say=None)
+        t_again = time.perf_counter() - t0
+        print(f"registration with fwk.rig.nricp {t_reg:.1f} and {t_again:.1f} s, with trimesh's nricp_amberg "
+              f"{t_tri:.1f} s ({t_tri / ((t_reg + t_again) / 2):.2f}x); registered templates apart by at most "
+              f"{np.abs(ref.neutral - reg.neutral).max():.2g} template units")
     t0 = time.perf_counter()
     dc = DeformationCarry(reg, Fs)
     t_setup = time.perf_counter() - t0

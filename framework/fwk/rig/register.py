@@ -27,7 +27,9 @@ points finite: else one line naming the file and the entry.
    the template's landmark size). The rigid part is then refitted with s fixed at 1/u (the same
    formulas without the scale's update), and the scan is taken into the template's frame:
    X = u R^T (V - t), in template units.
-3. Non-rigid fit: ``trimesh.registration.nricp_amberg`` (Amberg, Romdhani and Vetter 2007:
+3. Non-rigid fit: ``fwk.rig.nricp.nricp_amberg``, trimesh's ``nricp_amberg`` solved 2.4x faster
+   (that module says why and how; on the held-out ICT-FaceKit head the registered vertices equal
+   trimesh's to 5.2e-7 cm) (Amberg, Romdhani and Vetter 2007:
    optimal-step non-rigid ICP: an affine 3x4 transform per template vertex, minimising
    alpha |(M x G) X|^2 (stiffness over the template's edges) + |W (D X - U)|^2 (closest
    target points U, weighted by a distance cut-off and by normal agreement) + beta |D_L X -
@@ -114,8 +116,9 @@ TARGET_DENSITY = 2.0
 #: corresponding vertex): trimesh's default, [[0.01, 10, 0.5, 10], [0.02, 5, 0.5, 10], [0.03, 2.5,
 #: 0.5, 10], [0.01, 0, 0, 10]] with eps 1e-4, stopped after 14 iterations (21 s), vertex error
 #: 0.31 cm; the same with eps 0 (40 iterations) 61.5 s, 0.22 cm; these 4 x 6 iterations (eps 0)
-#: 48.8 s, and the carried rig's L1 the same as with 40 to 0.01x of the direct rig's. Each
-#: iteration is one sparse LU of the 4n x 4n normal equations (1.1 s of the 1.5 s at n = 11,248).
+#: 48.8 s, and the carried rig's L1 the same as with 40 to 0.01x of the direct rig's (these times
+#: with trimesh's solve, where each iteration was one sparse LU of the 4n x 4n normal equations,
+#: 1.1 s of the 1.5 s at n = 11,248; fwk.rig.nricp's solve takes 2.4x less for the registration).
 STEPS = ((0.01, 10.0, 0.5, 6), (0.02, 5.0, 0.5, 6), (0.03, 2.5, 0.5, 6), (0.01, 0.0, 0.0, 6))
 EPS = 0.0
 #: nricp's distance cut-off, in the template's bounding-box diagonals (trimesh's normalisation)
@@ -391,13 +394,16 @@ def median_edge(V: np.ndarray, F: np.ndarray) -> float:
 
 def register(template: np.ndarray, triangles: np.ndarray, scan: np.ndarray, scan_triangles: np.ndarray,
              template_ids: np.ndarray, scan_points: np.ndarray, units: float | None = None,
-             template_units: str = "unit", steps=STEPS, say=_stderr) -> Registration:
+             template_units: str = "unit", steps=STEPS, say=_stderr, fit=None) -> Registration:
     """Register ``template`` (n, 3; ``triangles``) to ``scan`` (p, 3; ``scan_triangles``) with
     landmark pairs (template vertex ids, scan points); ``units``: one scan unit in template
-    units (None: detected); ``say``: progress lines (None: silent)."""
-    from trimesh import PointCloud, Trimesh  # ~0.75 s import, only here
-    from trimesh.registration import nricp_amberg
+    units (None: detected); ``say``: progress lines (None: silent); ``fit``: the non-rigid fit,
+    ``fwk.rig.nricp.nricp_amberg`` when None (``"trimesh"``: trimesh's own, which
+    ``benchmarks/register.py`` times beside it)."""
+    from trimesh import Trimesh  # ~0.75 s import, only here
     from trimesh.sample import sample_surface
+
+    from .nricp import nricp_amberg
 
     t0 = time.perf_counter()
     M = np.asarray(template, dtype=np.float64)
@@ -435,10 +441,16 @@ def register(template: np.ndarray, triangles: np.ndarray, scan: np.ndarray, scan
     if say:
         say(f"fwk register: non-rigid fit (nricp_amberg, {sum(int(st[3]) for st in steps)} iterations) of the "
             f"template's {len(M)} vertices to {len(pts)} scan points ...")
-    src = Trimesh(M.copy(), F, process=False)
-    Y = np.asarray(nricp_amberg(src, PointCloud(pts.copy()), source_landmarks=ids, target_positions=XL.copy(),
-                                steps=[list(st) for st in steps], eps=EPS, distance_threshold=DISTANCE_THRESHOLD,
-                                use_faces=False), dtype=np.float64)
+    if fit == "trimesh":
+        from trimesh import PointCloud
+        from trimesh.registration import nricp_amberg as trimesh_nricp
+
+        Y = np.asarray(trimesh_nricp(Trimesh(M.copy(), F, process=False), PointCloud(pts.copy()), source_landmarks=ids,
+                                     target_positions=XL.copy(), steps=[list(st) for st in steps], eps=EPS,
+                                     distance_threshold=DISTANCE_THRESHOLD, use_faces=False), dtype=np.float64)
+    else:
+        Y = nricp_amberg(M, F, pts, ids, XL, steps=[list(st) for st in steps], eps=EPS,
+                         distance_threshold=DISTANCE_THRESHOLD)
     t_fit = time.perf_counter() - t0
     tri, bary, dist = closest_points(Y, F, X)
     tol = FIT_TOLERANCE * h
