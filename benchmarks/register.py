@@ -57,16 +57,15 @@ def main():
     picks = rng.choice(len(M), 10, replace=False)
     print(f"{what}: template {len(M)} vertices, scan {len(scan)} vertices ({len(Fs)} triangles), "
           f"{args.threads} thread(s), load average {os.getloadavg()[0]:.2f}")
-    t0 = time.perf_counter()
-    reg = register(M, F, scan, Fs, picks, scan[inv[picks]], template_units=col.units, say=None)
-    t_reg = time.perf_counter() - t0
+    def timed(fit=None):
+        t0 = time.perf_counter()
+        reg = register(M, F, scan, Fs, picks, scan[inv[picks]], template_units=col.units, say=None, fit=fit)
+        return reg, time.perf_counter() - t0
+
+    reg, t_reg = timed()
     if args.trimesh:  # side by side: trimesh's fit, then fwk's again
-        t0 = time.perf_counter()
-        ref = register(M, F, scan, Fs, picks, scan[inv[picks]], template_units=col.units, say=None, fit="trimesh")
-        t_tri = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        register(M, F, scan, Fs, picks, scan[inv[picks]], template_units=col.units, say=None)
-        t_again = time.perf_counter() - t0
+        ref, t_tri = timed("trimesh")
+        _, t_again = timed()
         print(f"registration with fwk.rig.nricp {t_reg:.1f} and {t_again:.1f} s, with trimesh's nricp_amberg "
               f"{t_tri:.1f} s ({t_tri / ((t_reg + t_again) / 2):.2f}x); registered templates apart by at most "
               f"{np.abs(ref.neutral - reg.neutral).max():.2g} template units")

@@ -83,10 +83,11 @@ def nricp_amberg(vertices: np.ndarray, faces: np.ndarray, target: np.ndarray, la
     Mi = sp.coo_matrix((np.concatenate([w, -w]), (np.tile(np.arange(len(e)), 2), np.concatenate([e[:, 0], e[:, 1]]))),
                        shape=(len(e), n)).tocsr()
     K = sp.kron((Mi.T @ Mi).tocsr(), sp.diags([1.0, 1.0, 1.0, gamma ** 2]), format="csc")
-    D = sp.csr_matrix((np.concatenate([V, np.ones((n, 1))], 1).ravel(),
-                       (np.repeat(np.arange(n), 4), np.arange(4 * n))), shape=(n, 4 * n))
-    DN = sp.csr_matrix((np.concatenate([normals, np.ones((n, 1))], 1).ravel(),
-                        (np.repeat(np.arange(n), 4), np.arange(4 * n))), shape=(n, 4 * n))
+    def rows(P):  # (n, 4 n): row i holds [p_i^T 1] in columns 4 i .. 4 i + 3
+        return sp.csr_matrix((np.concatenate([P, np.ones((n, 1))], 1).ravel(),
+                              (np.repeat(np.arange(n), 4), np.arange(4 * n))), shape=(n, 4 * n))
+
+    D, DN = rows(V), rows(normals)
     use_landmarks = landmarks is not None and landmark_positions is not None
     if use_landmarks:
         Dl = D[np.asarray(landmarks, dtype=np.int64)]

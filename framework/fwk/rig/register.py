@@ -472,8 +472,9 @@ def register(template: np.ndarray, triangles: np.ndarray, scan: np.ndarray, scan
             f"{sm['residual_mean']:.3g}, max {sm['residual_max']:.3g} scan units over {sm['fitted']} fitted scan "
             f"vertices; {sm['not_fitted']} not fitted (> {tol / u:.3g}), {sm['template_missing']} template vertices "
             f"without scan; {sm['folded']} triangles folded")
-        for i in reg.landmarks_off:
-            ok = np.delete(lm_res, reg.landmarks_off)
+        off = reg.landmarks_off
+        ok = np.delete(lm_res, off)
+        for i in off:
             say(f"fwk register: warning: landmark {i + 1} (template vertex {ids[i]}) lies {lm_res[i]:.3g} scan units "
                 f"from where the other landmarks place it ({lm_res[i] / lm_spread:.2f} of their spread; the others "
                 f"{ok.min() if len(ok) else 0:.3g}-{ok.max() if len(ok) else 0:.3g}): likely given for another place "
