@@ -127,3 +127,22 @@ def test_k_study_table(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| 10 | 3000.000 | 100.000 | 200.000 | yes |" in out
     assert "| 2000 | 2500.000 | 250.000 | 500.000 | no |" in out
+
+
+def test_c7_at_k50_over_seeds_gives_the_pages_verdicts(tmp_path, capsys):
+    """docs/methods/claims.md, C7: ch4_k50_dr_seeds-20261204-215409 (dsm at k = 50 and the DR Norm.
+    VAE over seeds 0-2), the page's mean ± sd (L1 ×1e-3, DAME ×1e-2): train and test hold."""
+    page = {"dsm": {"train": ((1.090, 0.010), (1.4262, 0.0007)), "test": ((3.604, 0.060), (1.6452, 0.0027))},
+            "vae-dr-norm": {"train": ((1.381, 0.004), (1.4428, 0.0025)), "test": ((4.038, 0.054), (1.6269, 0.0038))}}
+    run = tmp_path / "k50-seeds"
+    run.mkdir()
+    s = lambda v, f: {"mean": v[0] * f, "seed_sd": v[1] * f}  # noqa: E731
+    res = {k: {sp: {"l1": s(l1, 1e-3), "dame": s(d, 1e-2), "fmpd": s(d, 1e-2)} for sp, (l1, d) in r.items()}
+           for k, r in page.items()}
+    (run / "metrics.json").write_text(json.dumps({"models": res, "seeds": [0, 1, 2]}))
+    assert _module().main([str(run)]) == 0
+    out = capsys.readouterr().out
+    assert ("C7, dsm, train: lowest L1 of dsm and the VAEs: yes, lowest DAME: yes: holds (over seeds; differences "
+            "within the seeds' sd are ties).") in out
+    assert ("C7, dsm, test: on the front of dsm and the VAEs: yes: holds (over seeds; differences within the "
+            "seeds' sd are ties).") in out
