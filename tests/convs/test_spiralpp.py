@@ -180,7 +180,7 @@ def test_spiralpp_fused_pooling_under_bf16_autocast():
 
 
 def test_spiralpp_up_tables_equal_a_dense_operator_built_by_loops_and_the_product_is_thread_independent():
-    """forward_up's sparse operator S against a dense one built entry by entry (S[i, j L + l] =
+    """forward_up's sparse operator S against a dense one built entry by entry (S[i, l n_coarse + j] =
     U[s_l(i), j]), its product's gradient by gradcheck (float64), and the product bit for bit
     the same on 1 and 2 threads (each row sums its non-zeros in a fixed order)."""
     from fwk.graph import torch_sparse
@@ -199,7 +199,7 @@ def test_spiralpp_up_tables_equal_a_dense_operator_built_by_loops_and_the_produc
     for i, spiral in enumerate(conv.index.tolist()):
         for l, s in enumerate(spiral):
             for j, v in parents.get(s, []):
-                dense[i, j * L + l] += v
+                dense[i, l * n_c + j] += v
     assert torch.allclose(S.to_dense(), dense, atol=0) and torch.allclose(St.to_dense(), dense.t(), atol=0)
     z = torch.randn(n_c * L, 2, dtype=torch.float64, requires_grad=True)
     S64, St64 = S.to(torch.float64), St.to(torch.float64)
@@ -214,6 +214,27 @@ def test_spiralpp_up_tables_equal_a_dense_operator_built_by_loops_and_the_produc
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(one, two)
+
+
+def test_per_entry_linear_equals_a_loop_and_passes_gradcheck():
+    """forward_up's Z_l = x W_l^T (l-major, written into Z's slices) against a loop over entries,
+    rows and channels, and its backward by gradcheck (float64), W a strided view as forward_up
+    hands it."""
+    from fwk_spiralpp import PerEntryLinear
+
+    torch.manual_seed(3)
+    m, c, o, L = 7, 3, 4, 5
+    x, W = torch.randn(m, c), torch.randn(o, L * c).view(o, L, c)
+    Z = PerEntryLinear.apply(x, W)
+    ref = torch.zeros(L, m, o)
+    for l in range(L):
+        for i in range(m):
+            for k in range(o):
+                ref[l, i, k] = sum(float(x[i, j]) * float(W[k, l, j]) for j in range(c))
+    assert Z.shape == (L, m, o) and torch.allclose(Z, ref, atol=1e-5)
+    x64 = x.double().requires_grad_()
+    W64 = torch.randn(o, L * c, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, w: PerEntryLinear.apply(a, w.view(o, L, c)), (x64, W64))
 
 
 def test_spiralpp_copies_after_forward_up():
