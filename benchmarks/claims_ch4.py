@@ -45,7 +45,7 @@ from pathlib import Path
 from fwk.evaluation.core import pareto_front
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _claims import CLOSE, RULE, lower, margin, pct, qualify, seeded, training, verdict  # noqa: E402
+from _claims import CLOSE, RULE, fmt, lower, margin, pct, qualify, seeded, training, verdict  # noqa: E402
 
 BASELINE = "mean-shape"
 
@@ -74,8 +74,13 @@ def every(n_yes: int, n: int) -> str:
     return "holds" if n_yes == n else ("does not hold" if n_yes == 0 else "partly")
 
 
+def _m(r: dict, split: str, metric: str):
+    """(mean, seeds' sd or None) of one model's ``metric`` on ``split`` (a ``load`` entry)."""
+    return r[split][metric], r.get("_sd", {}).get(split, {}).get(metric)
+
+
 def _v(models: dict, label: str, split: str, metric: str):
-    return models[label][split][metric], models[label].get("_sd", {}).get(split, {}).get(metric)
+    return _m(models[label], split, metric)
 
 
 def _versus(models, dsm, split, others, metric):
@@ -163,15 +168,35 @@ def c16(models: dict, split: str) -> str | None:
 
 
 def c8(rows: list, split: str) -> str:
-    """C8 over the k study's members (sorted by k): the steps between consecutive k on which L1 falls and DAME rises."""
+    """C8 over the k study's members (sorted by k): the steps between consecutive k on which L1 falls
+    and DAME rises, by ``_claims.lower`` (with seeds a step within the larger sd is a tie and counts
+    for neither; on one seed the steps under 10 % are listed, with the verdict they would give as
+    ties)."""
     steps = list(zip(rows, rows[1:]))
-    fall = sum(b[split]["l1"] < a[split]["l1"] for (_, a), (_, b) in steps)
-    rise = sum(b[split]["dame"] > a[split]["dame"] for (_, a), (_, b) in steps)
     n = len(steps)
     seeds = any(v is not None for _, r in rows for v in r.get("_sd", {}).get(split, {}).values())
-    follows = [2 * fall > n, 2 * rise > n]
-    return (f"C8, {split}: L1 falls on {fall} of {n} steps of k, DAME rises on {rise} of {n}: "
-            f"{verdict(sum(follows), 2)} ({'over seeds' if seeds else 'one seed per k'}).")
+
+    def moves(close=None):
+        fall = [lower(_m(b, split, "l1"), _m(a, split, "l1"), close) for (_, a), (_, b) in steps]
+        rise = [lower(_m(a, split, "dame"), _m(b, split, "dame"), close) for (_, a), (_, b) in steps]
+        return fall, rise
+
+    (fall, rise), (fall_t, rise_t) = moves(), moves(CLOSE)
+    word = verdict(sum([2 * sum(x is True for x in fall) > n, 2 * sum(x is True for x in rise) > n]), 2)
+    word_t = verdict(sum([2 * sum(x is True for x in fall_t) > n, 2 * sum(x is True for x in rise_t) > n]), 2)
+    close = [f"{m} {ka} -> {kb} {pct(margin(_m(a, split, key), _m(b, split, key)))}"
+             for m, key in (("L1", "l1"), ("DAME", "dame")) for (ka, a), (kb, b) in steps
+             if margin(_m(a, split, key), _m(b, split, key)) < CLOSE]
+    ties = "" if not seeds else (f"; ties: L1 on {sum(x is None for x in fall)}, DAME on "
+                                 f"{sum(x is None for x in rise)}")
+    counts = (f"L1 falls on {sum(x is True for x in fall)} of {n} steps of k, DAME rises on "
+              f"{sum(x is True for x in rise)} of {n}{ties}")
+    if seeds:
+        return f"C8, {split}: {counts}: {word} (over seeds; differences within the seeds' sd are ties)."
+    if not close:
+        return f"C8, {split}: {counts}: {word} (one seed per k; every step 10 % or more)."
+    return (f"C8, {split}: {counts}: {word} (one seed per k; steps under 10 %: {', '.join(close)}; counting those "
+            f"as ties: {word_t}).")
 
 
 def k_rows(krun: Path) -> list[tuple[int, dict]]:
@@ -235,9 +260,9 @@ def main(argv=None) -> int:
             for k, r in rows:
                 t = r["training"]
                 mins = "" if t["minutes"] is None else f"{t['minutes']:.1f}"
-                print(f"| {k} | {r[split]['l1'] * 1e3:.3f} | {r[split]['dame'] * 1e2:.3f} | "
-                      f"{r[split].get('fmpd', float('nan')) * 1e2:.3f} | {'yes' if k in front else 'no'} | "
-                      f"{t['verdict']} | {mins} |")
+                cell = lambda m, f: fmt(_m(r, split, m), f) if m in r[split] else "nan"  # noqa: E731
+                print(f"| {k} | {cell('l1', 1e3)} | {cell('dame', 1e2)} | {cell('fmpd', 1e2)} | "
+                      f"{'yes' if k in front else 'no'} | {t['verdict']} | {mins} |")
             print(f"\n{c8(rows, split)}")
     return 0
 

@@ -84,7 +84,9 @@ def test_the_chapter_4_run_gives_the_pages_verdicts(tmp_path, capsys):
     assert ("C7, dsm, test: on the front of dsm and the VAEs: yes: holds (one seed; every deciding margin 10 % or "
             "more).") in out
     assert "C16, train: Euclidean Std. VAE lower L1 (yes) and DAME (yes) than the raw Euclidean VAE: holds" in out
-    assert "C8, test: L1 falls on 2 of 5 steps of k, DAME rises on 4 of 5: partly (one seed per k)." in out
+    assert ("C8, test: L1 falls on 2 of 5 steps of k, DAME rises on 4 of 5: partly (one seed per k; steps under "
+            "10 %: L1 50 -> 200 2.9 %, L1 200 -> 500 2 %, L1 500 -> 1000 0 %, L1 1000 -> 2000 0.54 %, DAME 10 -> 50 "
+            "2.5 %, DAME 50 -> 200 1.8 %, DAME 200 -> 500 9.2 %; counting those as ties: does not hold).") in out
 
 
 def test_c7_test_front_counts_ties_and_lists_close_margins(tmp_path):
@@ -108,6 +110,28 @@ def test_c7_test_front_counts_ties_and_lists_close_margins(tmp_path):
         assert c7.startswith("on the front of dsm and the VAEs: " + ("yes: holds" if word == "holds" else
                                                                      "no, dominated by vae-dr-norm: does not hold"))
         assert c7.endswith("(over seeds; differences within the seeds' sd are ties)")
+
+
+def test_c8_over_seeds_counts_steps_within_the_sd_as_ties(tmp_path, capsys):
+    """With seeds a step of k whose difference is within the larger sd counts for neither side, the
+    ties are counted, and the k table's cells are mean ± sd."""
+    krun = tmp_path / "k"
+    s = lambda m, sd: {"mean": m, "seed_sd": sd}  # noqa: E731
+    # L1: 3.0 -> 2.0 falls, 2.0 -> 1.95 within sd 0.1 (tie), 1.95 -> 1.0 falls: 2 of 3, holds
+    # DAME: 1.0 -> 1.5 rises, 1.5 -> 1.52 tie, 1.52 -> 1.4 falls: 1 of 3, not more than half
+    for k, (l1, dame) in {10: (3.0, 1.0), 50: (2.0, 1.5), 200: (1.95, 1.52), 500: (1.0, 1.4)}.items():
+        d = krun / f"k{k}"
+        d.mkdir(parents=True)
+        (d / "metrics.json").write_text(json.dumps({"models": {"dsm": {"test": {
+            "l1": s(l1, 0.1), "dame": s(dame, 0.05), "fmpd": s(1.0, 0.0)}}}, "seeds": [0, 1, 2]}))
+    mod = _module()
+    rows = mod.k_rows(krun)
+    assert mod.c8(rows, "test") == ("C8, test: L1 falls on 2 of 3 steps of k, DAME rises on 1 of 3; ties: L1 on 1, "
+                                    "DAME on 1: partly (over seeds; differences within the seeds' sd are ties).")
+    run = tmp_path / "ch4"
+    _run(run, {"dsm": {"test": (2.0, 1.0)}})
+    assert mod.main([str(run), "--k", str(krun), "--splits", "test"]) == 0
+    assert "| 50 | 2000.000 ± 100.000 | 150.000 ± 5.000 | 100.000 ± 0.000 | no |" in capsys.readouterr().out
 
 
 def _run_ret(d, models):
