@@ -261,9 +261,9 @@ class SpiralPP(nn.Module):
         With Z_lj = W_l x_j on the coarse vertices (n_coarse / n of the plain conv's
         multiply-adds), y_i = b + sum_l sum_j U[s_l(i), j] Z_lj is one sparse product y = S Z,
         S (n, L n_coarse) holding U[s_l(i), j] at (i, l n_coarse + j) (``UpGather``). Z is laid
-        out l-major, (L, n_coarse, b, c_out), so that the L products x W_l^T write it in place as
-        one batched product: a (n_coarse, b, L, c_out) product permuted to it cost a full copy of
-        Z forward and backward (25 and 24 ms a step on the spiral++ AE's last up-sampling, 1
+        out l-major, (L, n_coarse, b, c_out), so that the L products x W_l^T write it in place, one
+        slice each (``PerEntryLinear``): a (n_coarse, b, L, c_out) product permuted to it cost a
+        full copy of Z forward and backward (25 and 24 ms a step on the spiral++ AE's last up-sampling, 1
         thread)."""
         b, n_c, c = x.shape
         xv, W, bias = self._operands(x)
