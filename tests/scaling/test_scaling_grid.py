@@ -9,6 +9,7 @@ from __future__ import annotations
 import glob
 import importlib.util
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -159,6 +160,25 @@ def test_local_members_side_by_side_give_a_one_thread_grids_numbers(tmp_path, mo
 
 needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
                                reason="Ray is an optional extra: pip install 'fwk[ray]'")
+
+
+@needs_ray
+def test_a_local_ray_instance_runs_members_at_the_drivers_priority():
+    """fwk's local Ray instance starts its workers at the driver's niceness (Ray's default puts them
+    15 levels below it, where other work on the machine starved a grid's members); a cluster's
+    address is left to the cluster's settings."""
+    import ray
+    from fwk_grid.executors import Executor, ray_init_kwargs
+
+    kw = ray_init_kwargs(Executor(name="ray", num_cpus=1), quiet=True)
+    assert ray_init_kwargs(Executor(name="ray", address="ray://head:10001"), quiet=True) == {
+        "include_dashboard": False, "log_to_driver": False, "logging_level": logging.ERROR,
+        "address": "ray://head:10001"}
+    ray.init(**kw)
+    try:
+        assert ray.get(ray.remote(lambda: os.nice(0)).remote()) == os.nice(0)
+    finally:
+        ray.shutdown()
 
 
 @pytest.mark.slow
