@@ -344,13 +344,8 @@ def _seeds_member4(run, name, values):
                                zip(("l1", "l2", "dame", "fmpd"), (1e-3, 1e-5, 1e-2, 1e-2), values)})
 
 
-def test_the_pages_c12_and_c13_with_lsa_and_vcconv_over_seeds(tmp_path, capsys):
-    """docs/methods/claims.md's C12 and C13 rows: plateau-dr's run (one seed) read with the LSA and
-    vcconv members over seeds 0-2. C12: LSA's normalisation is mixed over seeds (L1 and L2 ties, DAME
-    lower, FMPD higher), vcconv positive as the thesis says: 2 of 5, partly (feast's margins on one
-    seed). C13 over seeds: vcconv Eucl. Std. off (LSA Eucl. Std. below it on both beyond the sd), LSA
-    Eucl. Std. on against spiral DR Norm.'s one seed by 9.7 % and, over the spiral seeds run's 3 seeds
-    (the page's C1 numbers), by 12 % beyond the sd."""
+def _plateau_dr_and_lsa_vcconv_seeds(tmp_path):
+    """(plateau-dr's run, the LSA and vcconv seeds run) with the page's numbers (PLATEAU_DR, LSA_VCCONV_SEEDS)."""
     one = tmp_path / "plateau-dr-20261204-154334"
     for conv, pair in PLATEAU_DR.items():
         for rep, (l1, l2, dame, fmpd) in zip(("dr", "dr-norm"), pair):
@@ -358,6 +353,17 @@ def test_the_pages_c12_and_c13_with_lsa_and_vcconv_over_seeds(tmp_path, capsys):
     seeds = tmp_path / "plateau-lsa-vcconv-seeds-20261204-183832"
     for name, values in LSA_VCCONV_SEEDS.items():
         _seeds_member4(seeds, name, values)
+    return one, seeds
+
+
+def test_the_pages_c12_and_c13_with_lsa_and_vcconv_over_seeds(tmp_path, capsys):
+    """docs/methods/claims.md's C12 and C13 rows: plateau-dr's run (one seed) read with the LSA and
+    vcconv members over seeds 0-2. C12: LSA's normalisation is mixed over seeds (L1 and L2 ties, DAME
+    lower, FMPD higher), vcconv positive as the thesis says: 2 of 5, partly (feast's margins on one
+    seed). C13 over seeds: vcconv Eucl. Std. off (LSA Eucl. Std. below it on both beyond the sd), LSA
+    Eucl. Std. on against spiral DR Norm.'s one seed by 9.7 % and, over the spiral seeds run's 3 seeds
+    (the page's C1 numbers), by 12 % beyond the sd."""
+    one, seeds = _plateau_dr_and_lsa_vcconv_seeds(tmp_path)
     assert _module().main([str(one), str(seeds)]) == 0
     out = capsys.readouterr().out
     assert "| lsa | dr | 4.293 ± 0.194 | 3.382 ± 0.332 | 1.825 ± 0.017 | 17.996 ± 0.036 |" in out
@@ -380,13 +386,7 @@ def test_the_pages_c12_with_every_close_pair_over_seeds(tmp_path, capsys):
     """docs/methods/claims.md's C12 row with FeaStNet's pair over seeds 0-2 too: its normalisation
     is negative beyond the sd (L1, L2 and DAME higher with DR Norm., FMPD lower), as the thesis says;
     every C12 margin under 10 % is then settled over seeds: 2 of 5, partly."""
-    one = tmp_path / "plateau-dr-20261204-154334"
-    for conv, pair in PLATEAU_DR.items():
-        for rep, (l1, l2, dame, fmpd) in zip(("dr", "dr-norm"), pair):
-            _member(one, f"{conv}-{rep}", l1 * 1e-3, dame * 1e-2, l2=l2 * 1e-5, fmpd=fmpd * 1e-2)
-    seeds = tmp_path / "plateau-lsa-vcconv-seeds-20261204-183832"
-    for name, values in LSA_VCCONV_SEEDS.items():
-        _seeds_member4(seeds, name, values)
+    one, seeds = _plateau_dr_and_lsa_vcconv_seeds(tmp_path)
     feast = tmp_path / "plateau-feast-dr-seeds-20261205-001524"
     for name, values in FEAST_DR_SEEDS.items():
         _seeds_member4(feast, name, values)
