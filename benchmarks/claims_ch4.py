@@ -1,6 +1,6 @@
 """Claim C4 (thesis 4.7.1, tables 4.2-4.4) from a finished chapter 4 run (issue 13).
 
-    python benchmarks/claims_ch4.py RUN [--k KRUN] [--splits train,test]
+    python benchmarks/claims_ch4.py RUN [--k KRUN] [--edit EDITRUN] [--splits train,test]
 
 RUN is a run of ``recipes/thesis/ch4/plateau.yaml`` (one reconstruct run: ``dsm`` and ``dsm-g04``,
 the single-representation VAEs, SpiralNet++, Neural 3DMM and the mean shape); KRUN, optional, a
@@ -30,7 +30,16 @@ run of ``recipes/thesis/ch4/k-plateau.yaml`` (grid members ``k<k>``). Prints, in
 * with KRUN, the k study: L1, DAME, FMPD of dsm per k on each split, the front over k, and C8 (l. 2282:
   "As the parameter k increases, the perceptual error increases and geometric error decreases"): a
   metric follows the claim when it moves the claimed way on more than half of the steps between
-  consecutive k; C8 "holds" when both L1 and DAME follow, "partly" when one does, else "does not hold".
+  consecutive k; C8 "holds" when both L1 and DAME follow, "partly" when one does, else "does not hold";
+* with EDITRUN, a run of ``recipes/thesis/ch4/edit.yaml``: C17 (4.7.2-4.7.3, fig. 4.19) from the
+  decoders' cross-responses rho_{c<-j} (``fwk_dsm_tasks``: 0 = an edit of band j leaves decoder
+  c's band alone, 1 = c responds to it as much as to its own code), per dsm model and pair of
+  bands. "Lower gamma provides more control" (l. 2010): the lowest-gamma dsm model's rho is
+  compared with the gamma = 1 model's pair by pair, "holds" when lower on more than half of the
+  pairs. "High- and low-frequency parameters barely influence each other" at gamma = 0.4
+  (l. 2002) has no number in the thesis; fwk reads it as "holds" when every rho of the
+  lowest-gamma model is at most BARELY (0.1: a tenth of the band's own response), "partly" when
+  every one is below HALF (0.5), else "does not hold".
 
 Comparisons and ties: ``_claims.RULE`` (printed).
 """
@@ -48,6 +57,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _claims import CLOSE, RULE, fmt, lower, margin, pct, qualify, seeded, training, verdict  # noqa: E402
 
 BASELINE = "mean-shape"
+#: C17's reading of "barely influence each other" (no number in the thesis): every cross-response
+#: rho at most BARELY holds, every one below HALF partly
+BARELY, HALF = 0.1, 0.5
 
 
 def load(run: Path) -> dict:
@@ -199,6 +211,32 @@ def c8(rows: list, split: str) -> str:
             f"as ties: {word_t}).")
 
 
+def c17(edit_run: Path) -> list[str]:
+    """C17's two readings from an edit run's ``metrics.json`` (``disentanglement.dsm``: per model its
+    ``gamma`` and ``cross_response`` {"c<-j": rho}), as lines; one seed (an edit run has no seeds)."""
+    d = json.loads((edit_run / "metrics.json").read_text()).get("disentanglement", {}).get("dsm", {})
+    models = {k: v for k, v in d.items() if v.get("gamma") is not None and v.get("cross_response")}
+    if len(models) < 2:
+        return ["C17: not measured (the edit run has fewer than two dsm models with a gamma and cross-responses)."]
+    lo = min(models, key=lambda k: models[k]["gamma"])
+    hi = next((k for k in models if models[k]["gamma"] == 1.0), max(models, key=lambda k: models[k]["gamma"]))
+    rl, rh = models[lo]["cross_response"], models[hi]["cross_response"]
+    pairs = [p for p in rl if p in rh]
+    rows = [(p, lower(rl[p], rh[p]), lower(rl[p], rh[p], CLOSE), margin(rl[p], rh[p])) for p in pairs]
+    n_yes, n_t = sum(x is True for _, x, _, _ in rows), sum(t is True for _, _, t, _ in rows)
+    close = [f"{p} {pct(m)}" for p, x, _, m in rows if x is True and m < CLOSE]
+    gl, gh = models[lo]["gamma"], models[hi]["gamma"]
+    each = ", ".join(f"rho {p} {rl[p]:.3f} against {rh[p]:.3f}" for p in pairs)
+    more = (f"C17, lower gamma more control: {lo} (gamma {gl:g}) against {hi} (gamma {gh:g}): {each}; lower for "
+            f"{n_yes} of {len(pairs)} pairs: {qualify(verdict(n_yes, len(pairs)), close, verdict(n_t, len(pairs)), False)}.")
+    top = max(rl.values())
+    word = "holds" if top <= BARELY else ("partly" if top < HALF else "does not hold")
+    barely = (f"C17, bands barely influence each other at gamma {gl:g} ({lo}): rho "
+              f"{', '.join(f'{p} {rl[p]:.3f}' for p in rl)}; largest {top:.3f} against {BARELY:g} (holds) and {HALF:g} "
+              f"(partly): {word} (one seed).")
+    return [more, barely]
+
+
 def k_rows(krun: Path) -> list[tuple[int, dict]]:
     """(k, {split: {metric: mean}}) of the k study's finished members, by k."""
     rows = []
@@ -216,6 +254,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
     ap.add_argument("--k", type=Path, default=None, help="a run of recipes/thesis/ch4/k-plateau.yaml")
+    ap.add_argument("--edit", type=Path, default=None, help="a run of recipes/thesis/ch4/edit.yaml (C17)")
     ap.add_argument("--splits", default="train,test")
     a = ap.parse_args(argv)
     models = load(a.run)
@@ -248,6 +287,10 @@ def main(argv=None) -> int:
         if line:
             print(line)
     print(f"\n{RULE}")
+    if a.edit is not None:
+        print(f"\nedit run ({a.edit.name})\n")
+        for line in c17(a.edit):
+            print(line)
     if a.k is not None:
         every_row = k_rows(a.k)
         for split in a.splits.split(","):

@@ -170,3 +170,34 @@ def test_c7_at_k50_over_seeds_gives_the_pages_verdicts(tmp_path, capsys):
             "within the seeds' sd are ties).") in out
     assert ("C7, dsm, test: on the front of dsm and the VAEs: yes: holds (over seeds; differences within the "
             "seeds' sd are ties).") in out
+
+
+def test_c17_from_the_pages_edit_run(tmp_path, capsys):
+    """docs/methods/claims.md, C17: edit-20261202-033014's cross-responses as the page prints them
+    (gamma 1: high <- low 0.754, low <- high 0.493; gamma 0.4: 0.418, 0.324): lower gamma, more
+    control holds (margins 80 % and 52 %); "barely influence each other" partly (largest rho 0.418,
+    below 0.5, above 0.1). And the readings' edges: every rho at most 0.1 holds, one at 0.5 or more
+    does not; a pair with a higher rho at the lower gamma counts against."""
+    mod = _module()
+
+    def edit_run(d, r1, r04):
+        d.mkdir()
+        dsm = {"dsm": {"gamma": 1.0, "cross_response": r1}, "dsm-g04": {"gamma": 0.4, "cross_response": r04}}
+        (d / "metrics.json").write_text(json.dumps({"disentanglement": {"dsm": dsm, "compare": {}}}))
+        return d
+
+    page = edit_run(tmp_path / "edit", {"high<-low": 0.754, "low<-high": 0.493}, {"high<-low": 0.418, "low<-high": 0.324})
+    run = tmp_path / "ch4"
+    _run(run, {"dsm": {"test": (2.0, 1.0)}})
+    assert mod.main([str(run), "--edit", str(page), "--splits", "test"]) == 0
+    out = capsys.readouterr().out
+    assert ("C17, lower gamma more control: dsm-g04 (gamma 0.4) against dsm (gamma 1): rho high<-low 0.418 against "
+            "0.754, rho low<-high 0.324 against 0.493; lower for 2 of 2 pairs: holds (one seed; every deciding margin "
+            "10 % or more).") in out
+    assert ("C17, bands barely influence each other at gamma 0.4 (dsm-g04): rho high<-low 0.418, low<-high 0.324; "
+            "largest 0.418 against 0.1 (holds) and 0.5 (partly): partly (one seed).") in out
+    lines = mod.c17(edit_run(tmp_path / "e2", {"a<-b": 0.3, "b<-a": 0.2}, {"a<-b": 0.05, "b<-a": 0.25}))
+    assert lines[0].endswith("lower for 1 of 2 pairs: partly (one seed; every deciding margin 10 % or more).")
+    assert lines[1].endswith("largest 0.250 against 0.1 (holds) and 0.5 (partly): partly (one seed).")
+    assert mod.c17(edit_run(tmp_path / "e3", {"a<-b": 0.3}, {"a<-b": 0.08}))[1].endswith(": holds (one seed).")
+    assert mod.c17(edit_run(tmp_path / "e4", {"a<-b": 0.9}, {"a<-b": 0.5}))[1].endswith(": does not hold (one seed).")
