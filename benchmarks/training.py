@@ -3,6 +3,7 @@ before issue 17's kernel work (``benchmarks/_before.py``, a frozen copy of commi
 convs and networks), side by side in one process.
 
     OMP_NUM_THREADS=2 python benchmarks/training.py [--steps 7] [--bf16] [--feast] [--all]
+    OMP_NUM_THREADS=1 python benchmarks/training.py --cpu-time ...   # a loaded machine: CPU seconds
 
 Networks (thesis 3.4 / appendix A), batch 16, on the ICT-FaceKit face-head region (11,248
 vertices) when ICT-FaceKit is present, else a synthetic head of the same size (printed):
@@ -43,7 +44,6 @@ import copy
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -131,16 +131,11 @@ def gflop(enc, dec, x) -> float:
     return 3 * fwd / 1e9
 
 
-def matmul_rate(repeat: int = 7) -> float:
-    """fp32 GFLOP/s of a 2048 x 2048 x 2048 matmul (median), with torch's current threads."""
+def matmul_rate(repeat: int = 7, cpu: bool = False) -> float:
+    """fp32 GFLOP/s of a 2048 x 2048 x 2048 matmul (median), with torch's current threads; ``cpu``:
+    per CPU second (as ``--cpu-time`` times the steps)."""
     a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
-    a @ b
-    ts = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        a @ b
-        ts.append(time.perf_counter() - t0)
-    return 2 * 2048 ** 3 / float(np.median(ts)) / 1e9
+    return 2 * 2048 ** 3 / alternate({"mm": lambda: a @ b}, repeat, cpu)["mm"] / 1e9
 
 
 def loss_deviation(enc, dec, x, n: int = 8) -> list[float]:
@@ -158,7 +153,7 @@ def load_average() -> float:
     return os.getloadavg()[0]
 
 
-def feast_row(t, x, n, rate) -> dict:
+def feast_row(t, x, n, rate, cpu: bool = False) -> dict:
     """The FeaStNet AE, FeaStConv's per-edge forward (``order: edges``) against today's reordered
     sums, from the same seeded initialisation, alternating; prints its table row and returns it."""
     torch.manual_seed(0)
@@ -168,7 +163,7 @@ def feast_row(t, x, n, rate) -> dict:
     with torch.no_grad():
         l_new, l_old = ((d(e(x)[0]) - x).abs().mean().item() for e, d in ((enc, dec), (oenc, odec)))
     g_new, g_old = gflop(enc, dec, x), gflop(oenc, odec, x)
-    ts = alternate({"before": stepper(oenc, odec, x), "after": stepper(enc, dec, x)}, n)
+    ts = alternate({"before": stepper(oenc, odec, x), "after": stepper(enc, dec, x)}, n, cpu)
     r = {"before_ms": 1e3 * ts["before"], "after_ms": 1e3 * ts["after"], "ratio": ts["before"] / ts["after"],
          "gflop_before": g_old, "gflop_after": g_new, "gflops_before": g_old / ts["before"],
          "gflops_after": g_new / ts["after"], "of_matmul": g_new / ts["after"] / rate,
@@ -184,19 +179,25 @@ def main():
     ap.add_argument("--steps", type=int, default=7, help="timed steps per version (after one warm-up)")
     ap.add_argument("--bf16", action="store_true", help="also time bf16 autocast and its loss deviation")
     ap.add_argument("--all", action="store_true", help="also time every other conv's AE (today's code)")
+    ap.add_argument("--cpu-time", action="store_true",
+                    help="time CPU seconds, not wall seconds (one thread only: a loaded machine's waits left out)")
     ap.add_argument("--feast", action="store_true",
                     help="also time the FeaStNet AE: torch_geometric's FeaStConv forward against today's")
     a = ap.parse_args()
+    if a.cpu_time and torch.get_num_threads() != 1:
+        raise SystemExit(f"--cpu-time needs one thread (OMP_NUM_THREADS=1): with {torch.get_num_threads()} the "
+                         "process's CPU seconds are not a step's time")
     torch.manual_seed(0)
     col, src = face_head(1)
     t = col.template
     threads = torch.get_num_threads()
     x = torch.randn(BATCH, t.n_vertices, 3)
     load0 = load_average()
-    rate = matmul_rate()
+    rate = matmul_rate(cpu=a.cpu_time)
     print(f"template: {src}, {t.n_vertices} vertices; batch {BATCH}; torch {torch.__version__}, {threads} threads; "
-          f"fp32 matmul 2048^3: {rate:.0f} GFLOP/s; load average {load0:.2f}")
-    result = {"template": src, "n_vertices": t.n_vertices, "batch": BATCH, "threads": threads,
+          f"fp32 matmul 2048^3: {rate:.0f} GFLOP/s; load average {load0:.2f}"
+          + ("; step times in CPU seconds (--cpu-time)" if a.cpu_time else ""))
+    result = {"template": src, "n_vertices": t.n_vertices, "batch": BATCH, "threads": threads, "cpu_time": a.cpu_time,
               "matmul_gflops": rate, "torch": torch.__version__}
     print(f"{'network':<13} {'before ms':>10} {'after ms':>9} {'ratio':>6} {'GFLOP before':>13} {'GFLOP after':>12} "
           f"{'GFLOP/s after':>14} {'of matmul':>10}")
@@ -212,7 +213,7 @@ def main():
         if a.bf16:
             e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
             steps["after_bf16"] = stepper(e16, d16, x, bf16=True)
-        ts = alternate(steps, a.steps)
+        ts = alternate(steps, a.steps, a.cpu_time)
         r = {"before_ms": 1e3 * ts["before"], "after_ms": 1e3 * ts["after"], "ratio": ts["before"] / ts["after"],
              "gflop_before": g_old, "gflop_after": g_new, "gflops_before": g_old / ts["before"],
              "gflops_after": g_new / ts["after"], "of_matmul": g_new / ts["after"] / rate}
@@ -237,7 +238,7 @@ def main():
         steps = {"after": stepper(enc, dec, x)}
         if a.bf16:
             steps["after_bf16"] = stepper(copy.deepcopy(enc), copy.deepcopy(dec), x, bf16=True)
-        ts = alternate(steps, a.steps)
+        ts = alternate(steps, a.steps, a.cpu_time)
         r = {"after_ms": 1e3 * ts["after"], "gflop_after": g, "gflops_after": g / ts["after"],
              "of_matmul": g / ts["after"] / rate}
         print(f"{label:<13} {'':>10} {r['after_ms']:>9.0f} {'':>6} {'':>13} {g:>12.1f} {r['gflops_after']:>14.1f} "
@@ -247,12 +248,12 @@ def main():
             print(f"{'  bf16':<13} {'':>10} {r['after_bf16_ms']:>9.0f} {r['bf16_speedup']:>6.2f}x over fp32")
         result[key] = r
     if a.feast:
-        result["feast_ae"] = feast_row(t, x, a.steps, rate)
+        result["feast_ae"] = feast_row(t, x, a.steps, rate, a.cpu_time)
     if a.all:
         result["others"] = {}
         for name, conv in OTHER_CONVS.items():
             enc, dec, _ = networks({**SPIRALPP_AE, "conv": conv}, t)
-            ms = 1e3 * alternate({"s": stepper(enc, dec, x)}, max(2, a.steps // 2))["s"]
+            ms = 1e3 * alternate({"s": stepper(enc, dec, x)}, max(2, a.steps // 2), a.cpu_time)["s"]
             result["others"][name] = {"step_ms": ms}
             print(f"{name + ' AE':<13} {'':>10} {ms:>9.0f}")
     result["load_average"] = [load0, load_average()]

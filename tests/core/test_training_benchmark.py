@@ -36,3 +36,33 @@ def test_gflop_counts_dense_products_and_leaves_sparse_ones_out():
     with torch.no_grad(), FlopCounterMode(display=False) as fc:
         dec(enc(x)[0])
     assert fc.get_total_flops() == 210 + 84 + 2 * 400 * 3 * 2
+
+
+def test_alternate_times_cpu_seconds_or_wall_seconds():
+    """benchmarks/_ict.alternate: wall seconds count a sleep, CPU seconds (``cpu=True``) do not; a
+    busy loop counts in both."""
+    import time
+
+    ict = load_benchmark("_ict")
+
+    def busy():
+        t0 = time.process_time()
+        while time.process_time() - t0 < 0.02:
+            pass
+
+    fns = {"sleep": lambda: time.sleep(0.05), "busy": busy}
+    wall, cpu = ict.alternate(fns, 3), ict.alternate(fns, 3, cpu=True)
+    assert wall["sleep"] >= 0.05 and cpu["sleep"] < 0.01
+    assert cpu["busy"] >= 0.02 and wall["busy"] >= 0.02
+
+
+def test_cpu_time_refuses_more_than_one_thread(monkeypatch):
+    import sys
+
+    import pytest
+
+    training = load_benchmark("training")
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    monkeypatch.setattr(sys, "argv", ["training.py", "--cpu-time"])
+    with pytest.raises(SystemExit, match="--cpu-time needs one thread"):
+        training.main()
