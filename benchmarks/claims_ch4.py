@@ -186,6 +186,8 @@ def c8(rows: list, split: str) -> str:
     ties)."""
     steps = list(zip(rows, rows[1:]))
     n = len(steps)
+    if n == 0:
+        return f"C8, {split}: not measured (fewer than two finished k)."
     seeds = any(v is not None for _, r in rows for v in r.get("_sd", {}).get(split, {}).values())
 
     def moves(close=None):

@@ -126,6 +126,7 @@ def test_c8_over_seeds_counts_steps_within_the_sd_as_ties(tmp_path, capsys):
             "l1": s(l1, 0.1), "dame": s(dame, 0.05), "fmpd": s(1.0, 0.0)}}}, "seeds": [0, 1, 2]}))
     mod = _module()
     rows = mod.k_rows(krun)
+    assert mod.c8(rows[:1], "test") == "C8, test: not measured (fewer than two finished k)."
     assert mod.c8(rows, "test") == ("C8, test: L1 falls on 2 of 3 steps of k, DAME rises on 1 of 3; ties: L1 on 1, "
                                     "DAME on 1: partly (over seeds; differences within the seeds' sd are ties).")
     run = tmp_path / "ch4"
