@@ -2,6 +2,8 @@
 and split by the Pareto front of the learned models: checked on fake runs whose answers are known."""
 import json
 
+import pytest
+
 from .scripts import load_benchmark
 
 
@@ -133,6 +135,14 @@ def test_c8_over_seeds_counts_steps_within_the_sd_as_ties(tmp_path, capsys):
     _run(run, {"dsm": {"test": (2.0, 1.0)}})
     assert mod.main([str(run), "--k", str(krun), "--splits", "test"]) == 0
     assert "| 50 | 2000.000 ± 100.000 | 150.000 ± 5.000 | 100.000 ± 0.000 | no |" in capsys.readouterr().out
+    # the k study alone (no chapter 4 run): the same table and verdict, no chapter 4 tables
+    assert mod.main(["--k", str(krun), "--splits", "test"]) == 0
+    out = capsys.readouterr().out
+    assert "| 50 | 2000.000 ± 100.000 | 150.000 ± 5.000 | 100.000 ± 0.000 | no |" in out
+    assert mod.c8(rows, "test") in out and "C4" not in out and "evaluation space" not in out
+    with pytest.raises(SystemExit) as e:  # nothing to read: argparse's one line, exit 2
+        mod.main([])
+    assert e.value.code == 2 and "give RUN" in capsys.readouterr().err
 
 
 def _run_ret(d, models):
