@@ -253,6 +253,12 @@ def k_rows(krun: Path) -> list[tuple[int, dict]]:
     return sorted(rows, key=lambda r: r[0])
 
 
+def k_unfinished(krun: Path) -> list[int]:
+    """The k of the k study's members without ``metrics.json`` (still running, or not started)."""
+    return sorted(int(m.group(1)) for d in krun.iterdir()
+                  if (m := re.fullmatch(r"k(\d+)", d.name)) and not (d / "metrics.json").exists())
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, nargs="?", default=None,
@@ -314,6 +320,10 @@ def main(argv=None) -> int:
                 print(f"| {k} | {cell('l1', 1e3)} | {cell('dame', 1e2)} | {cell('fmpd', 1e2)} | "
                       f"{'yes' if k in front else 'no'} | {t['verdict']} | {mins} |")
             print(f"\n{c8(rows, split)}")
+            pending = k_unfinished(a.k)
+            if pending and len(rows) >= 2:
+                print(f"(Over the finished k only: {', '.join(str(k) for k, _ in rows)}; not finished: "
+                      f"{', '.join(str(k) for k in pending)}. Its steps join k that are not consecutive in the study.)")
     return 0
 
 

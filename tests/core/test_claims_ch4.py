@@ -140,6 +140,7 @@ def test_c8_over_seeds_counts_steps_within_the_sd_as_ties(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| 50 | 2000.000 ± 100.000 | 150.000 ± 5.000 | 100.000 ± 0.000 | no |" in out
     assert mod.c8(rows, "test") in out and "C4" not in out and "evaluation space" not in out
+    assert "finished k only" not in out  # every member finished
     with pytest.raises(SystemExit) as e:  # nothing to read: argparse's one line, exit 2
         mod.main([])
     assert e.value.code == 2 and "give RUN" in capsys.readouterr().err
@@ -162,6 +163,9 @@ def test_k_study_table(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| 10 | 3000.000 | 100.000 | 200.000 | yes |" in out
     assert "| 2000 | 2500.000 | 250.000 | 500.000 | no |" in out
+    # a verdict over a study still running says which k it leaves out
+    assert mod.k_unfinished(krun) == [50]
+    assert "(Over the finished k only: 10, 500, 2000; not finished: 50." in out
 
 
 def test_c7_at_k50_over_seeds_gives_the_pages_verdicts(tmp_path, capsys):
