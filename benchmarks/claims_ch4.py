@@ -5,7 +5,8 @@
 
 RUN is a run of ``recipes/thesis/ch4/plateau.yaml`` (one reconstruct run: ``dsm`` and ``dsm-g04``,
 the single-representation VAEs, SpiralNet++, Neural 3DMM and the mean shape); KRUN, optional, a
-run of ``recipes/thesis/ch4/k-plateau.yaml`` (grid members ``k<k>``). Prints, in markdown:
+run of ``recipes/thesis/ch4/k-plateau.yaml`` or ``k-plateau-seeds.yaml`` (grid members
+``k<k>``). Prints, in markdown:
 
 * per split, one row per model: L1, DAME and FMPD (mean over meshes, evaluation space), whether
   the model is on the L1/DAME Pareto front of the learned models (the thesis's comparison: the
@@ -263,7 +264,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, nargs="?", default=None,
                     help="a run of recipes/thesis/ch4/plateau.yaml (C4, C7, C16); optional with --k or --edit")
-    ap.add_argument("--k", type=Path, default=None, help="a run of recipes/thesis/ch4/k-plateau.yaml")
+    ap.add_argument("--k", type=Path, default=None, help="a run of recipes/thesis/ch4/k-plateau.yaml or k-plateau-seeds.yaml")
     ap.add_argument("--edit", type=Path, default=None, help="a run of recipes/thesis/ch4/edit.yaml (C17)")
     ap.add_argument("--splits", default="train,test")
     a = ap.parse_args(argv)
