@@ -216,3 +216,32 @@ def test_c17_from_the_pages_edit_run(tmp_path, capsys):
     assert lines[1].endswith("largest 0.250 against 0.1 (holds) and 0.5 (partly): partly (one seed).")
     assert mod.c17(edit_run(tmp_path / "e3", {"a<-b": 0.3}, {"a<-b": 0.08}))[1].endswith(": holds (one seed).")
     assert mod.c17(edit_run(tmp_path / "e4", {"a<-b": 0.9}, {"a<-b": 0.5}))[1].endswith(": does not hold (one seed).")
+
+
+# docs/methods/claims.md, C8 over seeds: dsm's mean ± sd per k over seeds 0-2 (L1 ×1e-3, DAME ×1e-2),
+# k-plateau-seeds-20261205-073353's finished members and k = 50 from ch4_k50_dr_seeds-20261204-215409
+# (the same member recipe)
+KSEEDS = {10: {"train": ((1.266, 0.013), (1.454, 0.003)), "test": ((3.886, 0.032), (1.684, 0.003))},
+          50: {"train": ((1.090, 0.010), (1.4262, 0.0007)), "test": ((3.604, 0.060), (1.6452, 0.0027))},
+          200: {"train": ((1.055, 0.007), (1.456, 0.001)), "test": ((3.658, 0.015), (1.673, 0.003))},
+          500: {"train": ((1.073, 0.006), (1.620, 0.001)), "test": ((3.686, 0.026), (1.820, 0.007))},
+          1000: {"train": ((1.107, 0.008), (1.937, 0.004)), "test": ((3.694, 0.019), (2.091, 0.019))}}
+KSEEDS_C8 = {"train": "C8, train: L1 falls on 2 of 4 steps of k, DAME rises on 3 of 4; ties: L1 on 0, DAME on 0: "
+                      "partly (over seeds; differences within the seeds' sd are ties).",
+             "test": "C8, test: L1 falls on 1 of 4 steps of k, DAME rises on 3 of 4; ties: L1 on 2, DAME on 0: "
+                     "partly (over seeds; differences within the seeds' sd are ties)."}
+
+
+def test_c8_over_seeds_gives_the_pages_verdicts(tmp_path, capsys):
+    """The page's C8 words over seeds come from its k table's mean ± sd."""
+    krun = tmp_path / "k-plateau-seeds"
+    s = lambda v, f: {"mean": v[0] * f, "seed_sd": v[1] * f}  # noqa: E731
+    for k, r in KSEEDS.items():
+        d = krun / f"k{k}"
+        d.mkdir(parents=True)
+        res = {sp: {"l1": s(l1, 1e-3), "dame": s(dame, 1e-2)} for sp, (l1, dame) in r.items()}
+        (d / "metrics.json").write_text(json.dumps({"models": {"dsm": res}, "seeds": [0, 1, 2]}))
+    assert _module().main(["--k", str(krun)]) == 0
+    out = capsys.readouterr().out
+    for line in KSEEDS_C8.values():
+        assert line in out
