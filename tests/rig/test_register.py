@@ -451,26 +451,105 @@ def test_ict_swapped_landmark_pairs_are_named():
             assert off.tolist() == sorted([i, j]), (a, b, r / S)
 
 
-def test_ict_held_out_identity_remeshed(tmp_path_factory, monkeypatch):
-    """A test identity of a DT run on 10 ICT-FaceKit subjects (6 trained), midpoint-subdivided,
-    permuted, in mm and rotated and moved, rigged from the 10 landmarks a rigger places
-    (RIGGER_LANDMARKS) with the default carry
-    (Deformation Transfer, fwk.rig.carry) and, on the same registration, the barycentric one: per
-    expression, L1 and DAME against its true expression carried by the same remeshing, over those
-    of rigging it in ICT topology directly (the issue's ratio, at most 1.5x) and over the direct rig
-    remeshed alike (the registration's time: benchmarks/register.py). Also measured: the true expression carried
-    through the same correspondence, and through an exact one (the registered template on the
-    subject's own vertices: what the carry alone costs). L1 passes; DAME does not yet (xfail, with
-    the numbers).
+REMESHINGS = ("midpoint", "loop", "decimated")
 
-    Measured (DAME over the direct rig, jawOpen / mouthSmile_L / eyeBlink_L, transfer; L1 1.19x /
-    0.76x / 0.78x): RIGGER_LANDMARKS 2.08x / 2.43x / 1.29x; 10 template vertices picked at random
-    (``rng.choice``, the test before) 2.03x / 2.44x / 1.27x, L1 1.21x / 0.71x / 0.74x; 15 (these
-    and the brow peaks, the nasion and the nose wings) 2.07x / 2.43x / 1.28x: where the landmarks
-    sit does not move DAME. Through the exact correspondence the prediction carried by transfer has
-    1.76x / 2.16x / 1.09x (the truth 1.60x / 2.01x / 0.87x: the smooth gradient field's blend,
-    fwk.rig.carry), by barycentric 0.60x / 0.59x / 0.61x (the direct rig remeshed; the truth exact):
-    with the default carry most of the gap is the carry, not the registration.
+
+def _remeshing(kind: str, P0: np.ndarray, F: np.ndarray):
+    """A remeshing of an ICT-topology head: (fn: positions in ICT topology -> the remeshed positions,
+    the remeshed faces, the remeshed vertex nearest each of RIGGER_LANDMARKS). ``midpoint``: trimesh's
+    midpoint subdivision (faceted: the truth is flat across the new edges); ``loop``: Loop subdivision
+    (smooth); ``decimated``: Loop, then open3d's quadric decimation to 30,000 triangles (another vertex
+    count, triangles of every shape), its vertices put on the Loop surface of the moving head by their
+    barycentric coordinates on it (fixed at the neutral), so the truth is carried by the same map."""
+    import trimesh
+
+    picks = np.array(list(RIGGER_LANDMARKS.values()))
+    if kind == "midpoint":
+        return (lambda X: trimesh.remesh.subdivide(X, F)[0]), trimesh.remesh.subdivide(P0, F)[1], picks
+    VL, FL = trimesh.remesh.subdivide_loop(P0, F, iterations=1)
+
+    def loop(X):
+        return trimesh.remesh.subdivide_loop(X, F, iterations=1)[0]
+    if kind == "loop":  # trimesh keeps the original vertices first, in order
+        return loop, FL, picks
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(VL), o3d.utility.Vector3iVector(FL))
+    d = m.simplify_quadric_decimation(target_number_of_triangles=30000)
+    d.remove_unreferenced_vertices()
+    Vd, Fd = np.asarray(d.vertices), np.asarray(d.triangles)
+    tri, bary, _ = closest_points(VL, FL, Vd)
+
+    def decimated(X):
+        return np.einsum("nk,nkd->nd", bary, loop(X)[FL[tri]])
+    V0 = decimated(P0)
+    return decimated, Fd, np.array([int(np.argmin(((V0 - VL[i]) ** 2).sum(1))) for i in picks])
+
+
+@pytest.fixture(scope="module")
+def ict_direct_rig(tmp_path_factory):
+    """A DT run on 10 ICT-FaceKit subjects (6 trained), its first test subject and that subject's
+    rig in ICT topology (the direct rig the remeshed ones are measured against)."""
+    if ICT is None:
+        pytest.skip(ICT_SKIP_REASON)
+    from fwk.apply import apply
+    from fwk.data.io import read_obj, write_obj
+    from fwk.plugins import get_registry
+
+    from .conftest import _execute
+
+    tmp = tmp_path_factory.mktemp("ict-register")
+    recipe = {"name": "ict-register", "task": "blendshapes", "seed": 0,
+              "dataset": {"name": "ict-facekit", "path": str(ICT), "region": "face-head", "n_subjects": 10,
+                          "shapes": ["neutral", *ICT_EXPRESSIONS]},
+              "split": {"ratios": [0.6, 0.2, 0.2]},
+              "models": {"dt": {"name": "dt", "sources": 0}}, "renders": 0, "metrics": ["l1", "l2"]}
+    run = _execute(recipe, tmp)
+    split = json.loads((run / "split.json").read_text())
+    data = get_registry().get("dataset", "ict-facekit")(path=str(ICT), region="face-head", n_subjects=10,
+                                                         shapes=["neutral", *ICT_EXPRESSIONS]).load()
+    subject = split["test"][0]
+    assert subject not in split["train"]
+    P = np.asarray(data.positions[data.subjects.index(subject)])
+    _, tT = read_obj(run / "template.obj")
+    head = tmp / "head.obj"
+    write_obj(head, P[0], tT)
+    apply(run, head, tmp / "direct", log=lambda *_: None, say=None)
+    assert _rigger_landmarks(data.template.vertices, data.template.triangles) == RIGGER_LANDMARKS
+    return dataclasses.make_dataclass("DirectRig", ["run", "P", "template", "direct"])(
+        run, P, tT, {e: read_obj(tmp / "direct" / f"{e}.obj")[0] for e in ICT_EXPRESSIONS})
+
+
+@pytest.mark.parametrize("kind", REMESHINGS)
+def test_ict_held_out_identity_remeshed(kind, ict_direct_rig, tmp_path, monkeypatch):
+    """A test identity of a DT run on 10 ICT-FaceKit subjects (6 trained), remeshed three ways
+    (``_remeshing``: midpoint subdivision, Loop subdivision, Loop then quadric decimation), permuted,
+    in mm, rotated and moved, rigged from the 10 landmarks a rigger places (RIGGER_LANDMARKS; on the
+    decimated head the nearest vertex) with the default carry (Deformation Transfer, fwk.rig.carry)
+    and, on the same registration, the barycentric one: per expression, L1 and DAME against its true
+    expression carried by the same remeshing, over (a) the direct rig's error in ICT topology (the
+    issue's ratio, at most 1.5x) and (b) the direct rig's error remeshed alike (the same mesh: DAME
+    falls on a finer, smoother mesh, so (a) flatters the Loop head). The test passes where both are
+    at most 1.5x; L1 does on all three, DAME on none (xfail, with the numbers). Also measured: the
+    true expression carried through the same correspondence and, on the midpoint head, through an
+    exact one (the registered template on the subject's own vertices: what the carry alone costs).
+    The registration's time: benchmarks/register.py.
+
+    Measured 2026-12-06 (FWK_THREADS=2, quiet, 98 s for the three; DAME transfer over (a) / (b),
+    jawOpen, mouthSmile_L, eyeBlink_L; L1 transfer over (a) in brackets): midpoint (44,786 vertices)
+    2.08x / 3.48x, 2.43x / 4.11x, 1.29x / 2.13x (1.19x, 0.76x, 0.78x); Loop (44,786) 1.02x / 1.67x,
+    1.15x / 1.94x, 1.00x / 1.70x (1.18x, 0.76x, 0.78x); decimated (15,089) 1.58x / 1.63x, 2.06x / 2.09x,
+    1.52x / 1.63x (1.09x, 0.70x, 0.55x). The true expressions carried through the registration
+    (transfer) over (b): midpoint 3.22x, 3.98x, 1.88x; Loop 1.31x, 1.76x, 1.44x; decimated 1.35x,
+    1.94x, 1.36x: the registration and the carry alone use up the 1.5x before the model's own error.
+    The barycentric carry is worse on all three (DAME over (a) 1.75-2.92x).
+
+    On the midpoint head, (older measurements): 10 template vertices picked at random (``rng.choice``,
+    the test before) gave DAME 2.03x / 2.44x / 1.27x, L1 1.21x / 0.71x / 0.74x; 15 (these and the brow
+    peaks, the nasion and the nose wings) 2.07x / 2.43x / 1.28x: where the landmarks sit does not move
+    DAME. Through the exact correspondence the prediction carried by transfer has 1.76x / 2.16x / 1.09x
+    (the truth 1.60x / 2.01x / 0.87x: the smooth gradient field's blend, fwk.rig.carry), by
+    barycentric 0.60x / 0.59x / 0.61x (the direct rig remeshed; the truth exact).
 
     Where the registration's part comes from (measured 2026-12-03 with scratch scripts on this
     set-up; the true expressions carried barycentrically through the registration have DAME
@@ -532,64 +611,43 @@ def test_ict_held_out_identity_remeshed(tmp_path_factory, monkeypatch):
     -0.18 x. But the missed half is not predictable from the registered deviation: scaling the
     registered tangential deviation by the training subjects' mean gain (1.46) moves this head's
     error 2.61 -> 2.48 mm over the head and makes its face worse (1.18 -> 1.32 mm)."""
-    if ICT is None:
-        pytest.skip(ICT_SKIP_REASON)
-    import trimesh
+    import trimesh  # noqa: F401  (the remeshings)
 
     import fwk.apply as fwk_apply
     from fwk.apply import Applier, apply
-    from fwk.data.io import read_obj, write_obj
+    from fwk.data import Template
+    from fwk.data.io import read_obj
     from fwk.plugins import get_registry
     from fwk.rig.carry import DeformationCarry
 
-    from .conftest import _execute
-
-    tmp = tmp_path_factory.mktemp("ict-register")
-    recipe = {"name": "ict-register", "task": "blendshapes", "seed": 0,
-              "dataset": {"name": "ict-facekit", "path": str(ICT), "region": "face-head", "n_subjects": 10,
-                          "shapes": ["neutral", *ICT_EXPRESSIONS]},
-              "split": {"ratios": [0.6, 0.2, 0.2]},
-              "models": {"dt": {"name": "dt", "sources": 0}}, "renders": 0, "metrics": ["l1", "l2"]}
-    run = _execute(recipe, tmp)
-    split = json.loads((run / "split.json").read_text())
-    data = get_registry().get("dataset", "ict-facekit")(path=str(ICT), region="face-head", n_subjects=10,
-                                                         shapes=["neutral", *ICT_EXPRESSIONS]).load()
-    subject = split["test"][0]
-    assert subject not in split["train"]
-    P = np.asarray(data.positions[data.subjects.index(subject)])
-    T0, tT = read_obj(run / "template.obj")
+    run, P, tT = ict_direct_rig.run, ict_direct_rig.P, ict_direct_rig.template
     F = tT.triangles
-    head = tmp / "head.obj"
-    write_obj(head, P[0], tT)
-    apply(run, head, tmp / "direct", log=lambda *_: None, say=None)
-    # the remeshing: midpoint subdivision, a permutation, mm, a rotation and a translation
-    V2, F2 = trimesh.remesh.subdivide(P[0], F)
+    fn, F2, lmk = _remeshing(kind, P[0], F)
+    n2 = len(fn(P[0]))
     rng = np.random.default_rng(5)
-    perm = rng.permutation(len(V2))
+    perm = rng.permutation(n2)
     inv = np.argsort(perm)
     R, t = _rotation(rng), np.array([250.0, -80.0, 40.0])
 
     def remesh(X):  # ICT topology (cm) -> the scan's vertices (mm, moved, permuted)
-        Xs, _ = trimesh.remesh.subdivide(X, F)
-        return (10.0 * Xs @ R.T + t)[perm]
+        return (10.0 * fn(X) @ R.T + t)[perm]
 
-    def back(Xs):  # the scan's vertices -> subdivided ICT order, cm, unmoved
+    def back(Xs):  # the scan's vertices -> the remeshing's order, cm, unmoved
         return ((Xs[inv] - t) @ R) / 10.0
 
     Fs = inv[F2]
-    scan = tmp / "scan.obj"
+    scan = tmp_path / "scan.obj"
     scan.write_text("".join(f"v {x:.10g} {y:.10g} {z:.10g}\n" for x, y, z in remesh(P[0]))
                     + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in Fs))
-    assert _rigger_landmarks(data.template.vertices, data.template.triangles) == RIGGER_LANDMARKS
     picks = np.array(list(RIGGER_LANDMARKS.values()))  # the template's ids; their scan ids through the remeshing
-    lm = tmp / "lm.json"
-    lm.write_text(json.dumps({"landmarks": [{"template": int(i), "scan": int(inv[i])} for i in picks]}))
+    lm = tmp_path / "lm.json"
+    lm.write_text(json.dumps({"landmarks": [{"template": int(i), "scan": int(inv[j])} for i, j in zip(picks, lmk)]}))
     regs = []  # the registration apply makes, kept to carry the same predictions barycentrically
     real_register = fwk_apply.register_neutral
     monkeypatch.setattr(fwk_apply, "register_neutral", lambda *a, **k: regs.append(real_register(*a, **k)) or regs[-1])
     t0 = time.perf_counter()
     said = []
-    apply(run, scan, tmp / "reg", landmarks=lm, log=lambda *_: None, say=said.append)
+    apply(run, scan, tmp_path / "reg", landmarks=lm, log=lambda *_: None, say=said.append)
     seconds = time.perf_counter() - t0
     fit_line = next(x for x in said if "fitted in" in x)
     carry_line = next(x for x in said if "carried by Deformation Transfer" in x)
@@ -602,61 +660,64 @@ def test_ict_held_out_identity_remeshed(tmp_path_factory, monkeypatch):
 
     metrics = get_registry()
     l1, dame = metrics.get("metric", "l1")(), metrics.get("metric", "dame")()
-    from fwk.data import Template
-
-    sub = Template(trimesh.remesh.subdivide(P[0], F)[0], F2)
-    # an exact correspondence: the registered template on the subject's own vertices (the scan's first
-    # n vertices before the permutation are ICT's), each scan vertex's closest point found on it
-    Xs = (remesh(P[0]) - reg.translation) @ reg.rotation * reg.unit  # the scan in the template frame
-    Y = Xs[inv[:len(P[0])]]
-    tri, bary, dist = closest_points(Y, F, Xs)
-    exact = dataclasses.replace(reg, neutral=Y, triangle=tri, bary=bary, distance=dist / reg.unit,
-                                weight=np.ones(len(Xs)))
-    dc_exact = DeformationCarry(exact, Fs)
-    preds_exact = Applier(run, say=None).predict([Y], ICT_EXPRESSIONS)[0]
+    sub = Template(fn(P[0]), F2)
+    exact = None
+    if kind == "midpoint":  # an exact correspondence: the registered template on the subject's own vertices
+        # (the midpoint head's first n vertices before the permutation are ICT's), each scan vertex's
+        # closest point found on it
+        Xs = (remesh(P[0]) - reg.translation) @ reg.rotation * reg.unit  # the scan in the template frame
+        Y = Xs[inv[:len(P[0])]]
+        tri, bary, dist = closest_points(Y, F, Xs)
+        exact = dataclasses.replace(reg, neutral=Y, triangle=tri, bary=bary, distance=dist / reg.unit,
+                                    weight=np.ones(len(Xs)))
+        dc_exact = DeformationCarry(exact, Fs)
+        preds_exact = Applier(run, say=None).predict([Y], ICT_EXPRESSIONS)[0]
     table, rows, bad = {}, [], []
     for i, e in enumerate(ICT_EXPRESSIONS, start=1):
-        truth = trimesh.remesh.subdivide(P[i], F)[0]
-        direct_ict = read_obj(tmp / "direct" / f"{e}.obj")[0]
-        direct = trimesh.remesh.subdivide(direct_ict, F)[0]
-        got, tout = read_obj(tmp / "reg" / f"{e}.obj")
-        assert len(got) == len(perm) and np.array_equal(tout.triangles, Fs)
+        truth = fn(P[i])
+        direct_ict = ict_direct_rig.direct[e]
+        direct = fn(direct_ict)
+        got, tout = read_obj(tmp_path / "reg" / f"{e}.obj")
+        assert len(got) == n2 and np.array_equal(tout.triangles, Fs)
         assert np.allclose(got, dc.carry(preds[e]), atol=1e-4)  # apply's default carry is Deformation Transfer
         carried = {"transfer": back(got), "barycentric": back(reg.carry(preds[e])),
                    "transfer(truth)": back(dc.carry(truth_on_registered(i))),
-                   "barycentric(truth)": back(reg.carry(truth_on_registered(i))),
-                   "transfer(exact)": back(dc_exact.carry(preds_exact[e])),
-                   "barycentric(exact)": back(exact.carry(preds_exact[e])),
-                   "transfer(truth, exact)": back(dc_exact.carry(Y + (P[i] - P[0]) @ R.T @ reg.rotation)),
-                   "barycentric(truth, exact)": back(exact.carry(Y + (P[i] - P[0]) @ R.T @ reg.rotation))}
+                   "barycentric(truth)": back(reg.carry(truth_on_registered(i)))}
+        if exact is not None:
+            T_exact = Y + (P[i] - P[0]) @ R.T @ reg.rotation
+            carried.update({"transfer(exact)": back(dc_exact.carry(preds_exact[e])),
+                            "barycentric(exact)": back(exact.carry(preds_exact[e])),
+                            "transfer(truth, exact)": back(dc_exact.carry(T_exact)),
+                            "barycentric(truth, exact)": back(exact.carry(T_exact))})
         parts = []
         for name, m in (("L1", l1), ("DAME", dame)):
-            # the issue's ratio: the registered rig against the remeshed truth, on the remeshed topology,
-            # over the direct rig's error in ICT topology; also quoted: the direct rig remeshed alike
+            # (a) the issue's ratio: the registered rig against the remeshed truth, on the remeshed topology,
+            # over the direct rig's error in ICT topology; (b) over the direct rig remeshed alike
             ed = float(m(direct_ict[None], P[i][None], tT)[0][0])
             es = float(m(direct[None], truth[None], sub)[0][0])
             for carry, X in carried.items():
                 er = float(m(X[None], truth[None], sub)[0][0])
                 table[e, name, carry] = er / ed
+                table[e, name, carry, "remeshed"] = er / es
                 parts.append(f"{name} {carry} {er:.5f} = {er / ed:.2f}x (remeshed direct {es:.5f}: {er / es:.2f}x)")
-            if table[e, name, "transfer"] > 1.5:
-                bad.append(f"{e} {name}")
+            if max(table[e, name, "transfer"], table[e, name, "transfer", "remeshed"]) > 1.5:
+                bad.append(f"{e} {name} {table[e, name, 'transfer']:.2f}x / {table[e, name, 'transfer', 'remeshed']:.2f}x")
         rows.append(f"{e}: " + ", ".join(parts))
-    msg = (f"over the direct rig ({seconds:.1f} s for apply --landmarks; {fit_line}; {carry_line}): "
-           + "; ".join(rows))
+    msg = (f"{kind}, {n2} vertices, over the direct rig ({seconds:.1f} s for apply --landmarks; {fit_line}; "
+           f"{carry_line}): " + "; ".join(rows))
     print(msg)
     # the time target (registration under 60 s on 2 cores) is measured by benchmarks/register.py, not
     # asserted here: a shared machine's load moves it (89 s beside a training and the test suite)
-    assert not [b for b in bad if b.endswith("L1")], f"L1 over 1.5x: {bad}; {msg}"
+    assert not [b for b in bad if " L1 " in b], f"L1 over 1.5x: {bad}; {msg}"
     for e in ICT_EXPRESSIONS:  # why Deformation Transfer is the default: lower DAME, L1 not lost
         assert table[e, "DAME", "transfer"] < table[e, "DAME", "barycentric"], msg
         assert table[e, "L1", "transfer"] < 1.05 * table[e, "L1", "barycentric"], msg
-    for e in ICT_EXPRESSIONS:  # the exact correspondence is exact: barycentric gives the remeshed truth
-        assert table[e, "DAME", "barycentric(truth, exact)"] < 0.01, msg
-    # a regression guard, not the issue's target: measured DAME 1.3-2.4x with transfer (2.0-2.9x barycentric)
+    if exact is not None:  # the exact correspondence is exact: barycentric gives the remeshed truth
+        for e in ICT_EXPRESSIONS:
+            assert table[e, "DAME", "barycentric(truth, exact)"] < 0.01, msg
+    # a regression guard, not the issue's target: measured DAME (transfer) 1.0-2.4x over (a)
     worst = max(table[e, "DAME", "transfer"] for e in ICT_EXPRESSIONS)
-    assert worst < 3.0, f"DAME ratio {worst:.2f}x, worse than the 1.3-2.4x measured; {msg}"
-    if bad:  # measured: the true expression carried through an exact correspondence already has DAME
-        # 0.9-2.0x the direct rig's with transfer (its smooth gradient field blends each triangle's
-        # gradient with its neighbours'), through the registered one 1.1-2.4x: the carry, then the registration
-        pytest.xfail(f"DAME over 1.5x: {bad}; {msg}")
+    assert worst < 3.0, f"DAME ratio {worst:.2f}x, worse than the 1.0-2.4x measured; {msg}"
+    if bad:  # measured: the true expression carried through the registration already has DAME 0.8-2.4x
+        # the direct rig's with transfer: the registration (about 2 mm tangential error) and the carry
+        pytest.xfail(f"DAME over 1.5x (issue ratio / remeshed alike): {bad}; {msg}")
