@@ -4,6 +4,7 @@ convs and networks), side by side in one process.
 
     OMP_NUM_THREADS=2 python benchmarks/training.py [--steps 7] [--bf16] [--feast] [--all]
     OMP_NUM_THREADS=1 python benchmarks/training.py --cpu-time ...   # a loaded machine: CPU seconds
+    OMP_NUM_THREADS=2 python benchmarks/training.py --profile spiralpp   # one step by operator
 
 Networks (thesis 3.4 / appendix A), batch 16, on the ICT-FaceKit face-head region (11,248
 vertices) when ICT-FaceKit is present, else a synthetic head of the same size (printed):
@@ -174,6 +175,29 @@ def feast_row(t, x, n, rate, cpu: bool = False) -> dict:
     return r
 
 
+PROFILED = {"vcconv": VCCONV_VAE, "spiralpp": SPIRALPP_AE, "vcconv-ch5": VCCONV_VAE_CH5, "main-job-pb": MAIN_JOB_PB}
+
+
+def profile_step(spec, rows: int = 25) -> None:
+    """Print where a training step of today's network spends its time: torch.profiler's operators by
+    self CPU time over 3 steps after 2 warm-ups (the main thread's; spiral++'s chunks run partly in
+    worker threads, ``fwk.parallel.in_workers``, which the table may not count)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.manual_seed(0)
+    col, src = face_head(1)
+    x = torch.randn(BATCH, col.template.n_vertices, 3)
+    enc, dec, _ = networks(spec, col.template)
+    step = stepper(enc, dec, x)
+    for _ in range(2):
+        step()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(3):
+            step()
+    print(f"template: {src}; {torch.get_num_threads()} threads; 3 steps")
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=rows, max_name_column_width=40))
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=7, help="timed steps per version (after one warm-up)")
@@ -183,7 +207,11 @@ def main():
                     help="time CPU seconds, not wall seconds (one thread only: a loaded machine's waits left out)")
     ap.add_argument("--feast", action="store_true",
                     help="also time the FeaStNet AE: torch_geometric's FeaStConv forward against today's")
+    ap.add_argument("--profile", choices=sorted(PROFILED),
+                    help="instead: one network's step by operator (torch.profiler, 3 steps after 2 warm-ups)")
     a = ap.parse_args()
+    if a.profile:
+        return profile_step(PROFILED[a.profile])
     if a.cpu_time and torch.get_num_threads() != 1:
         raise SystemExit(f"--cpu-time needs one thread (OMP_NUM_THREADS=1): with {torch.get_num_threads()} the "
                          "process's CPU seconds are not a step's time")
