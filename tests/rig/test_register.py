@@ -547,7 +547,8 @@ def test_ict_held_out_identity_remeshed(kind, ict_direct_rig, tmp_path, monkeypa
     correspondence (the model predicting on the true neutral, the registered template on the
     subject's own vertices) the rig's DAME (transfer) over (b) is Loop 1.10x, 1.20x, 1.05x and
     decimated 1.23x, 1.55x, 1.19x (midpoint 2.95x, 3.65x, 1.79x, where barycentric is exact): on a
-    smooth head the registration, not the carry, is what is missing.
+    smooth head the registration, not the carry, is what is missing: half its error (1.3 mm mean)
+    would bring the Loop head within 1.5x over (b) (1.31x, 1.48x, 1.36x; benchmarks/register_accuracy.py).
 
     On the midpoint head, (older measurements): 10 template vertices picked at random (``rng.choice``,
     the test before) gave DAME 2.03x / 2.44x / 1.27x, L1 1.21x / 0.71x / 0.74x; 15 (these and the brow
