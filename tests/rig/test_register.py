@@ -486,19 +486,46 @@ def _remeshing(kind: str, P0: np.ndarray, F: np.ndarray):
     return decimated, Fd, np.array([int(np.argmin(((V0 - VL[i]) ** 2).sum(1))) for i in picks])
 
 
-@pytest.fixture(scope="module")
-def ict_direct_rig(tmp_path_factory):
-    """A DT run on 10 ICT-FaceKit subjects (6 trained), its first test subject and that subject's
-    rig in ICT topology (the direct rig the remeshed ones are measured against)."""
-    if ICT is None:
-        pytest.skip(ICT_SKIP_REASON)
+class RemeshedScan:
+    """The held-out head remeshed (``_remeshing``), permuted, in mm, rotated and moved, written as
+    ``folder/scan.obj`` with the rigger landmarks (their nearest remeshed vertices) as ``folder/lm.json``.
+    ``remesh(X)``: positions in ICT topology (cm) -> the scan's vertices; ``back(Xs)``: the scan's
+    vertices -> the remeshing's order, cm, unmoved."""
+
+    def __init__(self, kind: str, P0: np.ndarray, F: np.ndarray, folder):
+        self.fn, self.faces, lmk = _remeshing(kind, P0, F)
+        rng = np.random.default_rng(5)
+        self.perm = rng.permutation(len(self.fn(P0)))
+        self.inv = np.argsort(self.perm)
+        self.R, self.t = _rotation(rng), np.array([250.0, -80.0, 40.0])
+        self.scan_faces = self.inv[self.faces]
+        self.scan, self.landmarks = folder / "scan.obj", folder / "lm.json"
+        self.scan.write_text("".join(f"v {x:.10g} {y:.10g} {z:.10g}\n" for x, y, z in self.remesh(P0))
+                             + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in self.scan_faces))
+        picks = RIGGER_LANDMARKS.values()  # the template's ids; their scan ids through the remeshing
+        self.landmarks.write_text(json.dumps(
+            {"landmarks": [{"template": int(i), "scan": int(self.inv[j])} for i, j in zip(picks, lmk)]}))
+
+    def remesh(self, X: np.ndarray) -> np.ndarray:
+        return (10.0 * self.fn(X) @ self.R.T + self.t)[self.perm]
+
+    def back(self, Xs: np.ndarray) -> np.ndarray:
+        return ((Xs[self.inv] - self.t) @ self.R) / 10.0
+
+
+DirectRig = dataclasses.make_dataclass("DirectRig", ["run", "P", "template", "direct"])
+
+
+def held_out_direct_rig(tmp) -> "DirectRig":
+    """A DT run on 10 ICT-FaceKit subjects (6 trained) in the folder ``tmp``, its first test
+    subject's shapes P (ICT topology, cm), the run's template and that subject's rig in ICT
+    topology (the direct rig the remeshed ones are measured against; also benchmarks/register_accuracy.py)."""
     from fwk.apply import apply
     from fwk.data.io import read_obj, write_obj
     from fwk.plugins import get_registry
 
     from .conftest import _execute
 
-    tmp = tmp_path_factory.mktemp("ict-register")
     recipe = {"name": "ict-register", "task": "blendshapes", "seed": 0,
               "dataset": {"name": "ict-facekit", "path": str(ICT), "region": "face-head", "n_subjects": 10,
                           "shapes": ["neutral", *ICT_EXPRESSIONS]},
@@ -516,8 +543,15 @@ def ict_direct_rig(tmp_path_factory):
     write_obj(head, P[0], tT)
     apply(run, head, tmp / "direct", log=lambda *_: None, say=None)
     assert _rigger_landmarks(data.template.vertices, data.template.triangles) == RIGGER_LANDMARKS
-    return dataclasses.make_dataclass("DirectRig", ["run", "P", "template", "direct"])(
-        run, P, tT, {e: read_obj(tmp / "direct" / f"{e}.obj")[0] for e in ICT_EXPRESSIONS})
+    return DirectRig(run, P, tT, {e: read_obj(tmp / "direct" / f"{e}.obj")[0] for e in ICT_EXPRESSIONS})
+
+
+@pytest.fixture(scope="module")
+def ict_direct_rig(tmp_path_factory):
+    """``held_out_direct_rig``, once for the module's remeshings."""
+    if ICT is None:
+        pytest.skip(ICT_SKIP_REASON)
+    return held_out_direct_rig(tmp_path_factory.mktemp("ict-register"))
 
 
 @pytest.mark.parametrize("kind", REMESHINGS)
@@ -628,26 +662,9 @@ def test_ict_held_out_identity_remeshed(kind, ict_direct_rig, tmp_path, monkeypa
 
     run, P, tT = ict_direct_rig.run, ict_direct_rig.P, ict_direct_rig.template
     F = tT.triangles
-    fn, F2, lmk = _remeshing(kind, P[0], F)
-    n2 = len(fn(P[0]))
-    rng = np.random.default_rng(5)
-    perm = rng.permutation(n2)
-    inv = np.argsort(perm)
-    R, t = _rotation(rng), np.array([250.0, -80.0, 40.0])
-
-    def remesh(X):  # ICT topology (cm) -> the scan's vertices (mm, moved, permuted)
-        return (10.0 * fn(X) @ R.T + t)[perm]
-
-    def back(Xs):  # the scan's vertices -> the remeshing's order, cm, unmoved
-        return ((Xs[inv] - t) @ R) / 10.0
-
-    Fs = inv[F2]
-    scan = tmp_path / "scan.obj"
-    scan.write_text("".join(f"v {x:.10g} {y:.10g} {z:.10g}\n" for x, y, z in remesh(P[0]))
-                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in Fs))
-    picks = np.array(list(RIGGER_LANDMARKS.values()))  # the template's ids; their scan ids through the remeshing
-    lm = tmp_path / "lm.json"
-    lm.write_text(json.dumps({"landmarks": [{"template": int(i), "scan": int(inv[j])} for i, j in zip(picks, lmk)]}))
+    sc = RemeshedScan(kind, P[0], F, tmp_path)
+    fn, F2, Fs, inv, R, t, scan, lm = sc.fn, sc.faces, sc.scan_faces, sc.inv, sc.R, sc.t, sc.scan, sc.landmarks
+    remesh, back, n2 = sc.remesh, sc.back, len(sc.perm)
     regs = []  # the registration apply makes, kept to carry the same predictions barycentrically
     real_register = fwk_apply.register_neutral
     monkeypatch.setattr(fwk_apply, "register_neutral", lambda *a, **k: regs.append(real_register(*a, **k)) or regs[-1])
