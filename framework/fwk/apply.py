@@ -352,7 +352,8 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
     (``fwk.rig.register``): ``neutral`` (one OBJ) may have any topology; the run's template is
     registered to it, predicted on, and every expression carried back onto its own vertices by
     ``carry`` (``--carry``: transfer, Deformation Transfer onto its triangles, ``fwk.rig.carry``; or
-    barycentric, ``Registration.carry``). ``command``: the name the summary line starts with."""
+    barycentric, ``Registration.carry``), and the registration written as ``fwk register`` writes it
+    in ``out/registration/`` (``write_registration``). ``command``: the name the summary line starts with."""
     t0 = time.perf_counter()
     if carry not in CARRIES:
         raise FwkError(f"--carry {carry}: unknown carry (carries: {', '.join(CARRIES)})")
@@ -430,6 +431,9 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
         for (f, V, tpl, region), shapes in zip(meshes, renamed):
             sub = tmp if not neutral.is_dir() else tmp / f.stem
             sub.mkdir(parents=True, exist_ok=True)
+            if reg is not None:  # the fit beside the rig: what fwk register writes, in out/registration/
+                (sub / "registration").mkdir()
+                write_registration(app, Path(str(run_dir)).name, f, V, tpl, reg, units, sub / "registration")
             # the OBJs in a second thread while the rig files are built (their writes and NumPy release
             # the GIL: 51 full ICT heads, 1 s less of fwk rig's 9 s); leaving the block waits for it
             with ThreadPoolExecutor(1) as pool:
@@ -460,6 +464,9 @@ def apply(run_dir, neutral, out, model: str | None = None, expressions: list[str
         shutil.rmtree(tmp, ignore_errors=True)
     n, t3 = len(meshes), time.perf_counter()
     kept = f" ({len(renamed[0])} shapes written)" if renamed and len(renamed[0]) != len(preds[0]) else ""
+    if reg is not None and say is not None:
+        say(f"{command}: the registration (neutral.obj, correspondence.npz, report.md, residual.png) -> "
+            f"{out / 'registration'}: read report.md before the rig")
     log(f"{command}: {n} neutral(s) x {len(preds[0]) if preds else 0} expression(s){kept} with model {app.label} -> {out} "
         f"({', '.join(fmts)}; loading the {'run' if command == 'fwk apply' else 'model'} {t_load:.2f} s; per neutral: reading {(t1 - t0 - t_load) / max(n, 1):.2f} s, "
         f"predicting {(t2 - t1) / max(n, 1):.2f} s, writing {(t3 - t2) / max(n, 1):.2f} s; total {t3 - t0:.2f} s)")
@@ -517,27 +524,20 @@ def add_register_parser(subparsers):
     return p
 
 
-def register_scan(run_dir, scan, landmarks, out, units=None, seed_run: int | None = None, log=print,
-                  say=_stderr) -> list[Path]:
-    """``fwk register``: writes ``out/neutral.obj`` (the run's template topology and UVs, in the
-    scan's frame and units), ``out/correspondence.npz`` (``Registration.arrays``) and
-    ``out/report.md``; returns them."""
+def write_registration(app: Applier, source: str, f: Path, V: np.ndarray, tpl: Template, reg: Registration,
+                       units, out: Path) -> tuple[list[Path], dict, str]:
+    """The registration of the neutral ``f`` (vertices V, polygons tpl) in the folder ``out``, which
+    exists: ``neutral.obj`` (the run's template topology and UVs, in the scan's frame and units),
+    ``correspondence.npz`` (``Registration.arrays``), ``residual.png`` (where the renderer works)
+    and ``report.md``; ``source``: the run's or model's name for the report's title. Returns (the
+    files written, ``reg.summary()``, the residual's unit); OSError passes through."""
     from .rig.register import FADE, FIT_TOLERANCE, LANDMARK_OFF, render_residual
 
-    scan, out = Path(scan), Path(out)
-    check_dir(out, "--out", min_free_mb=0)
-    (f,) = _inputs(scan) if not scan.is_dir() else (None,)
-    if f is None:
-        raise DataError(f"{scan}: fwk register takes one .obj, not a folder")
-    V, tpl = _read_neutral(f)
-    app = Applier(run_dir, None, None, seed_run=seed_run, say=say)
-    reg = register_neutral(app, f, V, tpl, landmarks, units, say=say)
-    app.check_scale(f, reg.neutral, units)
     obj = Path(app.template_obj)
     tt = read_obj(obj)[1] if obj.suffix == ".obj" else app.template
     sm = reg.summary()
     unit = reg.unit_name or (units if isinstance(units, str) and units.strip() in METRES_PER_UNIT else "scan units")
-    lines = [f"# Registration of {f.name} to {Path(run_dir).name}", "",
+    lines = [f"# Registration of {f.name} to {source}", "",
              f"- scan: {len(V)} vertices, {len(tpl.triangles)} triangles; template: {app.template.n_vertices} "
              f"vertices ({obj})",
              f"- units: one scan unit = {reg.unit:.4g} {app.units}" + (f" ({reg.unit_name}, detected from the "
@@ -561,22 +561,40 @@ def register_scan(run_dir, scan, landmarks, out, units=None, seed_run: int | Non
              f"{sm['folded']} (`folded`)" + (": **check the landmarks** (a pair given for the wrong side, a point "
                                              "off the head); the rig bends where they are" if sm["folded"] else ""),
              f"- time: {sm['seconds']:.1f} s", ""]
+    written = [ObjWriter(tt).write(out / "neutral.obj", reg.to_scan(reg.neutral))]
+    np.savez(out / "correspondence.npz", **reg.arrays())
+    written.append(out / "correspondence.npz")
+    try:  # the scan coloured by its residual; a machine that cannot draw keeps the numbers
+        written.append(render_residual(reg, tpl.triangles, out / "residual.png", unit))
+        lines += ["Your vertices coloured by their residual (`distance` in correspondence.npz; in the "
+                  "template's frame, front and side; the colour bar ends at the 99th percentile, ≥ where "
+                  "larger ones saturate):", "", "![residual](residual.png)", ""]
+    except OSError:
+        raise
+    except Exception as exc:  # any renderer failure (no OpenGL, a broken VTK) is not the registration's
+        lines += [f"No residual render ({type(exc).__name__}: {str(exc)[:160]}).", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    written.append(out / "report.md")
+    return written, sm, unit
+
+
+def register_scan(run_dir, scan, landmarks, out, units=None, seed_run: int | None = None, log=print,
+                  say=_stderr) -> list[Path]:
+    """``fwk register``: writes ``out/neutral.obj`` (the run's template topology and UVs, in the
+    scan's frame and units), ``out/correspondence.npz`` (``Registration.arrays``) and
+    ``out/report.md``; returns them."""
+    scan, out = Path(scan), Path(out)
+    check_dir(out, "--out", min_free_mb=0)
+    (f,) = _inputs(scan) if not scan.is_dir() else (None,)
+    if f is None:
+        raise DataError(f"{scan}: fwk register takes one .obj, not a folder")
+    V, tpl = _read_neutral(f)
+    app = Applier(run_dir, None, None, seed_run=seed_run, say=say)
+    reg = register_neutral(app, f, V, tpl, landmarks, units, say=say)
+    app.check_scale(f, reg.neutral, units)
     try:
         out.mkdir(parents=True, exist_ok=True)
-        written = [ObjWriter(tt).write(out / "neutral.obj", reg.to_scan(reg.neutral))]
-        np.savez(out / "correspondence.npz", **reg.arrays())
-        written.append(out / "correspondence.npz")
-        try:  # the scan coloured by its residual; a machine that cannot draw keeps the numbers
-            written.append(render_residual(reg, tpl.triangles, out / "residual.png", unit))
-            lines += ["Your vertices coloured by their residual (`distance` in correspondence.npz; in the "
-                      "template's frame, front and side; the colour bar ends at the 99th percentile, ≥ where "
-                      "larger ones saturate):", "", "![residual](residual.png)", ""]
-        except OSError:
-            raise
-        except Exception as exc:  # any renderer failure (no OpenGL, a broken VTK) is not the registration's
-            lines += [f"No residual render ({type(exc).__name__}: {str(exc)[:160]}).", ""]
-        (out / "report.md").write_text("\n".join(lines))
-        written.append(out / "report.md")
+        written, sm, unit = write_registration(app, Path(run_dir).name, f, V, tpl, reg, units, out)
     except OSError as exc:
         raise FwkError(f"--out {out}: writing failed ({exc.strerror or exc})") from None
     log(f"fwk register: {f} -> {out} (residual mean {sm['residual_mean']:.4g}, max {sm['residual_max']:.4g} {unit}; "

@@ -269,6 +269,38 @@ def test_apply_with_landmarks_equals_the_direct_rig_and_keeps_the_scan(grid_run,
     assert (tmp_path / "reg" / "scan.glb").exists()
 
 
+def test_rig_with_landmarks_writes_the_registration_beside_the_rig(grid_run, moved_template, tmp_path, capsys):
+    """``fwk rig --landmarks`` (and ``fwk apply --landmarks``) write what ``fwk register`` writes, in
+    out/registration/: the same neutral, correspondence and report, and say where."""
+    from fwk.cli import main
+    from fwk.data.io import read_obj
+    from fwk.safeio import load_npz
+
+    tmp, scan, lm, perm, R, t = moved_template
+    assert main(["pack", str(grid_run), "--out", str(tmp_path / "model")]) == 0
+    assert main(["rig", str(scan), "--model", str(tmp_path / "model"), "--landmarks", str(lm), "--naming", "source",
+                 "--format", "obj", "--out", str(tmp_path / "rig")]) == 0
+    assert main(["register", str(scan), "--template", str(grid_run), "--landmarks", str(lm),
+                 "--out", str(tmp_path / "reg")]) == 0
+    err = capsys.readouterr().err
+    assert f"the registration (neutral.obj, correspondence.npz, report.md, residual.png) -> {tmp_path / 'rig' / 'registration'}" in err
+    got, want = tmp_path / "rig" / "registration", tmp_path / "reg"
+    assert sorted(p.name for p in got.iterdir()) == sorted(p.name for p in want.iterdir())
+    assert np.allclose(read_obj(got / "neutral.obj")[0], read_obj(want / "neutral.obj")[0], atol=1e-6)
+    a, b = load_npz(got / "correspondence.npz"), load_npz(want / "correspondence.npz")
+    assert set(a) == set(b), (set(a), set(b))
+    # the packed model holds float32 arrays (the run float64): equal to 1e-5; each scan vertex's closest
+    # point compared, not its triangle (on these grids the scan's vertices are the template's, each shared
+    # by several triangles, and float32 rounding may pick another one of them)
+    def closest(z):
+        return np.einsum("jk,jkd->jd", z["bary"], z["neutral_template_frame"][z["template_triangles"][z["triangle"]]])
+    assert np.allclose(closest(a), closest(b), atol=1e-5)
+    assert all(np.allclose(a[k], b[k], atol=1e-5) for k in a if k not in ("triangle", "bary"))
+    report = (got / "report.md").read_text()
+    assert report.startswith(f"# Registration of {scan.name} to model") and "not fitted: 0 of" in report
+    assert all((tmp_path / "rig" / f"{e}.obj").exists() for e in EXPRESSIONS)
+
+
 def test_fwk_register_writes_neutral_correspondence_and_report(grid_run, moved_template, tmp_path, capsys):
     from fwk.cli import main
     from fwk.data.io import read_obj
