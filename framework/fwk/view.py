@@ -654,6 +654,14 @@ def pick_landmarks(scan, out, template, template_landmarks=None, say=print) -> P
     n_template = read_obj(tpl_path)[1].n_vertices
     V_scan = read_obj(scan)[0]
     suggested = [f"{n}: {d}" for n, d in RIGGER_POINTS]
+    if template_landmarks is None:  # a rig model that carries its own template landmarks (fwk.rig.shipped)
+        from .rig.shipped import CARD, LANDMARKS, shipped_or_path
+
+        m = shipped_or_path(template)
+        if m.is_dir() and (m / CARD).is_file() and (m / LANDMARKS).is_file():
+            template_landmarks = m / LANDMARKS
+            say(f"fwk view --pick: the model's own template landmarks ({template_landmarks}; "
+                f"--template-landmarks to give others)")
     if template_landmarks is not None:
         ids, names = read_template_landmarks(template_landmarks, n_template)
         say(f"fwk view --pick: {len(ids)} template landmarks from {template_landmarks}")

@@ -300,3 +300,59 @@ def test_a_packed_models_temporary_template_is_removed_when_the_process_ends(tmp
     path, existed = out.stdout.split()
     assert out.returncode == 0 and existed == "True", out.stderr[-2000:]
     assert not Path(path).exists() and not Path(path).parent.exists() and not list(tmp_path.iterdir())
+
+
+def test_a_model_with_its_own_landmarks_opens_the_heads_window_only(meshes, tmp_path, monkeypatch, capsys):
+    """A rig model folder with ``landmarks.json`` (fwk.rig.shipped.LANDMARKS) gives the template's
+    side: one window, the head's, the points named in the file's order; --template-landmarks wins."""
+    from fwk.data.io import read_obj
+
+    run, tpl, scan = meshes
+    V, t = read_obj(tpl)
+    packed = tmp_path / "packed"
+    (packed / "stats").mkdir(parents=True)
+    (packed / "card.json").write_text("{}")
+    np.savez(packed / "stats" / "template.npz", triangles=t.triangles, n_vertices=np.int64(len(V)), mean_neutral=V)
+    names = [f"point {k}" for k in range(len(TEMPLATE_IDS))]
+    (packed / "landmarks.json").write_text(json.dumps(dict(zip(names, TEMPLATE_IDS))))
+    clicks = Clicks(SCAN_IDS)
+    monkeypatch.setattr(fwk.view, "pick_points", clicks)
+    out = tmp_path / "lm.json"
+    assert fwk.view.main([str(scan), "--pick", str(out), "--template", str(packed)]) == 0
+    assert [w[0] for w in clicks.windows] == [str(scan)]
+    assert [d["template"] for d in json.loads(out.read_text())["landmarks"]] == TEMPLATE_IDS
+    said = capsys.readouterr().out
+    assert "the model's own template landmarks" in said and " 7. point 6" in said
+    other = tmp_path / "t.json"
+    other.write_text(json.dumps(TEMPLATE_IDS[::-1]))
+    clicks = Clicks(SCAN_IDS)
+    monkeypatch.setattr(fwk.view, "pick_points", clicks)
+    assert fwk.view.main([str(scan), "--pick", str(out), "--template", str(packed), "--template-landmarks",
+                          str(other)]) == 0
+    assert [d["template"] for d in json.loads(out.read_text())["landmarks"]] == TEMPLATE_IDS[::-1]
+
+
+def test_the_shipped_models_landmarks_are_the_rigger_points_on_its_template():
+    """ict-face's landmarks.json: the 10 rigger points (fwk.view.RIGGER_POINTS, in that order), the
+    rig tests' RIGGER_LANDMARKS (which their geometric rule finds on ICT-FaceKit's face-head template,
+    tests/rig/test_register.py), on a template of that very topology (checked against ICT-FaceKit's
+    own triangles when the data is here)."""
+    from fwk.data.io import read_obj
+    from fwk.rig.shipped import LANDMARKS, shipped
+
+    from .test_register import ICT, RIGGER_LANDMARKS, _rigger_landmarks
+
+    if "ict-face" not in shipped():
+        pytest.skip("no shipped rig model in this install")
+    lm = json.loads((shipped()["ict-face"] / LANDMARKS).read_text())
+    assert list(lm) == [name for name, _ in fwk.view.RIGGER_POINTS]
+    assert lm == RIGGER_LANDMARKS
+    V, t = read_obj(fwk.view.template_obj("ict-face"))
+    assert len(V) == 11248 and max(lm.values()) < len(V)
+    if ICT is not None:
+        from fwk.plugins import get_registry
+
+        data = get_registry().get("dataset", "ict-facekit")(path=str(ICT), region="face-head", n_subjects=1,
+                                                             shapes=["neutral"]).load()
+        assert np.array_equal(np.asarray(data.template.triangles), t.triangles)
+        assert _rigger_landmarks(data.template.vertices, data.template.triangles) == lm

@@ -11,6 +11,10 @@ from pathlib import Path
 SHIPPED = Path(__file__).resolve().parents[1] / "shipped"
 #: a rig model's card: what it is, what it was trained on, its test metrics
 CARD = "card.json"
+#: a rig model's own template landmarks, ``{"name": template vertex id, ...}`` in the order to pick
+#: them (``fwk view --pick --template MODEL`` then opens your head's window only; ``fwk pack
+#: --include`` ships one with a model of your own)
+LANDMARKS = "landmarks.json"
 
 
 def shipped() -> dict[str, Path]:
