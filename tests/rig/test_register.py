@@ -615,6 +615,12 @@ def test_ict_held_out_identity_remeshed(kind, ict_direct_rig, tmp_path, monkeypa
     decimated 1.23x, 1.55x, 1.19x (midpoint 2.95x, 3.65x, 1.79x, where barycentric is exact): on a
     smooth head the registration, not the carry, is what is missing: half its error (1.3 mm mean)
     would bring the Loop head within 1.5x over (b) (1.31x, 1.48x, 1.36x; benchmarks/register_accuracy.py).
+    A real reduction of that size is not where DAME is made: nearest points in position and normal
+    (6-D, normal weight 0.01 / 0.02 / 0.04 of the bounding diagonal, a scratch nricp, 2026-12-06) bring
+    the Loop head's mean vertex error 2.53 -> 2.06 / 1.90 / 1.97 mm and its largest residual 7.0 -> 4.8 /
+    3.3 / 5.9 mm, but DAME over (b) only to 1.56x / 1.51x / 1.53x (jawOpen), 1.89x / 1.88x / 1.94x
+    (mouthSmile_L), 1.69x / 1.69x / 1.70x (eyeBlink_L), and L1 of mouthSmile_L and eyeBlink_L rises
+    (0.76x -> 0.81-0.85x, 0.78x -> 0.82-0.87x): not adopted.
 
     On the midpoint head, (older measurements): 10 template vertices picked at random (``rng.choice``,
     the test before) gave DAME 2.03x / 2.44x / 1.27x, L1 1.21x / 0.71x / 0.74x; 15 (these and the brow
