@@ -249,6 +249,15 @@ def test_a_write_that_fails_after_picking_is_one_line(meshes, tmp_path, monkeypa
     assert f"--pick {out}: cannot be written (Permission denied)" in err and err.count("\n") == 1
 
 
+def _packed_model(V, t, folder: Path) -> Path:
+    """A minimal rig model folder as fwk pack writes one: a card and its template (``t``'s triangles
+    on the vertices ``V``) in stats/template.npz."""
+    (folder / "stats").mkdir(parents=True)
+    (folder / "card.json").write_text("{}")
+    np.savez(folder / "stats" / "template.npz", triangles=t.triangles, n_vertices=np.int64(len(V)), mean_neutral=V)
+    return folder
+
+
 def test_a_packed_rig_model_gives_its_template_to_pick_on(meshes, tmp_path, monkeypatch):
     """--template with a rig model (a folder fwk pack wrote, which keeps no template.obj, or a
     shipped model's name): the window opens on its template's triangles on its mean neutral,
@@ -259,10 +268,7 @@ def test_a_packed_rig_model_gives_its_template_to_pick_on(meshes, tmp_path, monk
 
     run, tpl, scan = meshes
     V, t = read_obj(tpl)
-    packed = tmp_path / "packed"
-    (packed / "stats").mkdir(parents=True)
-    (packed / "card.json").write_text("{}")
-    np.savez(packed / "stats" / "template.npz", triangles=t.triangles, n_vertices=np.int64(len(V)), mean_neutral=V)
+    packed = _packed_model(V, t, tmp_path / "packed")
     got = fwk.view.template_obj(packed)
     V2, t2 = read_obj(got)
     assert np.allclose(V2, V) and np.array_equal(t2.triangles, t.triangles)
@@ -309,10 +315,7 @@ def test_a_model_with_its_own_landmarks_opens_the_heads_window_only(meshes, tmp_
 
     run, tpl, scan = meshes
     V, t = read_obj(tpl)
-    packed = tmp_path / "packed"
-    (packed / "stats").mkdir(parents=True)
-    (packed / "card.json").write_text("{}")
-    np.savez(packed / "stats" / "template.npz", triangles=t.triangles, n_vertices=np.int64(len(V)), mean_neutral=V)
+    packed = _packed_model(V, t, tmp_path / "packed")
     names = [f"point {k}" for k in range(len(TEMPLATE_IDS))]
     (packed / "landmarks.json").write_text(json.dumps(dict(zip(names, TEMPLATE_IDS))))
     clicks = Clicks(SCAN_IDS)
