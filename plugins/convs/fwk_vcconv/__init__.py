@@ -45,6 +45,12 @@ into up to four buckets, each padded only to its own largest support (padding is
 of the thesis's supports in one bucket). Activations run vertex-major ((n, b, c) in memory) so
 gathers and scatters move whole rows and their backward passes are an ``index_add`` and an
 ``index_select``; the output is returned as a (b, n, c) view of that layout.
+
+On float32 CPU tensors the ``sum`` and ``basis`` orders run their per-vertex products in native
+kernels (``fwk_vcconv.native``: the exact supports, no padding, no gathered intermediates;
+1.34-1.45x a training step, docs/methods/autoencoders.md "Speed"); elsewhere (bf16 autocast,
+float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. The order ``auto``
+picks is the same either way.
 """
 from __future__ import annotations
 
@@ -59,6 +65,8 @@ from fwk.errors import RecipeError
 from fwk.graph import adjacency, buckets, padded_rows, reach
 from fwk.hookspecs import hookimpl
 from fwk.protocols import CONV_BUILD_ARGS, STRIDED_BUILD_ARGS
+
+from . import native
 
 MODES = ("same", "down", "up")
 ORDERS = ("auto", "sum", "basis", "kernel")  # evaluation order of the same sum (see the module docstring)
@@ -222,6 +230,16 @@ class VCConv(nn.Module):
         self.register_buffer("_in_dst", torch.as_tensor(other), persistent=False)
         self.register_buffer("_in_pos", torch.as_tensor(pos), persistent=False)
         self.register_buffer("_in_valid", torch.as_tensor(valid), persistent=False)
+        # the exact supports as CSR for the native kernels (``native``): output side in output order,
+        # input side in input order (i_all / k_all sorted by j above)
+        valid = mask.reshape(-1)
+        self.register_buffer("_nat_out_offs", torch.as_tensor(np.concatenate([[0], np.cumsum(mask.sum(1))])),
+                             persistent=False)
+        self.register_buffer("_nat_out_src", torch.as_tensor(idx.reshape(-1)[valid]), persistent=False)
+        self.register_buffer("_nat_out_pos", torch.as_tensor(flat.reshape(-1)[valid]), persistent=False)
+        self.register_buffer("_nat_in_offs", torch.as_tensor(splits.astype(np.int64)), persistent=False)
+        self.register_buffer("_nat_in_dst", torch.as_tensor(i_all[srt]), persistent=False)
+        self.register_buffer("_nat_in_pos", torch.as_tensor(flat[i_all, k_all][srt]), persistent=False)
         self._out_slots = int(sum(c * w for _, c, w in self._out_spans))
         self._in_slots = int(sum(c * w for _, c, w in self._in_spans))
 
@@ -323,6 +341,48 @@ class VCConv(nn.Module):
             res = res @ self.res_lin.weight.t()
         return y, res
 
+    def _sum_native(self, xv, b, c, o, M):
+        """``sum`` with the native kernel (``native.sum_product``): T_i and the residual's average
+        r_i per output vertex on its exact support, then the same dense product with the basis."""
+        has_res = self.r is not None and self.res_w is not None
+        A = self.coef.reshape(-1, M).index_select(0, self._nat_out_pos)  # (slots, M)
+        if has_res:
+            A = torch.cat([A, self._res_weights().index_select(0, self._nat_out_pos)[:, None]], 1)
+        x2 = xv.reshape(self.n_in, b * c)
+        T, r = native.sum_product(x2, A, self._nat_out_offs, self._nat_out_src, M)  # (n_out, b c, M), (n_out, b c)
+        Bm = self.basis.permute(1, 0, 2).reshape(c * M, o)  # rows (p, m): T's rows (i, beta) are [(i, b), (p, m)]
+        y = torch.addmm(self.bias, T.reshape(self.n_out * b, c * M), Bm).reshape(self.n_out, b, o)
+        res = None
+        if has_res:
+            res = r.reshape(self.n_out, b, c)
+            if self.res_lin is not None:
+                res = res @ self.res_lin.weight.t()
+        return y, res
+
+    def _basis_native(self, xv, b, c, o, M):
+        """``basis`` with the native kernel (``native.basis_product``): Z_j from one dense product,
+        then each input vertex's (K' x M) @ (M x b o) product accumulated at its outputs; the
+        residual's weighted average is the same kernel with one coefficient a slot."""
+        has_res = self.r is not None and self.res_w is not None
+        res_first = has_res and self.res_lin is not None and self.n_in * c * o + self._in_slots * o \
+            <= self._in_slots * c + self.n_out * c * o  # R before the scatter when that is cheaper
+        d = o if res_first else c
+        x2 = xv.reshape(self.n_in, b * c)
+        Bm = self.basis.permute(1, 2, 0).reshape(c, o * M)
+        Z = (x2.reshape(self.n_in * b, c) @ Bm).reshape(self.n_in, b * o, M)  # Z_j^T: rows (b, q), columns m
+        A = self.coef.reshape(-1, M).index_select(0, self._nat_in_pos)  # (slots, M), input-side order
+        y = native.basis_product(Z, A, self._nat_in_offs, self._nat_in_dst, self.n_out)
+        y = (y.reshape(self.n_out, b, o) + self.bias)
+        res = None
+        if has_res:
+            src = x2.reshape(self.n_in * b, c) @ self.res_lin.weight.t() if res_first else x2  # R x_j
+            w = self._res_weights().index_select(0, self._nat_in_pos)[:, None]  # (slots, 1)
+            res = native.basis_product(src.reshape(self.n_in, b * d, 1), w, self._nat_in_offs, self._nat_in_dst,
+                                       self.n_out).reshape(self.n_out, b, d)
+            if not res_first and self.res_lin is not None:
+                res = res @ self.res_lin.weight.t()
+        return y, res
+
     def _basis(self, xv, b, c, o, M):
         """Input side, per bucket of input vertices: Z_j = x_j [B_1 .. B_M] (one dense product),
         then (K' x M) @ (M x b o) per input vertex and a scatter-add to the outputs (which start
@@ -389,7 +449,9 @@ class VCConv(nn.Module):
         M, _, o = self.basis.shape
         xv = x.transpose(0, 1)  # vertex-major (n_in, b, c); free when x is the previous layer's output
         order = self.chosen_order(b)
-        evaluate = self._sum if order == "sum" else self._basis if order == "basis" else self._kernel
+        nat = order != "kernel" and native.usable(x, self.coef)
+        evaluate = {"sum": self._sum_native if nat else self._sum, "basis": self._basis_native if nat else self._basis,
+                    "kernel": self._kernel}[order]
         y, res = evaluate(xv, b, c, o, M)  # y includes the bias; res (strided modes) includes sqrt(r)
         if self.activation is not None:
             y = self.activation(y)

@@ -1,0 +1,238 @@
+// vcconv's per-vertex products without the gathered intermediates (fwk_vcconv.native).
+//
+// Both orders of ``fwk_vcconv`` multiply, for every vertex v, a small matrix of coefficients by
+// the rows of other vertices that v's support names. In torch that takes a gather of those rows
+// into one large tensor (slots x b c floats: 51 MB for the thesis's second encoder layer), a
+// batched product over padded supports, and a scatter back; the kernels below gather a vertex's
+// rows into a buffer that stays in cache, call BLAS once per vertex on the exact (unpadded)
+// support, and accumulate straight into the result.
+//
+// Layout: row-major tensors; BLAS is column-major, so a row-major (r x c) matrix is handed over as
+// the column-major (c x r) matrix with leading dimension c, and every product below is written
+// for the transposes (the comment at each call gives the row-major product it computes).
+//
+// ``sum`` order (output side, the encoder's strided layers): for output vertex i with slots
+// s in [offs[i], offs[i+1]), X_i = x[src[s]] (K_i x B, B = b c), A_i = coef rows (K_i x Mx):
+//     T_i = X_i^T A_i[:, :M]  (B x M),   r_i = X_i^T A_i[:, M]  (B; only when Mx = M + 1)
+// ``basis`` order (input side, the decoder's transposed layers): for input vertex j with slots
+// s in [offs[j], offs[j+1]), Z_j (B' x M) and A_j (K'_j x M):
+//     y[dst[s]] += (A_j Z_j^T)[s]   (rows of B' floats)
+//
+// Scatters into a shared result (the ``sum`` order's dx, the ``basis`` order's y) go to one
+// private accumulator per thread, summed in thread order at the end: no atomics, and the same
+// bits on every run with the same thread count (the split of vertices among threads is static).
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cstring>
+#include <vector>
+
+extern "C" void sgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k,
+                       const float* alpha, const float* a, const int* lda, const float* b, const int* ldb,
+                       const float* beta, float* c, const int* ldc);
+
+namespace {
+
+// column-major C (m x n) = alpha op(A) op(B) + beta C
+inline void gemm(char ta, char tb, int64_t m, int64_t n, int64_t k, float alpha, const float* a, int64_t lda,
+                 const float* b, int64_t ldb, float beta, float* c, int64_t ldc) {
+  if (m == 0 || n == 0) return;
+  if (k == 0) {
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < m; ++i) c[j * ldc + i] = beta == 0.f ? 0.f : beta * c[j * ldc + i];
+    return;
+  }
+  const int M = (int)m, N = (int)n, K = (int)k, LDA = (int)lda, LDB = (int)ldb, LDC = (int)ldc;
+  sgemm_(&ta, &tb, &M, &N, &K, &alpha, a, &LDA, b, &LDB, &beta, c, &LDC);
+}
+
+inline void add_row(float* __restrict dst, const float* __restrict src, int64_t n) {
+#pragma omp simd
+  for (int64_t t = 0; t < n; ++t) dst[t] += src[t];
+}
+
+void check(const torch::Tensor& t, const char* name, at::ScalarType dtype, int64_t dim) {
+  TORCH_CHECK(t.device().is_cpu(), name, ": expected a CPU tensor");
+  TORCH_CHECK(t.scalar_type() == dtype, name, ": expected ", dtype, ", got ", t.scalar_type());
+  TORCH_CHECK(t.dim() == dim, name, ": expected ", dim, " dimensions, got ", t.dim());
+  TORCH_CHECK(t.is_contiguous(), name, ": expected a contiguous tensor");
+}
+
+int64_t max_run(const int64_t* offs, int64_t n) {
+  int64_t k = 0;
+  for (int64_t i = 0; i < n; ++i) k = std::max(k, offs[i + 1] - offs[i]);
+  return k;
+}
+
+// the per-thread accumulators (nt, rows, width) summed in thread order into (rows, width)
+torch::Tensor reduce(const torch::Tensor& acc) {
+  return acc.size(0) == 1 ? acc[0] : acc.sum(0);
+}
+
+void check_csr(const torch::Tensor& offs, const torch::Tensor& idx, int64_t n_rows, int64_t n_target) {
+  check(offs, "offs", at::kLong, 1);
+  check(idx, "index", at::kLong, 1);
+  TORCH_CHECK(offs.size(0) == n_rows + 1, "offs: expected ", n_rows + 1, " entries");
+  const int64_t* o = offs.data_ptr<int64_t>();
+  TORCH_CHECK(o[0] == 0 && o[n_rows] == idx.size(0), "offs: must run from 0 to the slot count");
+  for (int64_t i = 0; i < n_rows; ++i) TORCH_CHECK(o[i + 1] >= o[i], "offs: must not decrease");
+  const int64_t* s = idx.data_ptr<int64_t>();
+  for (int64_t t = 0; t < idx.size(0); ++t)
+    TORCH_CHECK(s[t] >= 0 && s[t] < n_target, "index: entry out of range");
+}
+
+}  // namespace
+
+// sum order, forward. x (n_in, B), A (P, Mx), offs (n_out + 1), src (P); M = Mx or Mx - 1.
+// Returns T (n_out, B, M) and r (n_out, B) (empty (0,) when Mx == M).
+std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor A, torch::Tensor offs, torch::Tensor src,
+                                       int64_t M) {
+  check(x, "x", at::kFloat, 2);
+  check(A, "A", at::kFloat, 2);
+  const int64_t n_in = x.size(0), B = x.size(1), Mx = A.size(1), n_out = offs.size(0) - 1;
+  TORCH_CHECK(Mx == M || Mx == M + 1, "A: expected M or M + 1 columns");
+  TORCH_CHECK(A.size(0) == src.size(0), "A: one row per slot");
+  check_csr(offs, src, n_out, n_in);
+  const bool res = Mx == M + 1;
+  auto T = torch::empty({n_out, B, M}, x.options());
+  auto r = res ? torch::empty({n_out, B}, x.options()) : torch::empty({0}, x.options());
+  const float* xp = x.data_ptr<float>();
+  const float* Ap = A.data_ptr<float>();
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* sp = src.data_ptr<int64_t>();
+  float* Tp = T.data_ptr<float>();
+  float* rp = res ? r.data_ptr<float>() : nullptr;
+  const int64_t Kmax = max_run(op, n_out);
+  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1));
+    for (int64_t i = i0; i < i1; ++i) {
+      const int64_t s0 = op[i], K = op[i + 1] - s0;
+      for (int64_t k = 0; k < K; ++k) std::memcpy(&buf[k * B], xp + sp[s0 + k] * B, B * sizeof(float));
+      // T_i (B x M) = X_i^T (B x K) A_i (K x M)
+      gemm('N', 'T', M, B, K, 1.f, Ap + s0 * Mx, Mx, buf.data(), B, 0.f, Tp + i * B * M, M);
+      // r_i (1 x B) = a_i^T (1 x K) X_i (K x B)
+      if (res) gemm('N', 'T', 1, B, K, 1.f, Ap + s0 * Mx + M, Mx, buf.data(), B, 0.f, rp + i * B, 1);
+    }
+  });
+  return {T, r};
+}
+
+// sum order, backward. dT (n_out, B, M), dr (n_out, B) or empty; returns dx (n_in, B), dA (P, Mx).
+std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torch::Tensor x, torch::Tensor A,
+                                        torch::Tensor offs, torch::Tensor src, bool need_dx, bool need_dA) {
+  check(dT, "dT", at::kFloat, 3);
+  const int64_t n_in = x.size(0), B = x.size(1), Mx = A.size(1), n_out = offs.size(0) - 1, M = dT.size(2);
+  const bool res = Mx == M + 1;
+  if (res) check(dr, "dr", at::kFloat, 2);
+  const int nt = at::get_num_threads();
+  auto acc = need_dx ? torch::zeros({nt, n_in, B}, x.options()) : torch::empty({0}, x.options());
+  auto dA = need_dA ? torch::empty({A.size(0), Mx}, x.options()) : torch::empty({0}, x.options());
+  const float* xp = x.data_ptr<float>();
+  const float* Ap = A.data_ptr<float>();
+  const float* dTp = dT.data_ptr<float>();
+  const float* drp = res ? dr.data_ptr<float>() : nullptr;
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* sp = src.data_ptr<int64_t>();
+  float* accp = need_dx ? acc.data_ptr<float>() : nullptr;
+  float* dAp = need_dA ? dA.data_ptr<float>() : nullptr;
+  const int64_t Kmax = max_run(op, n_out);
+  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+    const int tid = at::get_thread_num();
+    TORCH_CHECK(tid < nt, "more threads than accumulators");
+    float* mine = need_dx ? accp + tid * n_in * B : nullptr;
+    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), dbuf(std::max<int64_t>(Kmax * B, 1));
+    for (int64_t i = i0; i < i1; ++i) {
+      const int64_t s0 = op[i], K = op[i + 1] - s0;
+      if (K == 0) continue;
+      const float* dTi = dTp + i * B * M;
+      if (need_dA) {
+        for (int64_t k = 0; k < K; ++k) std::memcpy(&buf[k * B], xp + sp[s0 + k] * B, B * sizeof(float));
+        // dA_i[:, :M] (K x M) = X_i (K x B) dT_i (B x M)
+        gemm('N', 'N', M, K, B, 1.f, dTi, M, buf.data(), B, 0.f, dAp + s0 * Mx, Mx);
+        // dA_i[:, M] (K x 1) = X_i (K x B) dr_i (B x 1)
+        if (res) gemm('N', 'N', 1, K, B, 1.f, drp + i * B, 1, buf.data(), B, 0.f, dAp + s0 * Mx + M, Mx);
+      }
+      if (need_dx) {
+        // dX_i (K x B) = A_i[:, :M] (K x M) dT_i^T (M x B)  (+ a_i (K x 1) dr_i^T (1 x B))
+        gemm('T', 'N', B, K, M, 1.f, dTi, M, Ap + s0 * Mx, Mx, 0.f, dbuf.data(), B);
+        if (res) gemm('N', 'N', B, K, 1, 1.f, drp + i * B, B, Ap + s0 * Mx + M, Mx, 1.f, dbuf.data(), B);
+        for (int64_t k = 0; k < K; ++k) add_row(mine + sp[s0 + k] * B, &dbuf[k * B], B);
+      }
+    }
+  });
+  return {need_dx ? reduce(acc) : acc, dA};
+}
+
+// basis order, forward. Z (n_in, B, M), A (P, M), offs (n_in + 1), dst (P); y (n_out, B) = sum of
+// the slots' rows (A_j Z_j^T)[s] at their outputs.
+torch::Tensor basis_forward(torch::Tensor Z, torch::Tensor A, torch::Tensor offs, torch::Tensor dst, int64_t n_out) {
+  check(Z, "Z", at::kFloat, 3);
+  check(A, "A", at::kFloat, 2);
+  const int64_t n_in = Z.size(0), B = Z.size(1), M = Z.size(2);
+  TORCH_CHECK(A.size(1) == M, "A: expected ", M, " columns");
+  TORCH_CHECK(A.size(0) == dst.size(0), "A: one row per slot");
+  check_csr(offs, dst, n_in, n_out);
+  const int nt = at::get_num_threads();
+  auto acc = torch::zeros({nt, n_out, B}, Z.options());
+  const float* Zp = Z.data_ptr<float>();
+  const float* Ap = A.data_ptr<float>();
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* dp = dst.data_ptr<int64_t>();
+  float* accp = acc.data_ptr<float>();
+  const int64_t Kmax = max_run(op, n_in);
+  at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
+    const int tid = at::get_thread_num();
+    TORCH_CHECK(tid < nt, "more threads than accumulators");
+    float* mine = accp + tid * n_out * B;
+    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1));
+    for (int64_t j = j0; j < j1; ++j) {
+      const int64_t s0 = op[j], K = op[j + 1] - s0;
+      if (K == 0) continue;
+      // Y_j (K x B) = A_j (K x M) Z_j^T (M x B)
+      gemm('T', 'N', B, K, M, 1.f, Zp + j * B * M, M, Ap + s0 * M, M, 0.f, buf.data(), B);
+      for (int64_t k = 0; k < K; ++k) add_row(mine + dp[s0 + k] * B, &buf[k * B], B);
+    }
+  });
+  return reduce(acc);
+}
+
+// basis order, backward. dy (n_out, B); returns dZ (n_in, B, M), dA (P, M).
+std::vector<torch::Tensor> basis_backward(torch::Tensor dy, torch::Tensor Z, torch::Tensor A, torch::Tensor offs,
+                                          torch::Tensor dst, bool need_dZ, bool need_dA) {
+  check(dy, "dy", at::kFloat, 2);
+  const int64_t n_in = Z.size(0), B = Z.size(1), M = Z.size(2);
+  auto dZ = need_dZ ? torch::empty({n_in, B, M}, Z.options()) : torch::empty({0}, Z.options());
+  auto dA = need_dA ? torch::empty({A.size(0), M}, Z.options()) : torch::empty({0}, Z.options());
+  const float* Zp = Z.data_ptr<float>();
+  const float* Ap = A.data_ptr<float>();
+  const float* dyp = dy.data_ptr<float>();
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* dp = dst.data_ptr<int64_t>();
+  float* dZp = need_dZ ? dZ.data_ptr<float>() : nullptr;
+  float* dAp = need_dA ? dA.data_ptr<float>() : nullptr;
+  const int64_t Kmax = max_run(op, n_in);
+  at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
+    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1));
+    for (int64_t j = j0; j < j1; ++j) {
+      const int64_t s0 = op[j], K = op[j + 1] - s0;
+      if (K == 0) {
+        if (need_dZ) std::fill(dZp + j * B * M, dZp + (j + 1) * B * M, 0.f);
+        continue;
+      }
+      for (int64_t k = 0; k < K; ++k) std::memcpy(&buf[k * B], dyp + dp[s0 + k] * B, B * sizeof(float));
+      // dA_j (K x M) = dY_j (K x B) Z_j (B x M)
+      if (need_dA) gemm('N', 'N', M, K, B, 1.f, Zp + j * B * M, M, buf.data(), B, 0.f, dAp + s0 * M, M);
+      // dZ_j (B x M) = dY_j^T (B x K) A_j (K x M)
+      if (need_dZ) gemm('N', 'T', M, B, K, 1.f, Ap + s0 * M, M, buf.data(), B, 0.f, dZp + j * B * M, M);
+    }
+  });
+  return {dZ, dA};
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("sum_forward", &sum_forward);
+  m.def("sum_backward", &sum_backward);
+  m.def("basis_forward", &basis_forward);
+  m.def("basis_backward", &basis_backward);
+}

@@ -1,0 +1,193 @@
+"""vcconv's per-vertex products as native kernels (``native.cpp``), with their gradients.
+
+The two evaluation orders of ``VCConv`` that dominate a step, in torch, materialise one row per
+support slot: ``sum`` gathers the input rows (slots x b c floats; 51 MB in the thesis-width
+VAE's second encoder layer) before a padded batched product, and ``basis`` writes each slot's
+product (slots x b c_out) before a scatter-add; their backward passes do it again, and every
+fresh buffer faults its pages in. The kernels in ``native.cpp`` do the same sums vertex by
+vertex on the exact support (no padding, no mask): a vertex's rows are gathered into a buffer
+that stays in cache, multiplied by one BLAS call, and accumulated into the result (per-thread
+accumulators for the scatters, summed in thread order).
+
+    sum order:    T_i = X_i^T A_i[:, :M],  r_i = X_i^T A_i[:, M]     X_i = x[src[s]], s in slots(i)
+    basis order:  y_o = sum_{s: dst[s] = o} (A_j Z_j^T)[s]           s in slots(j)
+
+with the gradients dX_i = A_i dT_i^T (scattered to x's rows), dA_i = X_i dT_i, and
+dA_j = dY_j Z_j, dZ_j = dY_j^T A_j (dY_j = dy's rows at dst). ``sum_product`` and
+``basis_product`` are ``torch.library`` operators (``fwk_vcconv::sum_product``,
+``fwk_vcconv::basis_product``) with these gradients registered, and with their multiply-adds
+registered for ``torch.utils.flop_counter`` (so the training benchmark counts them as it counts
+torch's own products).
+
+The kernels are float32 and compiled on first use with ``torch.utils.cpp_extension`` (a C++
+compiler and ninja; about a minute, once per machine and torch version, in torch's extension
+cache, ``TORCH_EXTENSIONS_DIR``). ``available()`` is False, and ``VCConv`` runs its torch
+code, when the build fails (the reason is printed once), when ``FWK_VCCONV_NATIVE=0``, and for
+other dtypes or devices (bf16 autocast, CUDA). Tested against the torch orders in value and
+gradient (``tests/convs/test_vcconv_native.py``), which are tested against per-vertex loops.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import threading
+from pathlib import Path
+
+import torch
+
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+_lock = threading.Lock()
+_module = None
+_failed: str | None = None
+
+
+def _load():
+    """The compiled module, or None (the reason in ``_failed``)."""
+    global _module, _failed
+    if _module is not None or _failed is not None:
+        return _module
+    with _lock:
+        if _module is not None or _failed is not None:
+            return _module
+        try:
+            from torch.utils.cpp_extension import get_default_build_root, load
+
+            src = Path(__file__).with_name("native.cpp")
+            # one folder per torch version (torch's cache is keyed by sources and flags, not by its version)
+            tag = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
+            build = Path(os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()) / f"fwk_vcconv_native_{tag}"
+            build.mkdir(parents=True, exist_ok=True)
+            _clear_stale_lock(build)
+            if not (build / "fwk_vcconv_native.so").exists():
+                _say(f"vcconv: compiling its native kernels into {build} (once per machine and torch version, "
+                     "about a minute)")
+            _module = load(name="fwk_vcconv_native", sources=[str(src)], build_directory=str(build),
+                           extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
+        except Exception as e:  # no compiler, no ninja, a torch without BLAS symbols: the torch code runs
+            _failed = f"{type(e).__name__}: {str(e).strip().splitlines()[-1] if str(e).strip() else ''}"
+            _say(f"vcconv: native kernels unavailable ({_failed}); vcconv runs its torch code (slower)")
+    return _module
+
+
+#: a build lock older than this is a build that was killed (torch would wait for it forever)
+STALE_LOCK_SECONDS = 600
+
+
+def _clear_stale_lock(build: Path) -> None:
+    """Removes torch's build lock when the build that took it was killed long ago (a build takes
+    about 40 s): torch's ``FileBaton`` would otherwise wait for it without end."""
+    import time
+
+    lock = build / "lock"
+    try:
+        if time.time() - lock.stat().st_mtime > STALE_LOCK_SECONDS:
+            lock.unlink()
+            _say(f"vcconv: removed a stale build lock {lock} (a build killed earlier)")
+    except FileNotFoundError:
+        pass
+
+
+def enabled() -> bool:
+    """Whether ``VCConv`` may use the kernels (``FWK_VCCONV_NATIVE`` is not 0)."""
+    return os.environ.get("FWK_VCCONV_NATIVE", "1") != "0"
+
+
+def available() -> bool:
+    """True when the kernels are enabled and built (building them on the first call)."""
+    return enabled() and _load() is not None
+
+
+def usable(*tensors) -> bool:
+    """The kernels apply: enabled, built, and every tensor a float32 CPU tensor, outside autocast."""
+    if torch.is_autocast_enabled("cpu"):
+        return False
+    if not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
+        return False
+    return available()
+
+
+# ---- sum order
+@torch.library.custom_op("fwk_vcconv::sum_product", mutates_args=())
+def sum_product(x: torch.Tensor, A: torch.Tensor, offs: torch.Tensor, src: torch.Tensor,
+                M: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(T (n_out, B, M), r (n_out, B)): T_i = X_i^T A_i[:, :M], r_i = X_i^T A_i[:, M] (r empty,
+    (0,), when A has M columns). x (n_in, B), A (slots, M or M + 1), offs (n_out + 1), src (slots)."""
+    T, r = _load().sum_forward(x.contiguous(), A.contiguous(), offs, src, M)
+    return T, r
+
+
+@sum_product.register_fake
+def _(x, A, offs, src, M):
+    n_out, B = offs.shape[0] - 1, x.shape[1]
+    return x.new_empty(n_out, B, M), x.new_empty(n_out, B) if A.shape[1] == M + 1 else x.new_empty(0)
+
+
+def _sum_setup(ctx, inputs, output):
+    x, A, offs, src, M = inputs
+    ctx.M = M
+    ctx.save_for_backward(x, A, offs, src)
+
+
+def _sum_backward(ctx, dT, dr):
+    x, A, offs, src = ctx.saved_tensors
+    n_out, B = offs.shape[0] - 1, x.shape[1]
+    dT = x.new_zeros(n_out, B, ctx.M) if dT is None else dT.contiguous()
+    if A.shape[1] == ctx.M + 1:
+        dr = x.new_zeros(n_out, B) if dr is None or dr.shape != (n_out, B) else dr.contiguous()
+    else:
+        dr = x.new_empty(0)
+    need_x, need_A = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+    dx, dA = _load().sum_backward(dT, dr, x.contiguous(), A.contiguous(), offs, src, need_x, need_A)
+    return (dx if need_x else None), (dA if need_A else None), None, None, None
+
+
+sum_product.register_autograd(_sum_backward, setup_context=_sum_setup)
+
+
+# ---- basis order
+@torch.library.custom_op("fwk_vcconv::basis_product", mutates_args=())
+def basis_product(Z: torch.Tensor, A: torch.Tensor, offs: torch.Tensor, dst: torch.Tensor,
+                  n_out: int) -> torch.Tensor:
+    """y (n_out, B): y_o = sum of the slots' rows (A_j Z_j^T)[s] with dst[s] = o. Z (n_in, B, M),
+    A (slots, M), offs (n_in + 1), dst (slots)."""
+    return _load().basis_forward(Z.contiguous(), A.contiguous(), offs, dst, n_out)
+
+
+@basis_product.register_fake
+def _(Z, A, offs, dst, n_out):
+    return Z.new_empty(n_out, Z.shape[1])
+
+
+def _basis_setup(ctx, inputs, output):
+    Z, A, offs, dst, n_out = inputs
+    ctx.save_for_backward(Z, A, offs, dst)
+
+
+def _basis_backward(ctx, dy):
+    Z, A, offs, dst = ctx.saved_tensors
+    need_Z, need_A = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+    dZ, dA = _load().basis_backward(dy.contiguous(), Z.contiguous(), A.contiguous(), offs, dst, need_Z, need_A)
+    return (dZ if need_Z else None), (dA if need_A else None), None, None, None
+
+
+basis_product.register_autograd(_basis_backward, setup_context=_basis_setup)
+
+
+# ---- multiply-adds for torch.utils.flop_counter (2 flops each)
+def _register_flops():
+    from torch.utils.flop_counter import register_flop_formula
+
+    @register_flop_formula(torch.ops.fwk_vcconv.sum_product)
+    def _sum_flops(x_shape, A_shape, offs_shape, src_shape, M, *args, out_shape=None, **kwargs) -> int:
+        return 2 * A_shape[0] * x_shape[1] * A_shape[1]
+
+    @register_flop_formula(torch.ops.fwk_vcconv.basis_product)
+    def _basis_flops(Z_shape, A_shape, offs_shape, dst_shape, n_out, *args, out_shape=None, **kwargs) -> int:
+        return 2 * A_shape[0] * Z_shape[1] * Z_shape[2]
+
+
+_register_flops()
