@@ -17,6 +17,7 @@ from ..safeio import LegacyFormatError, load_state
 from .config import TrainConfig
 from .distributed import DistEnv, RankDone, make_job, make_strategy, rank_job, wants_ddp
 from .loading import make_loader
+from .memory import retain_freed_memory
 from .threads import apply_threads, register, report_threads
 
 
@@ -196,6 +197,7 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
         raise FwkError(f"train.strategy ddp: this rank would train {network} before the training it joins "
                        f"({job['ckdir']}); the run's finished trainings differ from rank 0's")
     register()  # this process counts among those that share the cores (fwk.engine.threads)
+    retain_freed_memory()  # freed tensors stay in the heap for the next step (fwk.engine.memory)
     n, why, _ = apply_threads()
     report_threads(ctx.log, n, why, ctx.log_file)  # once per log file and count: not at every flip or fit
     seed_everything(ctx.seed)
