@@ -9,6 +9,10 @@ convs and networks), side by side in one process.
 Networks (thesis 3.4 / appendix A), batch 16, on the ICT-FaceKit face-head region (11,248
 vertices) when ICT-FaceKit is present, else a synthetic head of the same size (printed):
 
+The vcconv rows run on vcconv's native kernels (``fwk_vcconv.native``, issue 28); the line
+below each ("torch code") times the same network on vcconv's torch evaluation
+(``FWK_VCCONV_NATIVE=0``) in the same alternation.
+
 * ``vcconv VAE``: the fully convolutional VAE at the thesis's width (its Mesh Autoencoder and
   Deep Spectral Meshes' bands, issue 28's "thesis-width" network), channels [3, 32, 64, 128,
   128, 8], 8 latent vertices, weight_num 35, residual rate 0.5, ``simple`` sampler with 4 levels;
@@ -25,7 +29,9 @@ the frozen code's with torch's per-parameter Adam, as it trained). The versions 
 one warm-up step each; the table gives the median step time of each, their ratio, the GFLOP per
 step (3x the dense products of one forward pass, counted by ``torch.utils.flop_counter``;
 sparse products left out, see ``gflop``) and the achieved rate against an fp32 matmul (2048^3)
-measured in the same process with the same threads.
+measured in the same process with the same threads. Like ``fwk.engine.trainer``, the script keeps
+freed memory in the heap (``fwk.engine.memory``) unless ``--default-malloc``: that is a process-wide
+setting, so the two are compared in two runs.
 
 ``--bf16`` also times today's code (every row) under CPU autocast (bfloat16, what ``train.precision:
 bf16-mixed`` gives Lightning) and, for the first two rows, trains both precisions for a few steps from the same
@@ -55,6 +61,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _before  # noqa: E402
 from _ict import alternate, face_head  # noqa: E402
+from fwk.engine.memory import retain_freed_memory  # noqa: E402
 from fwk.plugins import get_registry  # noqa: E402
 from fwk.recipes import make_spec  # noqa: E402
 
@@ -150,6 +157,32 @@ def loss_deviation(enc, dec, x, n: int = 8) -> list[float]:
     return out
 
 
+def without_native(step):
+    """The step on vcconv's torch code (``FWK_VCCONV_NATIVE=0`` while it runs), for a side-by-side
+    timing against the native kernels (``fwk_vcconv.native``) in one process."""
+    def run():
+        before = os.environ.get("FWK_VCCONV_NATIVE")
+        os.environ["FWK_VCCONV_NATIVE"] = "0"
+        try:
+            return step()
+        finally:
+            if before is None:
+                del os.environ["FWK_VCCONV_NATIVE"]
+            else:
+                os.environ["FWK_VCCONV_NATIVE"] = before
+
+    return run
+
+
+def native_line(r: dict, ts: dict, g_torch: float, rate: float) -> None:
+    """Adds the torch code's figures to a vcconv row and prints them."""
+    r.update({"torch_code_ms": 1e3 * ts["after_torch"], "native_speedup": ts["after_torch"] / ts["after"],
+              "gflop_torch_code": g_torch, "of_matmul_torch_code": g_torch / ts["after_torch"] / rate})
+    print(f"{'  torch code':<13} {'':>10} {r['torch_code_ms']:>9.0f} {'':>6} {'':>13} {g_torch:>12.1f} "
+          f"{g_torch / ts['after_torch']:>14.1f} {100 * r['of_matmul_torch_code']:>9.0f}%   (FWK_VCCONV_NATIVE=0: "
+          f"the native kernels are {r['native_speedup']:.2f}x faster)")
+
+
 def load_average() -> float:
     return os.getloadavg()[0]
 
@@ -207,9 +240,12 @@ def main():
                     help="time CPU seconds, not wall seconds (one thread only: a loaded machine's waits left out)")
     ap.add_argument("--feast", action="store_true",
                     help="also time the FeaStNet AE: torch_geometric's FeaStConv forward against today's")
+    ap.add_argument("--default-malloc", action="store_true",
+                    help="glibc's default thresholds instead of fwk.engine.memory's (which fwk's training sets)")
     ap.add_argument("--profile", choices=sorted(PROFILED),
                     help="instead: one network's step by operator (torch.profiler, 3 steps after 2 warm-ups)")
     a = ap.parse_args()
+    malloc = "glibc defaults (--default-malloc)" if a.default_malloc else retain_freed_memory()
     if a.profile:
         return profile_step(PROFILED[a.profile])
     if a.cpu_time and torch.get_num_threads() != 1:
@@ -223,10 +259,11 @@ def main():
     load0 = load_average()
     rate = matmul_rate(cpu=a.cpu_time)
     print(f"template: {src}, {t.n_vertices} vertices; batch {BATCH}; torch {torch.__version__}, {threads} threads; "
-          f"fp32 matmul 2048^3: {rate:.0f} GFLOP/s; load average {load0:.2f}"
+          f"fp32 matmul 2048^3: {rate:.0f} GFLOP/s; load average {load0:.2f}; freed memory kept "
+          f"(fwk.engine.memory): {malloc}"
           + ("; step times in CPU seconds (--cpu-time)" if a.cpu_time else ""))
     result = {"template": src, "n_vertices": t.n_vertices, "batch": BATCH, "threads": threads, "cpu_time": a.cpu_time,
-              "matmul_gflops": rate, "torch": torch.__version__}
+              "matmul_gflops": rate, "torch": torch.__version__, "malloc": malloc}
     print(f"{'network':<13} {'before ms':>10} {'after ms':>9} {'ratio':>6} {'GFLOP before':>13} {'GFLOP after':>12} "
           f"{'GFLOP/s after':>14} {'of matmul':>10}")
     for label, key, spec in (("vcconv VAE", "vcconv_vae", VCCONV_VAE), ("spiral++ AE", "spiralpp_ae", SPIRALPP_AE)):
@@ -238,6 +275,9 @@ def main():
             oenc, odec = _before.spiralpp_ae(h, 3, spec["channels"], spec["latent"], length=9)
         g_new, g_old = gflop(enc, dec, x), gflop(oenc, odec, x)
         steps = {"before": stepper(oenc, odec, x, fused=False), "after": stepper(enc, dec, x)}
+        if key == "vcconv_vae":
+            steps["after_torch"] = without_native(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x))
+            g_torch = without_native(lambda: gflop(enc, dec, x))()
         if a.bf16:
             e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
             steps["after_bf16"] = stepper(e16, d16, x, bf16=True)
@@ -247,6 +287,8 @@ def main():
              "gflops_after": g_new / ts["after"], "of_matmul": g_new / ts["after"] / rate}
         print(f"{label:<13} {r['before_ms']:>10.0f} {r['after_ms']:>9.0f} {r['ratio']:>6.2f} {g_old:>13.1f} "
               f"{g_new:>12.1f} {r['gflops_after']:>14.1f} {100 * r['of_matmul']:>9.0f}%")
+        if key == "vcconv_vae":
+            native_line(r, ts, g_torch, rate)
         if a.bf16:
             dev = loss_deviation(enc, dec, x)
             r.update({"after_bf16_ms": 1e3 * ts["after_bf16"], "bf16_speedup": ts["after"] / ts["after_bf16"],
@@ -264,6 +306,9 @@ def main():
         enc, dec, _ = networks(spec, t)
         g = gflop(enc, dec, x)
         steps = {"after": stepper(enc, dec, x)}
+        if key == "vcconv_vae_ch5":
+            steps["after_torch"] = without_native(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x))
+            g_torch = without_native(lambda: gflop(enc, dec, x))()
         if a.bf16:
             steps["after_bf16"] = stepper(copy.deepcopy(enc), copy.deepcopy(dec), x, bf16=True)
         ts = alternate(steps, a.steps, a.cpu_time)
@@ -271,6 +316,8 @@ def main():
              "of_matmul": g / ts["after"] / rate}
         print(f"{label:<13} {'':>10} {r['after_ms']:>9.0f} {'':>6} {'':>13} {g:>12.1f} {r['gflops_after']:>14.1f} "
               f"{100 * r['of_matmul']:>9.0f}%   ({what})")
+        if key == "vcconv_vae_ch5":
+            native_line(r, ts, g_torch, rate)
         if a.bf16:
             r.update({"after_bf16_ms": 1e3 * ts["after_bf16"], "bf16_speedup": ts["after"] / ts["after_bf16"]})
             print(f"{'  bf16':<13} {'':>10} {r['after_bf16_ms']:>9.0f} {r['bf16_speedup']:>6.2f}x over fp32")
