@@ -341,6 +341,12 @@ class VCConv(nn.Module):
             res = res @ self.res_lin.weight.t()
         return y, res
 
+    def _residual_map_first(self, c: int, o: int) -> bool:
+        """``basis`` order: apply the residual's channel map R to the input rows before the scatter
+        (True) or to the scattered average after it, whichever multiplies less."""
+        return self.res_lin is not None and self.n_in * c * o + self._in_slots * o \
+            <= self._in_slots * c + self.n_out * c * o
+
     def _sum_native(self, xv, b, c, o, M):
         """``sum`` with the native kernel (``native.sum_product``): T_i and the residual's average
         r_i per output vertex on its exact support, then the same dense product with the basis."""
@@ -364,8 +370,7 @@ class VCConv(nn.Module):
         then each input vertex's (K' x M) @ (M x b o) product accumulated at its outputs; the
         residual's weighted average is the same kernel with one coefficient a slot."""
         has_res = self.r is not None and self.res_w is not None
-        res_first = has_res and self.res_lin is not None and self.n_in * c * o + self._in_slots * o \
-            <= self._in_slots * c + self.n_out * c * o  # R before the scatter when that is cheaper
+        res_first = has_res and self._residual_map_first(c, o)
         d = o if res_first else c
         x2 = xv.reshape(self.n_in, b * c)
         Bm = self.basis.permute(1, 2, 0).reshape(c, o * M)
@@ -388,8 +393,7 @@ class VCConv(nn.Module):
         then (K' x M) @ (M x b o) per input vertex and a scatter-add to the outputs (which start
         at the bias)."""
         has_res = self.r is not None and self.res_w is not None
-        res_first = has_res and self.res_lin is not None and self.n_in * c * o + self._in_slots * o \
-            <= self._in_slots * c + self.n_out * c * o  # R before the scatter when that is cheaper
+        res_first = has_res and self._residual_map_first(c, o)
         d = o if res_first else c
         x2 = xv.reshape(self.n_in, b * c)
         # Z_j is computed transposed, (b o) x M, straight from one dense product ([q, (p, m)] basis);
