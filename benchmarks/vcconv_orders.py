@@ -3,6 +3,10 @@ forward and backward, timed; with the order ``auto`` takes, and the multiply-add
 its cost model (``fwk_vcconv.VCConv.costs``, ``FLOAT_COST``).
 
     OMP_NUM_THREADS=2 python benchmarks/vcconv_orders.py [--repeat 4]
+    FWK_VCCONV_NATIVE=0 OMP_NUM_THREADS=2 python benchmarks/vcconv_orders.py   # vcconv's torch code
+
+``sum`` and ``basis`` run on vcconv's native kernels where they are built (``fwk_vcconv.native``;
+printed), and the cost model is priced for the code that runs (``costs(b, native_kernels)``).
 
 Batch 16 on ICT-FaceKit's face-head (11,248 vertices) when ICT-FaceKit is present, else a
 synthetic head of that size (printed). Each layer gets a random input of its shape; a time is the
@@ -31,12 +35,13 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeat", type=int, default=4)
     a = ap.parse_args()
-    from fwk_vcconv import FLOAT_COST, VCConv
+    from fwk_vcconv import FLOAT_COST, VCConv, native
 
     col, src = face_head(1)
     t = col.template
+    nat = native.available()
     print(f"template: {src}, {t.n_vertices} vertices; batch {BATCH}; {torch.get_num_threads()} threads; "
-          f"FLOAT_COST {FLOAT_COST}")
+          f"FLOAT_COST {FLOAT_COST}; sum and basis on " + ("the native kernels" if nat else "the torch code"))
     rows = []
     for label, spec in (("thesis", VCCONV_VAE), ("ch5", VCCONV_VAE_CH5)):
         enc, dec, _ = networks(spec, t)
@@ -46,7 +51,7 @@ def main():
                     continue
                 M, c, o = m.basis.shape
                 x = torch.randn(BATCH, m.n_in, c, requires_grad=True)
-                auto, ms = m.chosen_order(BATCH), {}
+                auto, ms = m.chosen_order(BATCH, nat), {}
                 for order in ORDERS:
                     m.order = order
 
@@ -61,7 +66,7 @@ def main():
                         best = min(best, time.perf_counter() - t0)
                     ms[order] = 1e3 * best
                 m.order = "auto"
-                macs, floats = m.multiply_adds(BATCH), m.traffic(BATCH)
+                macs, floats = m.multiply_adds(BATCH, nat), m.traffic(BATCH, nat)
                 rows.append((macs, floats, ms))
                 mark = "" if ms[auto] <= 1.1 * min(ms.values()) else "  (auto not the fastest)"
                 print(f"{label:6s} {side}.{name:9s} {m.n_in:6d} -> {m.n_out:6d}, {c:3d} -> {o:3d} ch, K {m.K:3d}: "

@@ -2,6 +2,8 @@
 naive per-vertex sum, in value and in gradient (every parameter and the input)."""
 import math
 
+import numpy as np
+
 import pytest
 import torch
 
@@ -167,9 +169,9 @@ def test_vcconv_orders_agree_in_value_and_gradient():
 def test_vcconv_multiply_adds_are_the_dense_products_torch_counts(evaluation):
     """``multiply_adds`` (half of auto's cost model) against torch's own count of the forward's
     dense products (mm, bmm, addmm), for every order, mode and a few widths (no residual path: the
-    residual rides along as an extra coefficient, which the model leaves out). The native kernels
-    (their multiply-adds registered with the counter) skip the padded slots: the same formula
-    with the exact slot counts."""
+    residual rides along as an extra coefficient, which the model leaves out). On the native
+    kernels (their multiply-adds registered with the counter) ``multiply_adds(b, native_kernels=True)``:
+    the same sums over the exact slots."""
     from torch.utils.flop_counter import FlopCounterMode
 
     h = REG.get("sampler", "simple")(levels=2).build(two_components())
@@ -181,16 +183,11 @@ def test_vcconv_multiply_adds_are_the_dense_products_torch_counts(evaluation):
             conv.order = order
             with torch.no_grad(), FlopCounterMode(display=False) as fc:
                 conv(x)
-            expect = conv.multiply_adds(5)[order]
-            if evaluation == "native" and order != "kernel":
-                M = conv.basis.shape[0]
-                exact, padded = (len(conv._nat_out_src), conv._out_slots) if order == "sum" \
-                    else (len(conv._nat_in_dst), conv._in_slots)
-                expect -= (padded - exact) * M * 5 * (c_in if order == "sum" else c_out)
+            expect = conv.multiply_adds(5, native_kernels=evaluation == "native")[order]
             assert fc.get_total_flops() == 2 * expect, (mode, c_in, c_out, order)
 
 
-def test_vcconv_auto_order_weighs_memory_traffic_and_runs_under_bf16_autocast():
+def test_vcconv_auto_order_weighs_memory_traffic_and_runs_under_bf16_autocast(evaluation):
     h = REG.get("sampler", "simple")(levels=2).build(two_components())
     VC = REG.get("conv", "vcconv")
     from fwk_vcconv import FLOAT_COST
@@ -207,7 +204,7 @@ def test_vcconv_auto_order_weighs_memory_traffic_and_runs_under_bf16_autocast():
     torch.manual_seed(5)
     for mode, c_in, c_out in (("down", 3, 16), ("up", 16, 3)):
         conv = VC(c_in, c_out, h, 0, weight_num=6, mode=mode, residual_rate=0.5, activation=torch.nn.ELU())
-        cost = conv.costs(4)
+        cost = conv.costs(4, native_kernels=evaluation == "native")
         assert conv.chosen_order(4) == min(cost, key=cost.get)
         x = torch.randn(4, conv.n_in, c_in)
         y = conv(x)
@@ -225,3 +222,43 @@ def test_vcconv_state_dict_keys_are_unchanged():
     h = REG.get("sampler", "simple")(levels=2).build(two_components())
     conv = REG.get("conv", "vcconv")(3, 4, h, 0, weight_num=5, mode="down", residual_rate=0.5)
     assert set(conv.state_dict()) == {"index", "mask", "basis", "coef", "bias", "res_w", "res_lin.weight"}
+
+
+def _uneven():
+    """A UV sphere: its poles have 16 neighbours, every other vertex 6, so supports differ in size
+    and the torch code pads them (the native kernels do not)."""
+    import trimesh
+
+    from fwk.data import Template
+
+    m = trimesh.creation.uv_sphere(count=[10, 16])
+    return Template(np.asarray(m.vertices), np.asarray(m.faces))
+
+
+@pytest.mark.parametrize("mode,c_in,c_out", [("down", 3, 8), ("up", 8, 3), ("same", 4, 5)])
+@pytest.mark.parametrize("order", ["sum", "basis"])
+def test_vcconv_matches_the_naive_sum_on_uneven_supports(mode, c_in, c_out, order):
+    h = REG.get("sampler", "simple")(levels=3).build(_uneven())
+    torch.manual_seed(6)
+    level = 0 if mode != "same" else 1
+    conv = REG.get("conv", "vcconv")(c_in, c_out, h, level, weight_num=4, mode=mode, residual_rate=0.5,
+                                      order=order, activation=torch.nn.ELU())
+    assert conv._out_slots > len(conv._nat_out_src) or conv._in_slots > len(conv._nat_in_dst), "supports padded"
+    with torch.no_grad():
+        conv.bias.normal_()
+        if conv.res_w is not None:
+            conv.res_w.uniform_(0.1, 2.0)
+    x = torch.randn(3, conv.n_in, c_in, requires_grad=True)
+    g = torch.randn(3, conv.n_out, c_out)
+    (conv(x) * g).sum().backward()
+    got = [x.grad.clone()] + [p.grad.clone() for p in conv.parameters()]
+    y = conv(x).detach()
+    x.grad = None
+    conv.zero_grad()
+    idx, mask = conv.index, conv.mask.bool()
+    expect = _naive(conv, x, idx, mask, conv.activation, 0.5)
+    (expect * g).sum().backward()
+    ref = [x.grad.clone()] + [p.grad.clone() for p in conv.parameters()]
+    assert close(y, expect)
+    for name, a, e in zip(["x"] + [n for n, _ in conv.named_parameters()], got, ref):
+        assert close(a, e), name

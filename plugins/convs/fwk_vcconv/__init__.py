@@ -49,8 +49,10 @@ gathers and scatters move whole rows and their backward passes are an ``index_ad
 On float32 CPU tensors the ``sum`` and ``basis`` orders run their per-vertex products in native
 kernels (``fwk_vcconv.native``: the exact supports, no padding, no gathered intermediates;
 1.34-1.45x a training step, docs/methods/autoencoders.md "Speed"); elsewhere (bf16 autocast,
-float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. The order ``auto``
-picks is the same either way.
+float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. ``auto`` prices the
+orders for the code that runs (the native kernels skip the padding and the slot-sized
+intermediates), which moves one layer measured: the chapter 5 width's first encoder layer takes
+``sum`` (48.6 ms forward and backward) instead of ``kernel`` (63.0 ms).
 """
 from __future__ import annotations
 
@@ -256,21 +258,29 @@ class VCConv(nn.Module):
             self.res_lin.reset_parameters()
 
     # ---- evaluation orders
-    def multiply_adds(self, b: int) -> dict:
-        """Multiply-adds of one forward pass per order for batch size b."""
+    def _slots(self, native_kernels: bool) -> tuple[int, int]:
+        """(output-side, input-side) slots the evaluation multiplies: the exact supports on the
+        native kernels, the bucket-padded ones on the torch code."""
+        if native_kernels:
+            return len(self._nat_out_src), len(self._nat_in_dst)
+        return self._out_slots, self._in_slots
+
+    def multiply_adds(self, b: int, native_kernels: bool = False) -> dict:
+        """Multiply-adds of one forward pass per order for batch size b (on the torch code, or on
+        the native kernels, which skip the padded slots; ``kernel`` is torch code either way)."""
         M, c, o = self.basis.shape
-        P_out, P_in = self._out_slots, self._in_slots
+        P_out, P_in = self._slots(native_kernels)
         return {"sum": P_out * M * b * c + self.n_out * b * M * c * o,
                 "basis": self.n_in * b * c * M * o + P_in * M * b * o,
-                "kernel": P_out * M * c * o + P_out * b * c * o}
+                "kernel": self._out_slots * M * c * o + self._out_slots * b * c * o}
 
-    def traffic(self, b: int) -> dict:
+    def traffic(self, b: int, native_kernels: bool = False) -> dict:
         """Floats of the large intermediates one forward pass materialises per order for batch
         size b (each is written, read, and has a gradient of its size in the backward):
 
-        * ``sum``: the gathered inputs (slots x b c) and T (n_out (M + 1) b c);
+        * ``sum``: the gathered inputs (slots x b c; not on the native kernels) and T (n_out (M + 1) b c);
         * ``basis``: Z (n_in M b o), the per-slot products and residual terms sent to the outputs
-          (2 x slots b o);
+          (2 x slots b o; not on the native kernels);
         * ``kernel``: the explicit kernels (slots c o), the gathered inputs, their copy laid out
           for the product and the residual's weighted copy (3 x slots b c);
 
@@ -278,20 +288,24 @@ class VCConv(nn.Module):
         M, c, o = self.basis.shape
         P_out, P_in = self._out_slots, self._in_slots
         y = self.n_out * b * o
-        return {"sum": P_out * b * c + self.n_out * (M + 1) * b * c + y,
-                "basis": self.n_in * M * b * o + 2 * P_in * b * o + y,
+        gathered, sent = (0, 0) if native_kernels else (P_out * b * c, 2 * P_in * b * o)
+        return {"sum": gathered + self.n_out * (M + 1) * b * c + y,
+                "basis": self.n_in * M * b * o + sent + y,
                 "kernel": P_out * c * o + 3 * P_out * b * c + y}
 
-    def costs(self, b: int) -> dict:
+    def costs(self, b: int, native_kernels: bool = False) -> dict:
         """The cost model ``auto`` minimises: multiply-adds + ``FLOAT_COST`` x traffic, per order."""
-        macs, floats = self.multiply_adds(b), self.traffic(b)
+        macs, floats = self.multiply_adds(b, native_kernels), self.traffic(b, native_kernels)
         return {k: macs[k] + FLOAT_COST * floats[k] for k in macs}
 
-    def chosen_order(self, b: int) -> str:
-        """The order ``forward`` uses for batch size b."""
+    def chosen_order(self, b: int, native_kernels: bool | None = None) -> str:
+        """The order ``forward`` uses for batch size b; ``native_kernels``: whether the native
+        kernels run (None: whether they are available)."""
         if self.order != "auto":
             return self.order
-        cost = self.costs(b)
+        if native_kernels is None:
+            native_kernels = native.available()
+        cost = self.costs(b, native_kernels)
         return min(cost, key=cost.get)
 
     def _res_weights(self):
@@ -452,8 +466,9 @@ class VCConv(nn.Module):
         b, _, c = x.shape
         M, _, o = self.basis.shape
         xv = x.transpose(0, 1)  # vertex-major (n_in, b, c); free when x is the previous layer's output
-        order = self.chosen_order(b)
-        nat = order != "kernel" and native.usable(x, self.coef)
+        usable = native.usable(x, self.coef)
+        order = self.chosen_order(b, usable)
+        nat = usable and order != "kernel"
         evaluate = {"sum": self._sum_native if nat else self._sum, "basis": self._basis_native if nat else self._basis,
                     "kernel": self._kernel}[order]
         y, res = evaluate(xv, b, c, o, M)  # y includes the bias; res (strided modes) includes sqrt(r)
