@@ -37,27 +37,39 @@ def _csr(n_rows, n_target, max_k, g, empty=(1,)):
     return torch.tensor(offs), torch.tensor(idx, dtype=torch.long)
 
 
-def _naive_sum(x, A, offs, src, M):
+def _coefficients(n_slots, M, g, residual, spare=7):
+    """coef (R, M) and w (R) with R = slots + spare rows no slot reads, and pos: each slot's row."""
+    R = n_slots + spare
+    coef = torch.randn(R, M, generator=g, requires_grad=True)
+    w = torch.randn(R, generator=g, requires_grad=True) if residual else torch.empty(0)
+    return coef, w, torch.randperm(R, generator=g)[:n_slots]
+
+
+def _naive_sum(x, coef, w, offs, src, pos):
     T, r = [], []
     for i in range(len(offs) - 1):
-        X = x[src[offs[i]:offs[i + 1]]]  # (K, B)
-        Ai = A[offs[i]:offs[i + 1]]
-        T.append(X.T @ Ai[:, :M])
-        if A.shape[1] == M + 1:
-            r.append(X.T @ Ai[:, M])
+        sl = slice(int(offs[i]), int(offs[i + 1]))
+        X = x[src[sl]]  # (K, B)
+        T.append(X.T @ coef[pos[sl]])
+        if w.numel():
+            r.append(X.T @ w[pos[sl]])
     return torch.stack(T), (torch.stack(r) if r else None)
 
 
-def _naive_basis(Z, A, offs, dst, n_out):
+def _naive_basis(Z, coef, offs, dst, pos, n_out):
     y = Z.new_zeros(n_out, Z.shape[1])
     for j in range(len(offs) - 1):
         for s in range(int(offs[j]), int(offs[j + 1])):
-            y[dst[s]] = y[dst[s]] + Z[j] @ A[s]
+            y[dst[s]] = y[dst[s]] + Z[j] @ coef[pos[s]]
     return y
 
 
 def _grads(out, inputs, upstream):
     return torch.autograd.grad(out, inputs, upstream, allow_unused=True)
+
+
+def _double(*ts):
+    return [t.detach().double().requires_grad_(t.requires_grad) for t in ts]
 
 
 @pytestmark_native
@@ -69,22 +81,25 @@ def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, 
     n_in, n_out, B, M = 23, 9, 12, 5
     offs, src = _csr(n_out, n_in, 6, g)
     x = torch.randn(n_in, B, generator=g, requires_grad=True)
-    A = torch.randn(len(src), M + residual, generator=g, requires_grad=True)
-    T, r = native.sum_product(x, A, offs, src, M)
-    xd, Ad = x.detach().double().requires_grad_(), A.detach().double().requires_grad_()
-    Te, re = _naive_sum(xd, Ad, offs, src, M)
+    coef, w, pos = _coefficients(len(src), M, g, residual)
+    T, r = native.sum_product(x, coef, w, offs, src, pos)
+    xd, cd, wd = _double(x, coef, w)
+    Te, re = _naive_sum(xd, cd, wd, offs, src, pos)
     assert torch.allclose(T.double(), Te, atol=1e-5)
     assert (T[1] == 0).all(), "an empty support gives zeros"
     gT = torch.randn(T.shape, generator=g)
     if residual:
         assert torch.allclose(r.double(), re, atol=1e-5)
         gr = torch.randn(r.shape, generator=g)
-        got, exp = _grads((T, r), (x, A), (gT, gr)), _grads((Te, re), (xd, Ad), (gT.double(), gr.double()))
+        got, exp = _grads((T, r), (x, coef, w), (gT, gr)), _grads((Te, re), (xd, cd, wd), (gT.double(), gr.double()))
     else:
         assert r.numel() == 0
-        got, exp = _grads(T, (x, A), gT), _grads(Te, (xd, Ad), gT.double())
+        got, exp = _grads(T, (x, coef), gT), _grads(Te, (xd, cd), gT.double())
     for a, e in zip(got, exp):
         assert torch.allclose(a.double(), e, atol=1e-4)
+    unread = torch.ones(len(coef), dtype=torch.bool)
+    unread[pos] = False
+    assert (got[1][unread] == 0).all(), "a coefficient row no slot reads gets no gradient"
 
 
 @pytestmark_native
@@ -95,13 +110,13 @@ def test_basis_product_matches_the_loops_in_value_and_gradient(threads, torch_th
     n_in, n_out, B, M = 11, 30, 10, 4
     offs, dst = _csr(n_in, n_out, 7, g, empty=(2, 5))
     Z = torch.randn(n_in, B, M, generator=g, requires_grad=True)
-    A = torch.randn(len(dst), M, generator=g, requires_grad=True)
-    y = native.basis_product(Z, A, offs, dst, n_out)
-    Zd, Ad = Z.detach().double().requires_grad_(), A.detach().double().requires_grad_()
-    ye = _naive_basis(Zd, Ad, offs, dst, n_out)
+    coef, _, pos = _coefficients(len(dst), M, g, False)
+    y = native.basis_product(Z, coef, offs, dst, pos, n_out)
+    Zd, cd = _double(Z, coef)
+    ye = _naive_basis(Zd, cd, offs, dst, pos, n_out)
     assert torch.allclose(y.double(), ye, atol=1e-5)
     gy = torch.randn(y.shape, generator=g)
-    got, exp = _grads(y, (Z, A), gy), _grads(ye, (Zd, Ad), gy.double())
+    got, exp = _grads(y, (Z, coef), gy), _grads(ye, (Zd, cd), gy.double())
     for a, e in zip(got, exp):
         assert torch.allclose(a.double(), e, atol=1e-4)
     assert (got[0][2] == 0).all(), "an input vertex no output holds gets no gradient"
@@ -114,10 +129,10 @@ def test_the_same_thread_count_gives_the_same_bits(torch_threads):
     g = torch.Generator().manual_seed(2)
     offs, dst = _csr(200, 150, 9, g)
     Z = torch.randn(200, 64, 7, generator=g, requires_grad=True)
-    A = torch.randn(len(dst), 7, generator=g)
+    coef, _, pos = _coefficients(len(dst), 7, g, False)
     runs = []
     for _ in range(3):
-        y = native.basis_product(Z, A, offs, dst, 150)
+        y = native.basis_product(Z, coef.detach(), offs, dst, pos, 150)
         (dZ,) = torch.autograd.grad(y, Z, torch.ones_like(y))
         runs.append((y, dZ))
     for y, dZ in runs[1:]:
@@ -126,15 +141,22 @@ def test_the_same_thread_count_gives_the_same_bits(torch_threads):
 
 @pytestmark_native
 def test_malformed_supports_are_refused_not_read_out_of_bounds():
-    x, A = torch.randn(4, 3), torch.randn(3, 2)
+    x, coef, w, none = torch.randn(4, 3), torch.randn(3, 2), torch.randn(3), torch.empty(0)
+    pos, offs, src = torch.tensor([0, 1, 2]), torch.tensor([0, 2, 3]), torch.tensor([0, 1, 1])
     with pytest.raises(RuntimeError, match="out of range"):
-        native.sum_product(x, A, torch.tensor([0, 2, 3]), torch.tensor([0, 4, 1]), 2)
+        native.sum_product(x, coef, w, offs, torch.tensor([0, 4, 1]), pos)
+    with pytest.raises(RuntimeError, match="out of range"):
+        native.sum_product(x, coef, w, offs, src, torch.tensor([0, 1, 3]))
+    with pytest.raises(RuntimeError, match="named twice"):
+        native.sum_product(x, coef, w, offs, src, torch.tensor([0, 1, 1]))
     with pytest.raises(RuntimeError, match="slot count"):
-        native.sum_product(x, A, torch.tensor([0, 2, 2]), torch.tensor([0, 1, 1]), 2)
+        native.sum_product(x, coef, none, torch.tensor([0, 2, 2]), src, pos)
     with pytest.raises(RuntimeError, match="decrease"):
-        native.basis_product(torch.randn(3, 3, 2), A, torch.tensor([0, 3, 2, 3]), torch.tensor([0, 1, 1]), 3)
+        native.basis_product(torch.randn(3, 3, 2), coef, torch.tensor([0, 3, 2, 3]), src, pos, 3)
+    with pytest.raises(RuntimeError, match="one weight per"):
+        native.sum_product(x, coef, torch.randn(2), offs, src, pos)
     with pytest.raises(RuntimeError, match="Float"):
-        native.sum_product(x.double(), A.double(), torch.tensor([0, 2, 3]), torch.tensor([0, 1, 1]), 2)
+        native.sum_product(x.double(), coef.double(), none, offs, src, pos)
 
 
 @pytestmark_native
@@ -143,10 +165,12 @@ def test_the_flop_counter_counts_the_kernels_multiply_adds():
 
     g = torch.Generator().manual_seed(3)
     offs, idx = _csr(8, 20, 5, g)
-    x, A = torch.randn(20, 6, generator=g), torch.randn(len(idx), 4, generator=g)
+    x = torch.randn(20, 6, generator=g)
+    coef, w, pos = _coefficients(len(idx), 3, g, True)
     with FlopCounterMode(display=False) as fc:
-        native.sum_product(x, A, offs, idx, 3)
-        native.basis_product(torch.randn(8, 6, 4, generator=g), A, offs, idx, 20)
+        native.sum_product(x, coef.detach(), w.detach(), offs, idx, pos)  # M + 1 = 4 columns with the weights
+        native.basis_product(torch.randn(8, 6, 4, generator=g), torch.randn(len(idx), 4, generator=g), offs, idx,
+                             torch.arange(len(idx)), 20)
     assert fc.get_total_flops() == 2 * len(idx) * 6 * 4 * 2
 
 

@@ -363,13 +363,13 @@ class VCConv(nn.Module):
 
     def _sum_native(self, xv, b, c, o, M):
         """``sum`` with the native kernel (``native.sum_product``): T_i and the residual's average
-        r_i per output vertex on its exact support, then the same dense product with the basis."""
+        r_i per output vertex on its exact support (the coefficients and the residual's weights
+        read in place), then the same dense product with the basis."""
         has_res = self.r is not None and self.res_w is not None
-        A = self.coef.reshape(-1, M).index_select(0, self._nat_out_pos)  # (slots, M)
-        if has_res:
-            A = torch.cat([A, self._res_weights().index_select(0, self._nat_out_pos)[:, None]], 1)
+        w = self._res_weights() if has_res else self.coef.new_empty(0)  # (n_out K,): read in place, as coef
         x2 = xv.reshape(self.n_in, b * c)
-        T, r = native.sum_product(x2, A, self._nat_out_offs, self._nat_out_src, M)  # (n_out, b c, M), (n_out, b c)
+        T, r = native.sum_product(x2, self.coef.reshape(-1, M), w, self._nat_out_offs, self._nat_out_src,
+                                  self._nat_out_pos)  # (n_out, b c, M), (n_out, b c)
         Bm = self.basis.permute(1, 0, 2).reshape(c * M, o)  # rows (p, m): T's rows (i, beta) are [(i, b), (p, m)]
         y = torch.addmm(self.bias, T.reshape(self.n_out * b, c * M), Bm).reshape(self.n_out, b, o)
         res = None
@@ -389,14 +389,14 @@ class VCConv(nn.Module):
         x2 = xv.reshape(self.n_in, b * c)
         Bm = self.basis.permute(1, 2, 0).reshape(c, o * M)
         Z = (x2.reshape(self.n_in * b, c) @ Bm).reshape(self.n_in, b * o, M)  # Z_j^T: rows (b, q), columns m
-        A = self.coef.reshape(-1, M).index_select(0, self._nat_in_pos)  # (slots, M), input-side order
-        y = native.basis_product(Z, A, self._nat_in_offs, self._nat_in_dst, self.n_out)
+        y = native.basis_product(Z, self.coef.reshape(-1, M), self._nat_in_offs, self._nat_in_dst, self._nat_in_pos,
+                                 self.n_out)
         y = (y.reshape(self.n_out, b, o) + self.bias)
         res = None
         if has_res:
             src = x2.reshape(self.n_in * b, c) @ self.res_lin.weight.t() if res_first else x2  # R x_j
-            w = self._res_weights().index_select(0, self._nat_in_pos)[:, None]  # (slots, 1)
-            res = native.basis_product(src.reshape(self.n_in, b * d, 1), w, self._nat_in_offs, self._nat_in_dst,
+            res = native.basis_product(src.reshape(self.n_in, b * d, 1), self._res_weights()[:, None],
+                                       self._nat_in_offs, self._nat_in_dst, self._nat_in_pos,
                                        self.n_out).reshape(self.n_out, b, d)
             if not res_first and self.res_lin is not None:
                 res = res @ self.res_lin.weight.t()

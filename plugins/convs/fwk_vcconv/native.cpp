@@ -12,13 +12,16 @@
 // for the transposes (the comment at each call gives the row-major product it computes).
 //
 // ``sum`` order (output side, the encoder's strided layers): for output vertex i with slots
-// s in [offs[i], offs[i+1]), X_i = x[src[s]] (K_i x B, B = b c), A_i = coef rows (K_i x Mx):
+// s in [offs[i], offs[i+1]), X_i = x[src[s]] (K_i x B, B = b c), A_i (K_i x Mx) the rows coef[pos[s]]
+// (M floats) beside w[pos[s]] when the residual's weights are given (Mx = M + 1):
 //     T_i = X_i^T A_i[:, :M]  (B x M),   r_i = X_i^T A_i[:, M]  (B; only when Mx = M + 1)
 // ``basis`` order (input side, the decoder's transposed layers): for input vertex j with slots
-// s in [offs[j], offs[j+1]), Z_j (B' x M) and A_j (K'_j x M):
+// s in [offs[j], offs[j+1]), Z_j (B' x M) and A_j (K'_j x M) the rows coef[pos[s]]:
 //     y[dst[s]] += (A_j Z_j^T)[s]   (rows of B' floats)
 //
-// Scatters into a shared result (the ``sum`` order's dx, the ``basis`` order's y) go to one
+// The coefficients are read where the conv keeps them (pos: each slot's row of the conv's (n_out K,
+// M) coefficients, distinct) and their gradients written there, so no gathered copy and no
+// scatter-add of them is made. Scatters into a shared result (the ``sum`` order's dx, the ``basis`` order's y) go to one
 // private accumulator per thread, summed in thread order at the end: no atomics, and the same
 // bits on every run with the same thread count (the split of vertices among threads is static).
 #include <torch/extension.h>
@@ -82,138 +85,191 @@ void check_csr(const torch::Tensor& offs, const torch::Tensor& idx, int64_t n_ro
     TORCH_CHECK(s[t] >= 0 && s[t] < n_target, "index: entry out of range");
 }
 
+
+// the coefficient rows of slots [s0, s0 + K) into buf (K x Mx): coef[pos[s]] (M floats) and, when
+// Mx == M + 1, w[pos[s]] in the last column
+inline void gather_coef(float* buf, const float* coef, const float* w, const int64_t* pos, int64_t s0, int64_t K,
+                        int64_t M, int64_t Mx) {
+  for (int64_t k = 0; k < K; ++k) {
+    std::memcpy(buf + k * Mx, coef + pos[s0 + k] * M, M * sizeof(float));
+    if (Mx > M) buf[k * Mx + M] = w[pos[s0 + k]];
+  }
+}
+
+// the rows of a (K x Mx) block back to their coefficient rows (positions are distinct: no conflicts)
+inline void scatter_coef(const float* buf, float* dcoef, float* dw, const int64_t* pos, int64_t s0, int64_t K,
+                         int64_t M, int64_t Mx) {
+  for (int64_t k = 0; k < K; ++k) {
+    if (dcoef) std::memcpy(dcoef + pos[s0 + k] * M, buf + k * Mx, M * sizeof(float));
+    if (dw && Mx > M) dw[pos[s0 + k]] = buf[k * Mx + M];
+  }
+}
+
+void check_coef(const torch::Tensor& coef, const torch::Tensor& w, const torch::Tensor& pos, int64_t slots) {
+  check(coef, "coef", at::kFloat, 2);
+  check(w, "w", at::kFloat, 1);
+  TORCH_CHECK(w.size(0) == 0 || w.size(0) == coef.size(0), "w: one weight per coefficient row, or none");
+  check_csr(torch::tensor({int64_t(0), slots}), pos, 1, coef.size(0));
+  // the backward writes each slot's coefficient row in place: positions must be distinct
+  std::vector<char> seen(coef.size(0), 0);
+  const int64_t* p = pos.data_ptr<int64_t>();
+  for (int64_t t = 0; t < slots; ++t) {
+    TORCH_CHECK(!seen[p[t]], "pos: a coefficient row is named twice");
+    seen[p[t]] = 1;
+  }
+}
+
 }  // namespace
 
-// sum order, forward. x (n_in, B), A (P, Mx), offs (n_out + 1), src (P); M = Mx or Mx - 1.
-// Returns T (n_out, B, M) and r (n_out, B) (empty (0,) when Mx == M).
-std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor A, torch::Tensor offs, torch::Tensor src,
-                                       int64_t M) {
+// sum order, forward. x (n_in, B); coef (R, M) and w (R, or empty) are read at pos (slots); offs
+// (n_out + 1), src (slots). Returns T (n_out, B, M) and r (n_out, B) (empty (0,) without w).
+std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torch::Tensor w, torch::Tensor offs,
+                                       torch::Tensor src, torch::Tensor pos) {
   check(x, "x", at::kFloat, 2);
-  check(A, "A", at::kFloat, 2);
-  const int64_t n_in = x.size(0), B = x.size(1), Mx = A.size(1), n_out = offs.size(0) - 1;
-  TORCH_CHECK(Mx == M || Mx == M + 1, "A: expected M or M + 1 columns");
-  TORCH_CHECK(A.size(0) == src.size(0), "A: one row per slot");
+  const int64_t n_in = x.size(0), B = x.size(1), M = coef.size(1), n_out = offs.size(0) - 1;
   check_csr(offs, src, n_out, n_in);
-  const bool res = Mx == M + 1;
+  check_coef(coef, w, pos, src.size(0));
+  const bool res = w.size(0) > 0;
+  const int64_t Mx = M + (res ? 1 : 0);
   auto T = torch::empty({n_out, B, M}, x.options());
   auto r = res ? torch::empty({n_out, B}, x.options()) : torch::empty({0}, x.options());
   const float* xp = x.data_ptr<float>();
-  const float* Ap = A.data_ptr<float>();
+  const float* cp = coef.data_ptr<float>();
+  const float* wp = res ? w.data_ptr<float>() : nullptr;
   const int64_t* op = offs.data_ptr<int64_t>();
   const int64_t* sp = src.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
   float* Tp = T.data_ptr<float>();
   float* rp = res ? r.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_out);
   at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
-    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1));
+    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), A(std::max<int64_t>(Kmax * Mx, 1));
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
       for (int64_t k = 0; k < K; ++k) std::memcpy(&buf[k * B], xp + sp[s0 + k] * B, B * sizeof(float));
+      gather_coef(A.data(), cp, wp, pp, s0, K, M, Mx);
       // T_i (B x M) = X_i^T (B x K) A_i (K x M)
-      gemm('N', 'T', M, B, K, 1.f, Ap + s0 * Mx, Mx, buf.data(), B, 0.f, Tp + i * B * M, M);
+      gemm('N', 'T', M, B, K, 1.f, A.data(), Mx, buf.data(), B, 0.f, Tp + i * B * M, M);
       // r_i (1 x B) = a_i^T (1 x K) X_i (K x B)
-      if (res) gemm('N', 'T', 1, B, K, 1.f, Ap + s0 * Mx + M, Mx, buf.data(), B, 0.f, rp + i * B, 1);
+      if (res) gemm('N', 'T', 1, B, K, 1.f, A.data() + M, Mx, buf.data(), B, 0.f, rp + i * B, 1);
     }
   });
   return {T, r};
 }
 
-// sum order, backward. dT (n_out, B, M), dr (n_out, B) or empty; returns dx (n_in, B), dA (P, Mx).
-std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torch::Tensor x, torch::Tensor A,
-                                        torch::Tensor offs, torch::Tensor src, bool need_dx, bool need_dA) {
+// sum order, backward. dT (n_out, B, M), dr (n_out, B) or empty; returns dx (n_in, B), dcoef (R, M)
+// and dw (R) (zero at the rows no slot reads; empty where not asked for).
+std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torch::Tensor x, torch::Tensor coef,
+                                        torch::Tensor w, torch::Tensor offs, torch::Tensor src, torch::Tensor pos,
+                                        bool need_dx, bool need_dcoef, bool need_dw) {
   check(dT, "dT", at::kFloat, 3);
-  const int64_t n_in = x.size(0), B = x.size(1), Mx = A.size(1), n_out = offs.size(0) - 1, M = dT.size(2);
-  const bool res = Mx == M + 1;
+  const int64_t n_in = x.size(0), B = x.size(1), M = coef.size(1), n_out = offs.size(0) - 1;
+  const bool res = w.size(0) > 0;
+  const int64_t Mx = M + (res ? 1 : 0);
   if (res) check(dr, "dr", at::kFloat, 2);
+  need_dw = need_dw && res;
   const int nt = at::get_num_threads();
-  auto acc = need_dx ? torch::zeros({nt, n_in, B}, x.options()) : torch::empty({0}, x.options());
-  auto dA = need_dA ? torch::empty({A.size(0), Mx}, x.options()) : torch::empty({0}, x.options());
+  auto empty = torch::empty({0}, x.options());
+  auto acc = need_dx ? torch::zeros({nt, n_in, B}, x.options()) : empty;
+  auto dcoef = need_dcoef ? torch::zeros({coef.size(0), M}, x.options()) : empty;
+  auto dw = need_dw ? torch::zeros({w.size(0)}, x.options()) : empty;
   const float* xp = x.data_ptr<float>();
-  const float* Ap = A.data_ptr<float>();
+  const float* cp = coef.data_ptr<float>();
+  const float* wp = res ? w.data_ptr<float>() : nullptr;
   const float* dTp = dT.data_ptr<float>();
   const float* drp = res ? dr.data_ptr<float>() : nullptr;
   const int64_t* op = offs.data_ptr<int64_t>();
   const int64_t* sp = src.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
   float* accp = need_dx ? acc.data_ptr<float>() : nullptr;
-  float* dAp = need_dA ? dA.data_ptr<float>() : nullptr;
+  float* dcp = need_dcoef ? dcoef.data_ptr<float>() : nullptr;
+  float* dwp = need_dw ? dw.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_out);
   at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
     const int tid = at::get_thread_num();
     TORCH_CHECK(tid < nt, "more threads than accumulators");
     float* mine = need_dx ? accp + tid * n_in * B : nullptr;
     std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), dbuf(std::max<int64_t>(Kmax * B, 1));
+    std::vector<float> A(std::max<int64_t>(Kmax * Mx, 1)), dA(std::max<int64_t>(Kmax * Mx, 1));
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
       if (K == 0) continue;
       const float* dTi = dTp + i * B * M;
-      if (need_dA) {
+      if (need_dcoef || need_dw) {
         for (int64_t k = 0; k < K; ++k) std::memcpy(&buf[k * B], xp + sp[s0 + k] * B, B * sizeof(float));
         // dA_i[:, :M] (K x M) = X_i (K x B) dT_i (B x M)
-        gemm('N', 'N', M, K, B, 1.f, dTi, M, buf.data(), B, 0.f, dAp + s0 * Mx, Mx);
+        gemm('N', 'N', M, K, B, 1.f, dTi, M, buf.data(), B, 0.f, dA.data(), Mx);
         // dA_i[:, M] (K x 1) = X_i (K x B) dr_i (B x 1)
-        if (res) gemm('N', 'N', 1, K, B, 1.f, drp + i * B, 1, buf.data(), B, 0.f, dAp + s0 * Mx + M, Mx);
+        if (res) gemm('N', 'N', 1, K, B, 1.f, drp + i * B, 1, buf.data(), B, 0.f, dA.data() + M, Mx);
+        scatter_coef(dA.data(), dcp, dwp, pp, s0, K, M, Mx);
       }
       if (need_dx) {
+        gather_coef(A.data(), cp, wp, pp, s0, K, M, Mx);
         // dX_i (K x B) = A_i[:, :M] (K x M) dT_i^T (M x B)  (+ a_i (K x 1) dr_i^T (1 x B))
-        gemm('T', 'N', B, K, M, 1.f, dTi, M, Ap + s0 * Mx, Mx, 0.f, dbuf.data(), B);
-        if (res) gemm('N', 'N', B, K, 1, 1.f, drp + i * B, B, Ap + s0 * Mx + M, Mx, 1.f, dbuf.data(), B);
+        gemm('T', 'N', B, K, M, 1.f, dTi, M, A.data(), Mx, 0.f, dbuf.data(), B);
+        if (res) gemm('N', 'N', B, K, 1, 1.f, drp + i * B, B, A.data() + M, Mx, 1.f, dbuf.data(), B);
         for (int64_t k = 0; k < K; ++k) add_row(mine + sp[s0 + k] * B, &dbuf[k * B], B);
       }
     }
   });
-  return {need_dx ? reduce(acc) : acc, dA};
+  return {need_dx ? reduce(acc) : acc, dcoef, dw};
 }
 
-// basis order, forward. Z (n_in, B, M), A (P, M), offs (n_in + 1), dst (P); y (n_out, B) = sum of
-// the slots' rows (A_j Z_j^T)[s] at their outputs.
-torch::Tensor basis_forward(torch::Tensor Z, torch::Tensor A, torch::Tensor offs, torch::Tensor dst, int64_t n_out) {
+// basis order, forward. Z (n_in, B, M); coef (R, M) read at pos (slots); offs (n_in + 1), dst
+// (slots); y (n_out, B) = sum of the slots' rows (A_j Z_j^T)[s] at their outputs.
+torch::Tensor basis_forward(torch::Tensor Z, torch::Tensor coef, torch::Tensor offs, torch::Tensor dst,
+                            torch::Tensor pos, int64_t n_out) {
   check(Z, "Z", at::kFloat, 3);
-  check(A, "A", at::kFloat, 2);
   const int64_t n_in = Z.size(0), B = Z.size(1), M = Z.size(2);
-  TORCH_CHECK(A.size(1) == M, "A: expected ", M, " columns");
-  TORCH_CHECK(A.size(0) == dst.size(0), "A: one row per slot");
+  TORCH_CHECK(coef.dim() == 2 && coef.size(1) == M, "coef: expected ", M, " columns");
   check_csr(offs, dst, n_in, n_out);
+  check_coef(coef, torch::empty({0}, Z.options()), pos, dst.size(0));
   const int nt = at::get_num_threads();
   auto acc = torch::zeros({nt, n_out, B}, Z.options());
   const float* Zp = Z.data_ptr<float>();
-  const float* Ap = A.data_ptr<float>();
+  const float* cp = coef.data_ptr<float>();
   const int64_t* op = offs.data_ptr<int64_t>();
   const int64_t* dp = dst.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
   float* accp = acc.data_ptr<float>();
   const int64_t Kmax = max_run(op, n_in);
   at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
     const int tid = at::get_thread_num();
     TORCH_CHECK(tid < nt, "more threads than accumulators");
     float* mine = accp + tid * n_out * B;
-    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1));
+    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), A(std::max<int64_t>(Kmax * M, 1));
     for (int64_t j = j0; j < j1; ++j) {
       const int64_t s0 = op[j], K = op[j + 1] - s0;
       if (K == 0) continue;
+      gather_coef(A.data(), cp, nullptr, pp, s0, K, M, M);
       // Y_j (K x B) = A_j (K x M) Z_j^T (M x B)
-      gemm('T', 'N', B, K, M, 1.f, Zp + j * B * M, M, Ap + s0 * M, M, 0.f, buf.data(), B);
+      gemm('T', 'N', B, K, M, 1.f, Zp + j * B * M, M, A.data(), M, 0.f, buf.data(), B);
       for (int64_t k = 0; k < K; ++k) add_row(mine + dp[s0 + k] * B, &buf[k * B], B);
     }
   });
   return reduce(acc);
 }
 
-// basis order, backward. dy (n_out, B); returns dZ (n_in, B, M), dA (P, M).
-std::vector<torch::Tensor> basis_backward(torch::Tensor dy, torch::Tensor Z, torch::Tensor A, torch::Tensor offs,
-                                          torch::Tensor dst, bool need_dZ, bool need_dA) {
+// basis order, backward. dy (n_out, B); returns dZ (n_in, B, M) and dcoef (R, M) (zero at the rows no
+// slot reads; empty where not asked for).
+std::vector<torch::Tensor> basis_backward(torch::Tensor dy, torch::Tensor Z, torch::Tensor coef, torch::Tensor offs,
+                                          torch::Tensor dst, torch::Tensor pos, bool need_dZ, bool need_dcoef) {
   check(dy, "dy", at::kFloat, 2);
   const int64_t n_in = Z.size(0), B = Z.size(1), M = Z.size(2);
-  auto dZ = need_dZ ? torch::empty({n_in, B, M}, Z.options()) : torch::empty({0}, Z.options());
-  auto dA = need_dA ? torch::empty({A.size(0), M}, Z.options()) : torch::empty({0}, Z.options());
+  auto empty = torch::empty({0}, Z.options());
+  auto dZ = need_dZ ? torch::empty({n_in, B, M}, Z.options()) : empty;
+  auto dcoef = need_dcoef ? torch::zeros({coef.size(0), M}, Z.options()) : empty;
   const float* Zp = Z.data_ptr<float>();
-  const float* Ap = A.data_ptr<float>();
+  const float* cp = coef.data_ptr<float>();
   const float* dyp = dy.data_ptr<float>();
   const int64_t* op = offs.data_ptr<int64_t>();
   const int64_t* dp = dst.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
   float* dZp = need_dZ ? dZ.data_ptr<float>() : nullptr;
-  float* dAp = need_dA ? dA.data_ptr<float>() : nullptr;
+  float* dcp = need_dcoef ? dcoef.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_in);
   at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
-    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1));
+    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), A(std::max<int64_t>(Kmax * M, 1));
     for (int64_t j = j0; j < j1; ++j) {
       const int64_t s0 = op[j], K = op[j + 1] - s0;
       if (K == 0) {
@@ -221,13 +277,19 @@ std::vector<torch::Tensor> basis_backward(torch::Tensor dy, torch::Tensor Z, tor
         continue;
       }
       for (int64_t k = 0; k < K; ++k) std::memcpy(&buf[k * B], dyp + dp[s0 + k] * B, B * sizeof(float));
-      // dA_j (K x M) = dY_j (K x B) Z_j (B x M)
-      if (need_dA) gemm('N', 'N', M, K, B, 1.f, Zp + j * B * M, M, buf.data(), B, 0.f, dAp + s0 * M, M);
-      // dZ_j (B x M) = dY_j^T (B x K) A_j (K x M)
-      if (need_dZ) gemm('N', 'T', M, B, K, 1.f, Ap + s0 * M, M, buf.data(), B, 0.f, dZp + j * B * M, M);
+      if (need_dcoef) {
+        // dA_j (K x M) = dY_j (K x B) Z_j (B x M)
+        gemm('N', 'N', M, K, B, 1.f, Zp + j * B * M, M, buf.data(), B, 0.f, A.data(), M);
+        scatter_coef(A.data(), dcp, nullptr, pp, s0, K, M, M);
+      }
+      if (need_dZ) {
+        gather_coef(A.data(), cp, nullptr, pp, s0, K, M, M);
+        // dZ_j (B x M) = dY_j^T (B x K) A_j (K x M)
+        gemm('N', 'T', M, B, K, 1.f, A.data(), M, buf.data(), B, 0.f, dZp + j * B * M, M);
+      }
     }
   });
-  return {dZ, dA};
+  return {dZ, dcoef};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {

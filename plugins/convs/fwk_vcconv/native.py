@@ -9,8 +9,11 @@ vertex on the exact support (no padding, no mask): a vertex's rows are gathered 
 that stays in cache, multiplied by one BLAS call, and accumulated into the result (per-thread
 accumulators for the scatters, summed in thread order).
 
-    sum order:    T_i = X_i^T A_i[:, :M],  r_i = X_i^T A_i[:, M]     X_i = x[src[s]], s in slots(i)
-    basis order:  y_o = sum_{s: dst[s] = o} (A_j Z_j^T)[s]           s in slots(j)
+    sum order:    T_i = X_i^T A_i,  r_i = X_i^T a_i     X_i = x[src[s]], A_i = coef[pos[s]], a_i = w[pos[s]]
+    basis order:  y_o = sum_{s: dst[s] = o} (A_j Z_j^T)[s]           A_j = coef[pos[s]], s in slots(j)
+
+The coefficients are read in place (``pos``: each slot's row of the conv's coefficients) and
+their gradients written there: no gathered copy of them, no scatter-add back.
 
 with the gradients dX_i = A_i dT_i^T (scattered to x's rows), dA_i = X_i dT_i, and
 dA_j = dY_j Z_j, dZ_j = dY_j^T A_j (dY_j = dy's rows at dst). ``sum_product`` and
@@ -62,7 +65,8 @@ def _load():
             build = Path(os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()) / f"fwk_vcconv_native_{tag}"
             build.mkdir(parents=True, exist_ok=True)
             _clear_stale_lock(build)
-            if not (build / "fwk_vcconv_native.so").exists():
+            so = build / "fwk_vcconv_native.so"
+            if not so.exists() or so.stat().st_mtime < src.stat().st_mtime:
                 _say(f"vcconv: compiling its native kernels into {build} (once per machine and torch version, "
                      "about a minute)")
             _module = load(name="fwk_vcconv_native", sources=[str(src)], build_directory=str(build),
@@ -112,37 +116,38 @@ def usable(*tensors) -> bool:
 
 # ---- sum order
 @torch.library.custom_op("fwk_vcconv::sum_product", mutates_args=())
-def sum_product(x: torch.Tensor, A: torch.Tensor, offs: torch.Tensor, src: torch.Tensor,
-                M: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(T (n_out, B, M), r (n_out, B)): T_i = X_i^T A_i[:, :M], r_i = X_i^T A_i[:, M] (r empty,
-    (0,), when A has M columns). x (n_in, B), A (slots, M or M + 1), offs (n_out + 1), src (slots)."""
-    T, r = _load().sum_forward(x.contiguous(), A.contiguous(), offs, src, M)
+def sum_product(x: torch.Tensor, coef: torch.Tensor, w: torch.Tensor, offs: torch.Tensor, src: torch.Tensor,
+                pos: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(T (n_out, B, M), r (n_out, B)): T_i = X_i^T A_i, r_i = X_i^T a_i, with A_i the rows
+    coef[pos[s]] and a_i the weights w[pos[s]] of output i's slots s in [offs[i], offs[i + 1])
+    (r empty, (0,), when w is). x (n_in, B), coef (R, M), w (R) or (0,), src and pos (slots)."""
+    T, r = _load().sum_forward(x.contiguous(), coef.contiguous(), w.contiguous(), offs, src, pos)
     return T, r
 
 
 @sum_product.register_fake
-def _(x, A, offs, src, M):
+def _(x, coef, w, offs, src, pos):
     n_out, B = offs.shape[0] - 1, x.shape[1]
-    return x.new_empty(n_out, B, M), x.new_empty(n_out, B) if A.shape[1] == M + 1 else x.new_empty(0)
+    return x.new_empty(n_out, B, coef.shape[1]), x.new_empty(n_out, B) if w.shape[0] else x.new_empty(0)
 
 
 def _sum_setup(ctx, inputs, output):
-    x, A, offs, src, M = inputs
-    ctx.M = M
-    ctx.save_for_backward(x, A, offs, src)
+    ctx.save_for_backward(*inputs)
 
 
 def _sum_backward(ctx, dT, dr):
-    x, A, offs, src = ctx.saved_tensors
+    x, coef, w, offs, src, pos = ctx.saved_tensors
     n_out, B = offs.shape[0] - 1, x.shape[1]
-    dT = x.new_zeros(n_out, B, ctx.M) if dT is None else dT.contiguous()
-    if A.shape[1] == ctx.M + 1:
+    dT = x.new_zeros(n_out, B, coef.shape[1]) if dT is None else dT.contiguous()
+    if w.shape[0]:
         dr = x.new_zeros(n_out, B) if dr is None or dr.shape != (n_out, B) else dr.contiguous()
     else:
         dr = x.new_empty(0)
-    need_x, need_A = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-    dx, dA = _load().sum_backward(dT, dr, x.contiguous(), A.contiguous(), offs, src, need_x, need_A)
-    return (dx if need_x else None), (dA if need_A else None), None, None, None
+    need = ctx.needs_input_grad
+    dx, dcoef, dw = _load().sum_backward(dT, dr, x.contiguous(), coef.contiguous(), w.contiguous(), offs, src, pos,
+                                         need[0], need[1], need[2] and w.shape[0] > 0)
+    return (dx if need[0] else None), (dcoef if need[1] else None), (dw if need[2] and w.shape[0] else None), \
+        None, None, None
 
 
 sum_product.register_autograd(_sum_backward, setup_context=_sum_setup)
@@ -150,28 +155,30 @@ sum_product.register_autograd(_sum_backward, setup_context=_sum_setup)
 
 # ---- basis order
 @torch.library.custom_op("fwk_vcconv::basis_product", mutates_args=())
-def basis_product(Z: torch.Tensor, A: torch.Tensor, offs: torch.Tensor, dst: torch.Tensor,
+def basis_product(Z: torch.Tensor, coef: torch.Tensor, offs: torch.Tensor, dst: torch.Tensor, pos: torch.Tensor,
                   n_out: int) -> torch.Tensor:
-    """y (n_out, B): y_o = sum of the slots' rows (A_j Z_j^T)[s] with dst[s] = o. Z (n_in, B, M),
-    A (slots, M), offs (n_in + 1), dst (slots)."""
-    return _load().basis_forward(Z.contiguous(), A.contiguous(), offs, dst, n_out)
+    """y (n_out, B): y_o = sum of the slots' rows (A_j Z_j^T)[s] with dst[s] = o, A_j the rows
+    coef[pos[s]] of input j's slots s in [offs[j], offs[j + 1]). Z (n_in, B, M), coef (R, M), dst
+    and pos (slots)."""
+    return _load().basis_forward(Z.contiguous(), coef.contiguous(), offs, dst, pos, n_out)
 
 
 @basis_product.register_fake
-def _(Z, A, offs, dst, n_out):
+def _(Z, coef, offs, dst, pos, n_out):
     return Z.new_empty(n_out, Z.shape[1])
 
 
 def _basis_setup(ctx, inputs, output):
-    Z, A, offs, dst, n_out = inputs
-    ctx.save_for_backward(Z, A, offs, dst)
+    Z, coef, offs, dst, pos, n_out = inputs
+    ctx.save_for_backward(Z, coef, offs, dst, pos)
 
 
 def _basis_backward(ctx, dy):
-    Z, A, offs, dst = ctx.saved_tensors
-    need_Z, need_A = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-    dZ, dA = _load().basis_backward(dy.contiguous(), Z.contiguous(), A.contiguous(), offs, dst, need_Z, need_A)
-    return (dZ if need_Z else None), (dA if need_A else None), None, None, None
+    Z, coef, offs, dst, pos = ctx.saved_tensors
+    need_Z, need_c = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+    dZ, dcoef = _load().basis_backward(dy.contiguous(), Z.contiguous(), coef.contiguous(), offs, dst, pos,
+                                       need_Z, need_c)
+    return (dZ if need_Z else None), (dcoef if need_c else None), None, None, None, None
 
 
 basis_product.register_autograd(_basis_backward, setup_context=_basis_setup)
@@ -182,12 +189,14 @@ def _register_flops():
     from torch.utils.flop_counter import register_flop_formula
 
     @register_flop_formula(torch.ops.fwk_vcconv.sum_product)
-    def _sum_flops(x_shape, A_shape, offs_shape, src_shape, M, *args, out_shape=None, **kwargs) -> int:
-        return 2 * A_shape[0] * x_shape[1] * A_shape[1]
+    def _sum_flops(x_shape, coef_shape, w_shape, offs_shape, src_shape, pos_shape, *args, out_shape=None,
+                   **kwargs) -> int:
+        return 2 * src_shape[0] * x_shape[1] * (coef_shape[1] + (1 if w_shape[0] else 0))
 
     @register_flop_formula(torch.ops.fwk_vcconv.basis_product)
-    def _basis_flops(Z_shape, A_shape, offs_shape, dst_shape, n_out, *args, out_shape=None, **kwargs) -> int:
-        return 2 * A_shape[0] * Z_shape[1] * Z_shape[2]
+    def _basis_flops(Z_shape, coef_shape, offs_shape, dst_shape, pos_shape, n_out, *args, out_shape=None,
+                     **kwargs) -> int:
+        return 2 * dst_shape[0] * Z_shape[1] * Z_shape[2]
 
 
 _register_flops()
