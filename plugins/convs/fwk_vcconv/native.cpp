@@ -86,6 +86,11 @@ void check_csr(const torch::Tensor& offs, const torch::Tensor& idx, int64_t n_ro
 }
 
 
+// rows base[idx[s]] (B floats each) of slots [s0, s0 + K) into buf (K x B)
+inline void gather_rows(float* buf, const float* base, const int64_t* idx, int64_t s0, int64_t K, int64_t B) {
+  for (int64_t k = 0; k < K; ++k) std::memcpy(buf + k * B, base + idx[s0 + k] * B, B * sizeof(float));
+}
+
 // the coefficient rows of slots [s0, s0 + K) into buf (K x Mx): coef[pos[s]] (M floats) and, when
 // Mx == M + 1, w[pos[s]] in the last column
 inline void gather_coef(float* buf, const float* coef, const float* w, const int64_t* pos, int64_t s0, int64_t K,
@@ -146,7 +151,7 @@ std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torc
     std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), A(std::max<int64_t>(Kmax * Mx, 1));
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
-      for (int64_t k = 0; k < K; ++k) std::memcpy(&buf[k * B], xp + sp[s0 + k] * B, B * sizeof(float));
+      gather_rows(buf.data(), xp, sp, s0, K, B);
       gather_coef(A.data(), cp, wp, pp, s0, K, M, Mx);
       // T_i (B x M) = X_i^T (B x K) A_i (K x M)
       gemm('N', 'T', M, B, K, 1.f, A.data(), Mx, buf.data(), B, 0.f, Tp + i * B * M, M);
@@ -196,7 +201,7 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
       if (K == 0) continue;
       const float* dTi = dTp + i * B * M;
       if (need_dcoef || need_dw) {
-        for (int64_t k = 0; k < K; ++k) std::memcpy(&buf[k * B], xp + sp[s0 + k] * B, B * sizeof(float));
+        gather_rows(buf.data(), xp, sp, s0, K, B);
         // dA_i[:, :M] (K x M) = X_i (K x B) dT_i (B x M)
         gemm('N', 'N', M, K, B, 1.f, dTi, M, buf.data(), B, 0.f, dA.data(), Mx);
         // dA_i[:, M] (K x 1) = X_i (K x B) dr_i (B x 1)
@@ -276,7 +281,7 @@ std::vector<torch::Tensor> basis_backward(torch::Tensor dy, torch::Tensor Z, tor
         if (need_dZ) std::fill(dZp + j * B * M, dZp + (j + 1) * B * M, 0.f);
         continue;
       }
-      for (int64_t k = 0; k < K; ++k) std::memcpy(&buf[k * B], dyp + dp[s0 + k] * B, B * sizeof(float));
+      gather_rows(buf.data(), dyp, dp, s0, K, B);
       if (need_dcoef) {
         // dA_j (K x M) = dY_j (K x B) Z_j (B x M)
         gemm('N', 'N', M, K, B, 1.f, Zp + j * B * M, M, buf.data(), B, 0.f, A.data(), M);
