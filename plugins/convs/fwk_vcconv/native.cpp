@@ -15,15 +15,18 @@
 // s in [offs[i], offs[i+1]), X_i = x[src[s]] (K_i x B, B = b c), A_i (K_i x Mx) the rows coef[pos[s]]
 // (M floats) beside w[pos[s]] when the residual's weights are given (Mx = M + 1):
 //     T_i = X_i^T A_i[:, :M]  (B x M),   r_i = X_i^T A_i[:, M]  (B; only when Mx = M + 1)
+// with the gradients dX_i = A_i dT_i^T (+ a_i dr_i^T), scattered to x's rows, and dA_i = X_i dT_i;
 // ``basis`` order (input side, the decoder's transposed layers): for input vertex j with slots
 // s in [offs[j], offs[j+1]), Z_j (B' x M) and A_j (K'_j x M) the rows coef[pos[s]]:
 //     y[dst[s]] += (A_j Z_j^T)[s]   (rows of B' floats)
+// with dA_j = dY_j Z_j and dZ_j = dY_j^T A_j (dY_j = dy's rows at dst).
 //
-// The coefficients are read where the conv keeps them (pos: each slot's row of the conv's (n_out K,
-// M) coefficients, distinct) and their gradients written there, so no gathered copy and no
-// scatter-add of them is made. Scatters into a shared result (the ``sum`` order's dx, the ``basis`` order's y) go to one
-// private accumulator per thread, summed in thread order at the end: no atomics, and the same
-// bits on every run with the same thread count (the split of vertices among threads is static).
+// The coefficients are read where the conv keeps them (pos: each slot's row of the conv's
+// (n_out K, M) coefficients, distinct) and their gradients written there, so no gathered copy and
+// no scatter-add of them is made. Scatters into a shared result (the ``sum`` order's dx, the
+// ``basis`` order's y) go to one private accumulator per thread, summed in thread order at the
+// end: no atomics, and the same bits on every run with the same thread count (the split of
+// vertices among threads is static).
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
@@ -84,7 +87,6 @@ void check_csr(const torch::Tensor& offs, const torch::Tensor& idx, int64_t n_ro
   for (int64_t t = 0; t < idx.size(0); ++t)
     TORCH_CHECK(s[t] >= 0 && s[t] < n_target, "index: entry out of range");
 }
-
 
 // rows base[idx[s]] (B floats each) of slots [s0, s0 + K) into buf (K x B)
 inline void gather_rows(float* buf, const float* base, const int64_t* idx, int64_t s0, int64_t K, int64_t B) {

@@ -12,22 +12,23 @@ accumulators for the scatters, summed in thread order).
     sum order:    T_i = X_i^T A_i,  r_i = X_i^T a_i     X_i = x[src[s]], A_i = coef[pos[s]], a_i = w[pos[s]]
     basis order:  y_o = sum_{s: dst[s] = o} (A_j Z_j^T)[s]           A_j = coef[pos[s]], s in slots(j)
 
-The coefficients are read in place (``pos``: each slot's row of the conv's coefficients) and
-their gradients written there: no gathered copy of them, no scatter-add back.
-
-with the gradients dX_i = A_i dT_i^T (scattered to x's rows), dA_i = X_i dT_i, and
-dA_j = dY_j Z_j, dZ_j = dY_j^T A_j (dY_j = dy's rows at dst). ``sum_product`` and
+with the gradients dX_i = A_i dT_i^T (+ a_i dr_i^T; scattered to x's rows), dA_i = X_i dT_i, and
+dA_j = dY_j Z_j, dZ_j = dY_j^T A_j (dY_j = dy's rows at dst). The coefficients are read in place
+(``pos``: each slot's row of the conv's coefficients, each named once) and their gradients
+written there: no gathered copy of them, no scatter-add back. ``sum_product`` and
 ``basis_product`` are ``torch.library`` operators (``fwk_vcconv::sum_product``,
 ``fwk_vcconv::basis_product``) with these gradients registered, and with their multiply-adds
 registered for ``torch.utils.flop_counter`` (so the training benchmark counts them as it counts
 torch's own products).
 
 The kernels are float32 and compiled on first use with ``torch.utils.cpp_extension`` (a C++
-compiler and ninja; about a minute, once per machine and torch version, in torch's extension
-cache, ``TORCH_EXTENSIONS_DIR``). ``available()`` is False, and ``VCConv`` runs its torch
-code, when the build fails (the reason is printed once), when ``FWK_VCCONV_NATIVE=0``, and for
-other dtypes or devices (bf16 autocast, CUDA). Tested against the torch orders in value and
-gradient (``tests/convs/test_vcconv_native.py``), which are tested against per-vertex loops.
+compiler and ninja; about a minute, once per machine and torch version, in a folder per torch
+version under torch's extension cache, ``TORCH_EXTENSIONS_DIR``; a build lock left by a killed
+build is removed after ``STALE_LOCK_SECONDS``). ``available()`` is False when the build fails
+(the reason is printed once) or ``FWK_VCCONV_NATIVE=0``; ``usable()`` is also False for other
+dtypes, devices and bf16 autocast; ``VCConv`` then runs its torch code. Tested against per-vertex
+loops in float64, value and gradient (``tests/convs/test_vcconv_native.py``), and the whole conv
+against the naive sum on both paths (``tests/autoencoders/test_vcconv_naive.py``).
 """
 from __future__ import annotations
 
@@ -39,13 +40,13 @@ from pathlib import Path
 import torch
 
 
-
-def _say(line: str) -> None:
-    print(line, file=sys.stderr, flush=True)
-
 _lock = threading.Lock()
 _module = None
 _failed: str | None = None
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def _load():
