@@ -48,7 +48,7 @@ gathers and scatters move whole rows and their backward passes are an ``index_ad
 
 On float32 CPU tensors the ``sum`` and ``basis`` orders run their per-vertex products in native
 kernels (``fwk_vcconv.native``: the exact supports, no padding, no gathered intermediates;
-1.34-1.45x a training step, docs/methods/autoencoders.md "Speed"); elsewhere (bf16 autocast,
+1.3-1.6x a training step, docs/methods/autoencoders.md "Speed"); elsewhere (bf16 autocast,
 float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. ``auto`` prices the
 orders for the code that runs (the native kernels skip the padding and the slot-sized
 intermediates), which moves one layer measured: the chapter 5 width's first encoder layer takes
