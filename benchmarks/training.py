@@ -52,6 +52,7 @@ import json
 import os
 import sys
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import torch
@@ -161,17 +162,17 @@ def without_native(step):
     """The step on vcconv's torch code (``FWK_VCCONV_NATIVE=0`` while it runs), for a side-by-side
     timing against the native kernels (``fwk_vcconv.native``) in one process."""
     def run():
-        before = os.environ.get("FWK_VCCONV_NATIVE")
-        os.environ["FWK_VCCONV_NATIVE"] = "0"
-        try:
+        with mock.patch.dict(os.environ, {"FWK_VCCONV_NATIVE": "0"}):
             return step()
-        finally:
-            if before is None:
-                del os.environ["FWK_VCCONV_NATIVE"]
-            else:
-                os.environ["FWK_VCCONV_NATIVE"] = before
 
     return run
+
+
+def add_torch_code(steps: dict, enc, dec, x) -> float:
+    """Adds a copy of a vcconv network on vcconv's torch code to ``steps`` (key ``after_torch``);
+    returns that code's GFLOP a step (its padded products)."""
+    steps["after_torch"] = without_native(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x))
+    return without_native(lambda: gflop(enc, dec, x))()
 
 
 def native_line(r: dict, ts: dict, g_torch: float, rate: float) -> None:
@@ -276,8 +277,7 @@ def main():
         g_new, g_old = gflop(enc, dec, x), gflop(oenc, odec, x)
         steps = {"before": stepper(oenc, odec, x, fused=False), "after": stepper(enc, dec, x)}
         if key == "vcconv_vae":
-            steps["after_torch"] = without_native(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x))
-            g_torch = without_native(lambda: gflop(enc, dec, x))()
+            g_torch = add_torch_code(steps, enc, dec, x)
         if a.bf16:
             e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
             steps["after_bf16"] = stepper(e16, d16, x, bf16=True)
@@ -307,8 +307,7 @@ def main():
         g = gflop(enc, dec, x)
         steps = {"after": stepper(enc, dec, x)}
         if key == "vcconv_vae_ch5":
-            steps["after_torch"] = without_native(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x))
-            g_torch = without_native(lambda: gflop(enc, dec, x))()
+            g_torch = add_torch_code(steps, enc, dec, x)
         if a.bf16:
             steps["after_bf16"] = stepper(copy.deepcopy(enc), copy.deepcopy(dec), x, bf16=True)
         ts = alternate(steps, a.steps, a.cpu_time)
