@@ -93,6 +93,18 @@ inline void gather_rows(float* buf, const float* base, const int64_t* idx, int64
   for (int64_t k = 0; k < K; ++k) std::memcpy(buf + k * B, base + idx[s0 + k] * B, B * sizeof(float));
 }
 
+// the rows of buf (K x B) added to base[idx[s]] for slots [s0, s0 + K) (gather_rows' transpose)
+inline void scatter_add_rows(const float* buf, float* base, const int64_t* idx, int64_t s0, int64_t K, int64_t B) {
+  for (int64_t k = 0; k < K; ++k) add_row(base + idx[s0 + k] * B, buf + k * B, B);
+}
+
+// this thread's accumulator in acc (nt, rows, width): at::parallel_for splits the range statically
+inline float* thread_accumulator(float* acc, int nt, int64_t size) {
+  const int tid = at::get_thread_num();
+  TORCH_CHECK(tid < nt, "more threads than accumulators");
+  return acc + tid * size;
+}
+
 // the coefficient rows of slots [s0, s0 + K) into buf (K x Mx): coef[pos[s]] (M floats) and, when
 // Mx == M + 1, w[pos[s]] in the last column
 inline void gather_coef(float* buf, const float* coef, const float* w, const int64_t* pos, int64_t s0, int64_t K,
@@ -193,9 +205,7 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
   float* dwp = need_dw ? dw.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_out);
   at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
-    const int tid = at::get_thread_num();
-    TORCH_CHECK(tid < nt, "more threads than accumulators");
-    float* mine = need_dx ? accp + tid * n_in * B : nullptr;
+    float* mine = need_dx ? thread_accumulator(accp, nt, n_in * B) : nullptr;
     std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), dbuf(std::max<int64_t>(Kmax * B, 1));
     std::vector<float> A(std::max<int64_t>(Kmax * Mx, 1)), dA(std::max<int64_t>(Kmax * Mx, 1));
     for (int64_t i = i0; i < i1; ++i) {
@@ -215,7 +225,7 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
         // dX_i (K x B) = A_i[:, :M] (K x M) dT_i^T (M x B)  (+ a_i (K x 1) dr_i^T (1 x B))
         gemm('T', 'N', B, K, M, 1.f, dTi, M, A.data(), Mx, 0.f, dbuf.data(), B);
         if (res) gemm('N', 'N', B, K, 1, 1.f, drp + i * B, B, A.data() + M, Mx, 1.f, dbuf.data(), B);
-        for (int64_t k = 0; k < K; ++k) add_row(mine + sp[s0 + k] * B, &dbuf[k * B], B);
+        scatter_add_rows(dbuf.data(), mine, sp, s0, K, B);
       }
     }
   });
@@ -241,9 +251,7 @@ torch::Tensor basis_forward(torch::Tensor Z, torch::Tensor coef, torch::Tensor o
   float* accp = acc.data_ptr<float>();
   const int64_t Kmax = max_run(op, n_in);
   at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
-    const int tid = at::get_thread_num();
-    TORCH_CHECK(tid < nt, "more threads than accumulators");
-    float* mine = accp + tid * n_out * B;
+    float* mine = thread_accumulator(accp, nt, n_out * B);
     std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), A(std::max<int64_t>(Kmax * M, 1));
     for (int64_t j = j0; j < j1; ++j) {
       const int64_t s0 = op[j], K = op[j + 1] - s0;
@@ -251,7 +259,7 @@ torch::Tensor basis_forward(torch::Tensor Z, torch::Tensor coef, torch::Tensor o
       gather_coef(A.data(), cp, nullptr, pp, s0, K, M, M);
       // Y_j (K x B) = A_j (K x M) Z_j^T (M x B)
       gemm('T', 'N', B, K, M, 1.f, Zp + j * B * M, M, A.data(), M, 0.f, buf.data(), B);
-      for (int64_t k = 0; k < K; ++k) add_row(mine + dp[s0 + k] * B, &buf[k * B], B);
+      scatter_add_rows(buf.data(), mine, dp, s0, K, B);
     }
   });
   return reduce(acc);
