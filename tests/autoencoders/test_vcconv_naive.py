@@ -21,7 +21,7 @@ def evaluation(request, monkeypatch):
     if request.param == "torch":
         monkeypatch.setenv("FWK_VCCONV_NATIVE", "0")
     elif not native.available():
-        pytest.skip(f"native kernels unavailable: {native._failed}")
+        pytest.skip(f"native kernels unavailable: {native.failed()}")
     return request.param
 
 

@@ -7,9 +7,7 @@
 // rows into a buffer that stays in cache, call BLAS once per vertex on the exact (unpadded)
 // support, and accumulate straight into the result.
 //
-// Layout: row-major tensors; BLAS is column-major, so a row-major (r x c) matrix is handed over as
-// the column-major (c x r) matrix with leading dimension c, and every product below is written
-// for the transposes (the comment at each call gives the row-major product it computes).
+// Layout and per-thread accumulators: fwk_native.h (fwk.native).
 //
 // ``sum`` order (output side, the encoder's strided layers): for output vertex i with slots
 // s in [offs[i], offs[i+1]), X_i = x[src[s]] (K_i x B, B = b c), A_i (K_i x Mx) the rows coef[pos[s]]
@@ -24,56 +22,21 @@
 // The coefficients are read where the conv keeps them (pos: each slot's row of the conv's
 // (n_out K, M) coefficients, distinct) and their gradients written there, so no gathered copy and
 // no scatter-add of them is made. Scatters into a shared result (the ``sum`` order's dx, the
-// ``basis`` order's y) go to one private accumulator per thread, summed in thread order at the
-// end: no atomics, and the same bits on every run with the same thread count (the split of
-// vertices among threads is static).
-#include <torch/extension.h>
-#include <ATen/Parallel.h>
+// ``basis`` order's y) go to per-thread accumulators (fwk_native.h).
+#include "fwk_native.h"  // gemm, add_row, check, thread_accumulator, reduce (fwk.native)
 
 #include <algorithm>
 #include <cstring>
 #include <vector>
 
-extern "C" void sgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k,
-                       const float* alpha, const float* a, const int* lda, const float* b, const int* ldb,
-                       const float* beta, float* c, const int* ldc);
-
 namespace {
 
-// column-major C (m x n) = alpha op(A) op(B) + beta C
-inline void gemm(char ta, char tb, int64_t m, int64_t n, int64_t k, float alpha, const float* a, int64_t lda,
-                 const float* b, int64_t ldb, float beta, float* c, int64_t ldc) {
-  if (m == 0 || n == 0) return;
-  if (k == 0) {
-    for (int64_t j = 0; j < n; ++j)
-      for (int64_t i = 0; i < m; ++i) c[j * ldc + i] = beta == 0.f ? 0.f : beta * c[j * ldc + i];
-    return;
-  }
-  const int M = (int)m, N = (int)n, K = (int)k, LDA = (int)lda, LDB = (int)ldb, LDC = (int)ldc;
-  sgemm_(&ta, &tb, &M, &N, &K, &alpha, a, &LDA, b, &LDB, &beta, c, &LDC);
-}
-
-inline void add_row(float* __restrict dst, const float* __restrict src, int64_t n) {
-#pragma omp simd
-  for (int64_t t = 0; t < n; ++t) dst[t] += src[t];
-}
-
-void check(const torch::Tensor& t, const char* name, at::ScalarType dtype, int64_t dim) {
-  TORCH_CHECK(t.device().is_cpu(), name, ": expected a CPU tensor");
-  TORCH_CHECK(t.scalar_type() == dtype, name, ": expected ", dtype, ", got ", t.scalar_type());
-  TORCH_CHECK(t.dim() == dim, name, ": expected ", dim, " dimensions, got ", t.dim());
-  TORCH_CHECK(t.is_contiguous(), name, ": expected a contiguous tensor");
-}
+using namespace fwk_native;
 
 int64_t max_run(const int64_t* offs, int64_t n) {
   int64_t k = 0;
   for (int64_t i = 0; i < n; ++i) k = std::max(k, offs[i + 1] - offs[i]);
   return k;
-}
-
-// the per-thread accumulators (nt, rows, width) summed in thread order into (rows, width)
-torch::Tensor reduce(const torch::Tensor& acc) {
-  return acc.size(0) == 1 ? acc[0] : acc.sum(0);
 }
 
 void check_csr(const torch::Tensor& offs, const torch::Tensor& idx, int64_t n_rows, int64_t n_target) {
@@ -83,9 +46,7 @@ void check_csr(const torch::Tensor& offs, const torch::Tensor& idx, int64_t n_ro
   const int64_t* o = offs.data_ptr<int64_t>();
   TORCH_CHECK(o[0] == 0 && o[n_rows] == idx.size(0), "offs: must run from 0 to the slot count");
   for (int64_t i = 0; i < n_rows; ++i) TORCH_CHECK(o[i + 1] >= o[i], "offs: must not decrease");
-  const int64_t* s = idx.data_ptr<int64_t>();
-  for (int64_t t = 0; t < idx.size(0); ++t)
-    TORCH_CHECK(s[t] >= 0 && s[t] < n_target, "index: entry out of range");
+  check_range(idx, "index", n_target);
 }
 
 // rows base[idx[s]] (B floats each) of slots [s0, s0 + K) into buf (K x B)
@@ -96,13 +57,6 @@ inline void gather_rows(float* buf, const float* base, const int64_t* idx, int64
 // the rows of buf (K x B) added to base[idx[s]] for slots [s0, s0 + K) (gather_rows' transpose)
 inline void scatter_add_rows(const float* buf, float* base, const int64_t* idx, int64_t s0, int64_t K, int64_t B) {
   for (int64_t k = 0; k < K; ++k) add_row(base + idx[s0 + k] * B, buf + k * B, B);
-}
-
-// this thread's accumulator in acc (nt, rows, width): at::parallel_for splits the range statically
-inline float* thread_accumulator(float* acc, int nt, int64_t size) {
-  const int tid = at::get_thread_num();
-  TORCH_CHECK(tid < nt, "more threads than accumulators");
-  return acc + tid * size;
 }
 
 // the coefficient rows of slots [s0, s0 + K) into buf (K x Mx): coef[pos[s]] (M floats) and, when

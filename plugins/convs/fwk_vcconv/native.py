@@ -21,98 +21,31 @@ written there: no gathered copy of them, no scatter-add back. ``sum_product`` an
 registered for ``torch.utils.flop_counter`` (so the training benchmark counts them as it counts
 torch's own products).
 
-The kernels are float32 and compiled on first use with ``torch.utils.cpp_extension`` (a C++
-compiler and ninja; about a minute, once per machine and torch version, in a folder per torch
-version under torch's extension cache, ``TORCH_EXTENSIONS_DIR``; a build lock left by a killed
-build is removed after ``STALE_LOCK_SECONDS``). ``available()`` is False when the build fails
-(the reason is printed once) or ``FWK_VCCONV_NATIVE=0``; ``usable()`` is also False for other
-dtypes, devices and bf16 autocast; ``VCConv`` then runs its torch code. Tested against per-vertex
-loops in float64, value and gradient (``tests/convs/test_vcconv_native.py``), and the whole conv
-against the naive sum on both paths (``tests/autoencoders/test_vcconv_naive.py``).
+The kernels are float32 and compiled on first use (``fwk.native``: a C++ compiler and ninja;
+about a minute, once per machine and torch version). ``available()`` is False when the build
+fails (the reason is printed once, ``failed()``) or ``FWK_VCCONV_NATIVE=0``; ``usable()`` is
+also False for other dtypes, devices and bf16 autocast; ``VCConv`` then runs its torch code.
+Tested against per-vertex loops in float64, value and gradient
+(``tests/convs/test_vcconv_native.py``), and the whole conv against the naive sum on both paths
+(``tests/autoencoders/test_vcconv_naive.py``).
 """
 from __future__ import annotations
 
-import os
-import sys
-import threading
 from pathlib import Path
 
 import torch
 
+from fwk.native import Extension
 
-_lock = threading.Lock()
-_module = None
-_failed: str | None = None
-
-
-def _say(line: str) -> None:
-    print(line, file=sys.stderr, flush=True)
+KERNELS = Extension("fwk_vcconv_native", [Path(__file__).with_name("native.cpp")], label=__package__,
+                    env="FWK_VCCONV_NATIVE")
+enabled, available, usable = KERNELS.enabled, KERNELS.available, KERNELS.usable
+_load = KERNELS.load
 
 
-def _load():
-    """The compiled module, or None (the reason in ``_failed``)."""
-    global _module, _failed
-    if _module is not None or _failed is not None:
-        return _module
-    with _lock:
-        if _module is not None or _failed is not None:
-            return _module
-        try:
-            from torch.utils.cpp_extension import get_default_build_root, load
-
-            src = Path(__file__).with_name("native.cpp")
-            # one folder per torch version (torch's cache is keyed by sources and flags, not by its version)
-            tag = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
-            build = Path(os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()) / f"fwk_vcconv_native_{tag}"
-            build.mkdir(parents=True, exist_ok=True)
-            _clear_stale_lock(build)
-            so = build / "fwk_vcconv_native.so"
-            if not so.exists() or so.stat().st_mtime < src.stat().st_mtime:
-                _say(f"vcconv: compiling its native kernels into {build} (once per machine and torch version, "
-                     "about a minute)")
-            _module = load(name="fwk_vcconv_native", sources=[str(src)], build_directory=str(build),
-                           extra_cflags=["-O3", "-fopenmp"], extra_ldflags=["-fopenmp"], verbose=False)
-        except Exception as e:  # no compiler, no ninja, a torch without BLAS symbols: the torch code runs
-            _failed = f"{type(e).__name__}: {str(e).strip().splitlines()[-1] if str(e).strip() else ''}"
-            _say(f"vcconv: native kernels unavailable ({_failed}); vcconv runs its torch code (slower)")
-    return _module
-
-
-#: a build lock older than this is a build that was killed (torch would wait for it forever)
-STALE_LOCK_SECONDS = 600
-
-
-def _clear_stale_lock(build: Path) -> None:
-    """Removes torch's build lock when the build that took it was killed long ago (a build takes
-    about 40 s): torch's ``FileBaton`` would otherwise wait for it without end."""
-    import time
-
-    lock = build / "lock"
-    try:
-        if time.time() - lock.stat().st_mtime > STALE_LOCK_SECONDS:
-            lock.unlink()
-            _say(f"vcconv: removed a stale build lock {lock} (a build killed earlier)")
-    except FileNotFoundError:
-        pass
-
-
-def enabled() -> bool:
-    """Whether ``VCConv`` may use the kernels (``FWK_VCCONV_NATIVE`` is not 0)."""
-    return os.environ.get("FWK_VCCONV_NATIVE", "1") != "0"
-
-
-def available() -> bool:
-    """True when the kernels are enabled and built (building them on the first call)."""
-    return enabled() and _load() is not None
-
-
-def usable(*tensors) -> bool:
-    """The kernels apply: enabled, built, and every tensor a float32 CPU tensor, outside autocast."""
-    if torch.is_autocast_enabled("cpu"):
-        return False
-    if not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
-        return False
-    return available()
+def failed() -> str | None:
+    """Why the kernels did not build (None when they did, or were not tried yet)."""
+    return KERNELS.failed
 
 
 # ---- sum order

@@ -1,0 +1,112 @@
+"""Plugins' C++ kernels, compiled on first use (``torch.utils.cpp_extension``), and the helpers
+they share (``fwk_native.h``: the BLAS call, per-thread accumulators summed in thread order,
+argument checks).
+
+A plugin declares its kernels once, ``KERNELS = Extension("fwk_vcconv_native", [Path(__file__).with_name(
+"native.cpp")], label="vcconv", env="FWK_VCCONV_NATIVE")``, and asks ``KERNELS.usable(x, w)`` before
+each call: True when the variable is not 0, the module built, and every tensor is a float32 CPU
+tensor outside autocast; otherwise the plugin runs its torch code. The module is built with
+``-O3 -fopenmp`` against the header folder (``HEADER_DIR``) into a folder per torch version under
+torch's extension cache (``TORCH_EXTENSIONS_DIR``): torch keys its cache by the sources and flags,
+not by its own version, and not by included headers, so the header's digest is passed as a
+define and a changed header rebuilds. A build takes 40-60 s, once per machine and torch version
+(a C++ compiler and ninja: ``.ci/run`` and fwk's dependencies bring them). When it fails, the
+reason is printed once and kept in ``Extension.failed``. A build lock older than
+``STALE_LOCK_SECONDS`` is a build that was killed: torch would wait for it forever, so it is
+removed.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import torch
+
+#: the folder of ``fwk_native.h``, on every extension's include path
+HEADER_DIR = Path(__file__).resolve().parent
+#: a build lock older than this is a build that was killed (a build takes about 40 s)
+STALE_LOCK_SECONDS = 600
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def clear_stale_lock(build: Path, label: str = "native kernels") -> None:
+    """Removes torch's build lock in ``build`` when the build that took it was killed long ago:
+    torch's ``FileBaton`` would otherwise wait for it without end."""
+    lock = Path(build) / "lock"
+    try:
+        if time.time() - lock.stat().st_mtime > STALE_LOCK_SECONDS:
+            lock.unlink()
+            _say(f"{label}: removed a stale build lock {lock} (a build killed earlier)")
+    except FileNotFoundError:
+        pass
+
+
+class Extension:
+    """One plugin's compiled kernels: ``name`` (the module's name, unique), ``sources`` (C++ files),
+    ``label`` (how messages name it), ``env`` (the variable that turns it off with 0)."""
+
+    def __init__(self, name: str, sources: list[Path], label: str, env: str):
+        self.name, self.sources, self.label, self.env = name, [Path(s) for s in sources], label, env
+        self.failed: str | None = None
+        self._module = None
+        self._lock = threading.Lock()
+
+    def enabled(self) -> bool:
+        """Whether the plugin may use the kernels (its variable is not 0)."""
+        return os.environ.get(self.env, "1") != "0"
+
+    def build_folder(self) -> Path:
+        from torch.utils.cpp_extension import get_default_build_root
+
+        tag = "".join(ch if ch.isalnum() else "_" for ch in torch.__version__)
+        return Path(os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()) / f"{self.name}_{tag}"
+
+    def load(self):
+        """The compiled module, or None (the reason in ``failed``, printed once)."""
+        if self._module is not None or self.failed is not None:
+            return self._module
+        with self._lock:
+            if self._module is not None or self.failed is not None:
+                return self._module
+            try:
+                from torch.utils.cpp_extension import load
+
+                header = HEADER_DIR / "fwk_native.h"
+                digest = hashlib.sha256(header.read_bytes()).hexdigest()[:16]
+                build = self.build_folder()
+                build.mkdir(parents=True, exist_ok=True)
+                clear_stale_lock(build, self.label)
+                so = build / f"{self.name}.so"
+                newest = max(p.stat().st_mtime for p in [*self.sources, header])
+                if not so.exists() or so.stat().st_mtime < newest:
+                    _say(f"{self.label}: compiling its native kernels into {build} (once per machine and torch "
+                         "version, about a minute)")
+                self._module = load(name=self.name, sources=[str(s) for s in self.sources],
+                                    build_directory=str(build), extra_include_paths=[str(HEADER_DIR)],
+                                    extra_cflags=["-O3", "-fopenmp", f"-DFWK_NATIVE_H={digest}"],
+                                    extra_ldflags=["-fopenmp"], verbose=False)
+            except Exception as e:  # no compiler, no ninja, a torch without BLAS symbols: the torch code runs
+                last = str(e).strip().splitlines()[-1] if str(e).strip() else ""
+                self.failed = f"{type(e).__name__}: {last}"
+                _say(f"{self.label}: native kernels unavailable ({self.failed}); {self.label} runs its torch code "
+                     "(slower)")
+        return self._module
+
+    def available(self) -> bool:
+        """True when the kernels are enabled and built (building them on the first call)."""
+        return self.enabled() and self.load() is not None
+
+    def usable(self, *tensors) -> bool:
+        """The kernels apply: enabled, built, and every tensor a float32 CPU tensor, outside autocast."""
+        if torch.is_autocast_enabled("cpu"):
+            return False
+        if not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
+            return False
+        return self.available()

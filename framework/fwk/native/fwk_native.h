@@ -1,0 +1,66 @@
+// Helpers shared by fwk's native kernels (fwk.native; each plugin's native.cpp includes this).
+//
+// Layout: row-major tensors; BLAS is column-major, so a row-major (r x c) matrix is handed over as
+// the column-major (c x r) matrix with leading dimension c, and every product is written for the
+// transposes (the comment at each call gives the row-major product it computes).
+//
+// Scatters into a shared result go to one private accumulator per thread (``thread_accumulator``),
+// summed in thread order at the end (``reduce``): no atomics, and the same bits on every run with
+// the same thread count, because at::parallel_for splits a range statically.
+#pragma once
+
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <cstdint>
+
+extern "C" void sgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k,
+                       const float* alpha, const float* a, const int* lda, const float* b, const int* ldb,
+                       const float* beta, float* c, const int* ldc);
+
+namespace fwk_native {
+
+// column-major C (m x n) = alpha op(A) op(B) + beta C (MKL's sgemm_, which libtorch exports)
+inline void gemm(char ta, char tb, int64_t m, int64_t n, int64_t k, float alpha, const float* a, int64_t lda,
+                 const float* b, int64_t ldb, float beta, float* c, int64_t ldc) {
+  if (m == 0 || n == 0) return;
+  if (k == 0) {
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < m; ++i) c[j * ldc + i] = beta == 0.f ? 0.f : beta * c[j * ldc + i];
+    return;
+  }
+  const int M = (int)m, N = (int)n, K = (int)k, LDA = (int)lda, LDB = (int)ldb, LDC = (int)ldc;
+  sgemm_(&ta, &tb, &M, &N, &K, &alpha, a, &LDA, b, &LDB, &beta, c, &LDC);
+}
+
+inline void add_row(float* __restrict dst, const float* __restrict src, int64_t n) {
+#pragma omp simd
+  for (int64_t t = 0; t < n; ++t) dst[t] += src[t];
+}
+
+inline void check(const torch::Tensor& t, const char* name, at::ScalarType dtype, int64_t dim) {
+  TORCH_CHECK(t.device().is_cpu(), name, ": expected a CPU tensor");
+  TORCH_CHECK(t.scalar_type() == dtype, name, ": expected ", dtype, ", got ", t.scalar_type());
+  TORCH_CHECK(t.dim() == dim, name, ": expected ", dim, " dimensions, got ", t.dim());
+  TORCH_CHECK(t.is_contiguous(), name, ": expected a contiguous tensor");
+}
+
+// every entry of an int64 tensor in [0, n)
+inline void check_range(const torch::Tensor& idx, const char* name, int64_t n) {
+  const int64_t* s = idx.data_ptr<int64_t>();
+  for (int64_t t = 0; t < idx.numel(); ++t) TORCH_CHECK(s[t] >= 0 && s[t] < n, name, ": entry out of range");
+}
+
+// this thread's accumulator in acc (nt, size...): at::parallel_for splits the range statically
+inline float* thread_accumulator(float* acc, int nt, int64_t size) {
+  const int tid = at::get_thread_num();
+  TORCH_CHECK(tid < nt, "more threads than accumulators");
+  return acc + tid * size;
+}
+
+// the per-thread accumulators (nt, ...) summed in thread order
+inline torch::Tensor reduce(const torch::Tensor& acc) {
+  return acc.size(0) == 1 ? acc[0] : acc.sum(0);
+}
+
+}  // namespace fwk_native
