@@ -9,9 +9,9 @@ convs and networks), side by side in one process.
 Networks (thesis 3.4 / appendix A), batch 16, on the ICT-FaceKit face-head region (11,248
 vertices) when ICT-FaceKit is present, else a synthetic head of the same size (printed):
 
-The vcconv rows run on vcconv's native kernels (``fwk_vcconv.native``, issue 28); the line
-below each ("torch code") times the same network on vcconv's torch evaluation
-(``FWK_VCCONV_NATIVE=0``) in the same alternation.
+Today's rows run on the native kernels (``fwk_vcconv.native``, ``fwk_spiralpp.native``; issue 28);
+the line below each ("torch code") times the same network on its conv's torch evaluation
+(``FWK_VCCONV_NATIVE=0``, ``FWK_SPIRALPP_NATIVE=0``) in the same alternation.
 
 * ``vcconv VAE``: the fully convolutional VAE at the thesis's width (its Mesh Autoencoder and
   Deep Spectral Meshes' bands, issue 28's "thesis-width" network), channels [3, 32, 64, 128,
@@ -158,29 +158,33 @@ def loss_deviation(enc, dec, x, n: int = 8) -> list[float]:
     return out
 
 
+#: the variables that turn the native kernels off (fwk.native): vcconv's and spiral++'s
+NATIVE_OFF = {"FWK_VCCONV_NATIVE": "0", "FWK_SPIRALPP_NATIVE": "0"}
+
+
 def without_native(step):
-    """The step on vcconv's torch code (``FWK_VCCONV_NATIVE=0`` while it runs), for a side-by-side
-    timing against the native kernels (``fwk_vcconv.native``) in one process."""
+    """The step on the convs' torch code (``NATIVE_OFF`` while it runs), for a side-by-side
+    timing against the native kernels (``fwk_vcconv.native``, ``fwk_spiralpp.native``) in one process."""
     def run():
-        with mock.patch.dict(os.environ, {"FWK_VCCONV_NATIVE": "0"}):
+        with mock.patch.dict(os.environ, NATIVE_OFF):
             return step()
 
     return run
 
 
 def add_torch_code(steps: dict, enc, dec, x) -> float:
-    """Adds a copy of a vcconv network on vcconv's torch code to ``steps`` (key ``after_torch``);
-    returns that code's GFLOP a step (its padded products)."""
+    """Adds a copy of a network on its conv's torch code to ``steps`` (key ``after_torch``);
+    returns that code's GFLOP a step (vcconv's: its padded products)."""
     steps["after_torch"] = without_native(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x))
     return without_native(lambda: gflop(enc, dec, x))()
 
 
 def native_line(r: dict, ts: dict, g_torch: float, rate: float) -> None:
-    """Adds the torch code's figures to a vcconv row and prints them."""
+    """Adds the torch code's figures to a row and prints them."""
     r.update({"torch_code_ms": 1e3 * ts["after_torch"], "native_speedup": ts["after_torch"] / ts["after"],
               "gflop_torch_code": g_torch, "of_matmul_torch_code": g_torch / ts["after_torch"] / rate})
     print(f"{'  torch code':<13} {'':>10} {r['torch_code_ms']:>9.0f} {'':>6} {'':>13} {g_torch:>12.1f} "
-          f"{g_torch / ts['after_torch']:>14.1f} {100 * r['of_matmul_torch_code']:>9.0f}%   (FWK_VCCONV_NATIVE=0: "
+          f"{g_torch / ts['after_torch']:>14.1f} {100 * r['of_matmul_torch_code']:>9.0f}%   (native kernels off: "
           f"the native kernels are {r['native_speedup']:.2f}x faster)")
 
 
@@ -276,8 +280,7 @@ def main():
             oenc, odec = _before.spiralpp_ae(h, 3, spec["channels"], spec["latent"], length=9)
         g_new, g_old = gflop(enc, dec, x), gflop(oenc, odec, x)
         steps = {"before": stepper(oenc, odec, x, fused=False), "after": stepper(enc, dec, x)}
-        if key == "vcconv_vae":
-            g_torch = add_torch_code(steps, enc, dec, x)
+        g_torch = add_torch_code(steps, enc, dec, x)
         if a.bf16:
             e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
             steps["after_bf16"] = stepper(e16, d16, x, bf16=True)
@@ -287,8 +290,7 @@ def main():
              "gflops_after": g_new / ts["after"], "of_matmul": g_new / ts["after"] / rate}
         print(f"{label:<13} {r['before_ms']:>10.0f} {r['after_ms']:>9.0f} {r['ratio']:>6.2f} {g_old:>13.1f} "
               f"{g_new:>12.1f} {r['gflops_after']:>14.1f} {100 * r['of_matmul']:>9.0f}%")
-        if key == "vcconv_vae":
-            native_line(r, ts, g_torch, rate)
+        native_line(r, ts, g_torch, rate)
         if a.bf16:
             dev = loss_deviation(enc, dec, x)
             r.update({"after_bf16_ms": 1e3 * ts["after_bf16"], "bf16_speedup": ts["after"] / ts["after_bf16"],
@@ -306,8 +308,7 @@ def main():
         enc, dec, _ = networks(spec, t)
         g = gflop(enc, dec, x)
         steps = {"after": stepper(enc, dec, x)}
-        if key == "vcconv_vae_ch5":
-            g_torch = add_torch_code(steps, enc, dec, x)
+        g_torch = add_torch_code(steps, enc, dec, x)
         if a.bf16:
             steps["after_bf16"] = stepper(copy.deepcopy(enc), copy.deepcopy(dec), x, bf16=True)
         ts = alternate(steps, a.steps, a.cpu_time)
@@ -315,8 +316,7 @@ def main():
              "of_matmul": g / ts["after"] / rate}
         print(f"{label:<13} {'':>10} {r['after_ms']:>9.0f} {'':>6} {'':>13} {g:>12.1f} {r['gflops_after']:>14.1f} "
               f"{100 * r['of_matmul']:>9.0f}%   ({what})")
-        if key == "vcconv_vae_ch5":
-            native_line(r, ts, g_torch, rate)
+        native_line(r, ts, g_torch, rate)
         if a.bf16:
             r.update({"after_bf16_ms": 1e3 * ts["after_bf16"], "bf16_speedup": ts["after"] / ts["after_bf16"]})
             print(f"{'  bf16':<13} {'':>10} {r['after_bf16_ms']:>9.0f} {r['bf16_speedup']:>6.2f}x over fp32")

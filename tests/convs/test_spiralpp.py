@@ -103,10 +103,18 @@ def _close(a, e, tol=1e-5):
 @pytest.mark.parametrize("chunk_bytes", [1 << 30, 5000])  # one chunk; many, the last one short
 @pytest.mark.parametrize("input_grad", [True, False])
 @pytest.mark.parametrize("threads", [1, 3])  # 3: chunks dealt to three workers, their dW and dx summed
+@pytest.mark.parametrize("kernel", ["native", "torch"])  # fwk_spiralpp.native, GatherLinear
 def test_spiralpp_matches_a_per_vertex_loop_in_value_and_gradient(monkeypatch, c_in, c_out, chunk_bytes, input_grad,
-                                                                  threads):
+                                                                  threads, kernel):
     import fwk_spiralpp
+    from fwk_spiralpp import native
 
+    if kernel == "torch":
+        monkeypatch.setenv("FWK_SPIRALPP_NATIVE", "0")
+    elif chunk_bytes != 1 << 30:
+        pytest.skip("the native kernel has its own blocks (tests/convs/test_spiralpp_native.py)")
+    elif not native.available():
+        pytest.skip(f"native kernel unavailable: {native.failed()}")
     monkeypatch.setattr(fwk_spiralpp, "CHUNK_BYTES", chunk_bytes)
     before = torch.get_num_threads()
     torch.set_num_threads(threads)

@@ -14,10 +14,14 @@ Where rings run out (borders, small components) the spiral is padded with the ce
 (``fwk.graph.spirals``), an explicit choice instead of the reference code's silent
 k-nearest-neighbour fallback. Defaults follow the reference: length 9, dilation 1.
 
-Evaluation (``GatherLinear``): a chunk of about 2 MB of output rows at a time, the spiral rows
-gathered straight into the product's layout and multiplied while in cache; the backward gathers
-again instead of keeping the (n, b, L c) matrix (200 MB in the thesis's largest layer) and
-scatters dx; with T torch threads the chunks go to T workers. Activations are vertex-major
+Evaluation: on float32 CPU tensors a native kernel (``fwk_spiralpp.native``: blocks of output
+vertices whose spiral rows, about 256 KB, are gathered in C++ into the product's layout and
+multiplied while in cache; 1.3-1.6x a training step on 2 threads, docs/methods/autoencoders.md
+"Speed"); elsewhere (bf16 autocast, float64, CUDA, no compiler, ``FWK_SPIRALPP_NATIVE=0``)
+``GatherLinear``, the same sums in torch: a chunk of about 2 MB of output rows at a time, the
+spiral rows gathered straight into the product's layout and multiplied while in cache; the
+backward gathers again instead of keeping the (n, b, L c) matrix (200 MB in the thesis's largest
+layer) and scatters dx; with T torch threads the chunks go to T workers. Activations are vertex-major
 ((n, b, c) in memory; the output is a (b, n, c) view). Pooling can be fused into the conv
 (``fuses_pooling``): ``forward(x, rows=kept)`` computes only the vertices a selecting pooling
 keeps, ``forward_up(x, U)`` = forward(U x) with the product on the coarse vertices and one
@@ -41,6 +45,8 @@ from fwk.graph import spirals
 from fwk.hookspecs import hookimpl
 from fwk.parallel import in_workers
 from fwk.protocols import CONV_BUILD_ARGS
+
+from . import native
 
 CHUNK_BYTES = 2 << 20  # gathered rows per chunk: about 2 MB (the chip's L2 is 1 MB a core, its L3 32 MB)
 
@@ -238,20 +244,26 @@ class SpiralPP(nn.Module):
 
     def forward(self, x, rows=None):
         """x (b, n, c_in) -> (b, n, c_out); with ``rows`` (m,) int64 only those output vertices,
-        (b, m, c_out) = forward(x)[:, rows] (a pooling that keeps a vertex subset, fused)."""
+        (b, m, c_out) = forward(x)[:, rows] (a pooling that keeps a vertex subset, fused). On
+        float32 CPU tensors the native kernel (``native.gather_linear``), elsewhere ``GatherLinear``."""
         b, n, c = x.shape
         xv, W, bias = self._operands(x)
-        chunk = max(1, CHUNK_BYTES // (xv.element_size() * self.length * b * c))
-        if rows is None:
-            if self._flat is None or self._flat[0] != b or self._flat[1].device != self.index.device:
-                self._flat = (b, GatherLinear.rows_of(self.index, b))  # derived from the index buffer, per batch size
-            index, flat = self.index, self._flat[1]
-        else:
-            index = self.index.index_select(0, rows)
-            flat = GatherLinear.rows_of(index, b)
+        index = self.index if rows is None else self.index.index_select(0, rows)
         with torch.autocast(x.device.type, enabled=False):
-            y = GatherLinear.apply(xv, W, bias, index, flat, chunk)
+            if native.usable(xv, W):
+                y = native.gather_linear(xv, W, xv.new_empty(0) if bias is None else bias, index)
+            else:
+                y = GatherLinear.apply(xv, W, bias, index, self._rows_of(index, b, rows is None),
+                                       max(1, CHUNK_BYTES // (xv.element_size() * self.length * b * c)))
         return y.transpose(0, 1)
+
+    def _rows_of(self, index, b, whole):
+        """``GatherLinear.rows_of(index, b)``, kept for the whole index per batch size."""
+        if not whole:
+            return GatherLinear.rows_of(index, b)
+        if self._flat is None or self._flat[0] != b or self._flat[1].device != self.index.device:
+            self._flat = (b, GatherLinear.rows_of(self.index, b))  # derived from the index buffer, per batch size
+        return self._flat[1]
 
     def forward_up(self, x, up):
         """forward(U x) for an up-sampling U (``up``, a sparse (n, n_coarse) COO tensor, e.g.

@@ -1,0 +1,144 @@
+"""spiral++'s native kernel (``fwk_spiralpp.native``) against the naive per-vertex sum in float64
+and against the torch code (``GatherLinear``), in value and gradient; its thread behaviour, its
+refusals and its multiply-add count. The whole conv on both paths against the loop is
+``tests/convs/test_spiralpp.py``; the fused AE, ``tests/autoencoders/test_fused_pooling.py``."""
+import pytest
+import torch
+
+from fwk_spiralpp import GatherLinear, native
+
+
+@pytest.fixture
+def torch_threads():
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
+def test_the_native_kernel_builds():
+    """CI has a compiler (``.ci/run``): the kernel must build there, not fall back silently."""
+    if not native.enabled():
+        pytest.skip("FWK_SPIRALPP_NATIVE=0")
+    assert native.available(), native.failed()
+
+
+needs_native = pytest.mark.skipif(not native.available(), reason=f"native kernel unavailable: {native.failed()}")
+
+
+def _naive(x, W, bias, index):
+    """y[i, s] = W [x[index[i, 0], s] || ... || x[index[i, L-1], s]] + bias, vertex by vertex."""
+    rows = [torch.cat([x[int(j)] for j in index[i]], -1) @ W.T for i in range(index.shape[0])]
+    y = torch.stack(rows)
+    return y + bias if bias is not None else y
+
+
+def _problem(n_in, n_out, b, c, o, L, g, bias=True):
+    x = torch.randn(n_in, b, c, generator=g)
+    W = torch.randn(o, L * c, generator=g)
+    bb = torch.randn(o, generator=g) if bias else None
+    index = torch.randint(0, n_in, (n_out, L), generator=g)
+    index[0] = 0  # a padded spiral: one vertex named L times
+    return x, W, bb, index
+
+
+# the block holds 64 Ki floats: (40, 16, 33) with L = 9 makes blocks of 13 vertices, the last one short
+SHAPES = [(30, 30, 4, 3, 8, 9), (50, 20, 16, 8, 3, 9), (40, 64, 16, 33, 17, 9), (25, 25, 1, 1, 1, 1)]
+
+
+@needs_native
+@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("bias", [True, False])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_gather_linear_matches_the_loop_in_float64_in_value_and_gradient(shape, bias, threads, torch_threads):
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(sum(shape))
+    x, W, bb, index = _problem(*shape, g, bias=bias)
+    leaves = [t.requires_grad_() for t in (x, W) + ((bb,) if bias else ())]
+    y = native.gather_linear(x, W, bb if bias else x.new_empty(0), index)
+    gy = torch.randn(y.shape, generator=g)
+    got = torch.autograd.grad(y, leaves, gy)
+    ref_leaves = [t.detach().double().requires_grad_() for t in leaves]
+    e = _naive(ref_leaves[0], ref_leaves[1], ref_leaves[2] if bias else None, index)
+    want = torch.autograd.grad(e, ref_leaves, gy.double())
+    assert y.dtype == torch.float32 and y.shape == e.shape
+    assert (y.double() - e).abs().max() <= 1e-5 * (1 + e.abs().max())
+    for a, w in zip(got, want):
+        assert (a.double() - w).abs().max() <= 1e-5 * (1 + w.abs().max()), (a.double() - w).abs().max()
+
+
+@needs_native
+@pytest.mark.parametrize("threads", [1, 2])
+def test_gather_linear_agrees_with_the_torch_code_and_repeats_its_bits(threads, torch_threads):
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(7)
+    x, W, bb, index = _problem(300, 200, 8, 16, 12, 9, g)
+    x.requires_grad_(), W.requires_grad_(), bb.requires_grad_()
+    gy = torch.randn(200, 8, 12, generator=g)
+
+    def run(f):
+        y = f()
+        return [y.detach()] + [t.clone() for t in torch.autograd.grad(y, (x, W, bb), gy)]
+
+    nat = run(lambda: native.gather_linear(x, W, bb, index))
+    tor = run(lambda: GatherLinear.apply(x, W, bb, index, GatherLinear.rows_of(index, 8), 7))
+    for a, t in zip(nat, tor):
+        assert (a - t).abs().max() <= 1e-5 * (1 + t.abs().max())
+    again = run(lambda: native.gather_linear(x, W, bb, index))
+    assert all(torch.equal(a, b) for a, b in zip(nat, again)), "same thread count, same bits"
+
+
+@needs_native
+def test_only_the_asked_gradients_are_computed():
+    g = torch.Generator().manual_seed(3)
+    x, W, bb, index = _problem(20, 20, 2, 4, 5, 9, g)
+    W.requires_grad_()
+    y = native.gather_linear(x, W, bb, index)
+    (dW,) = torch.autograd.grad(y.sum(), (W,))
+    Wd = W.detach().double().requires_grad_()
+    (want,) = torch.autograd.grad(_naive(x.double(), Wd, bb.double(), index).sum(), (Wd,))
+    assert (dW.double() - want).abs().max() <= 1e-5 * (1 + want.abs().max())
+    assert x.grad is None and bb.grad is None
+
+
+@needs_native
+def test_malformed_arguments_are_refused():
+    g = torch.Generator().manual_seed(4)
+    x, W, bb, index = _problem(20, 10, 2, 4, 5, 9, g)
+    bad = index.clone()
+    bad[3, 2] = 20
+    with pytest.raises(RuntimeError, match="index: entry out of range"):
+        native.gather_linear(x, W, bb, bad)
+    with pytest.raises(RuntimeError, match="index: entry out of range"):
+        native.gather_linear(x, W, bb, -index - 1)
+    with pytest.raises(RuntimeError, match="weight: expected 36 columns"):
+        native.gather_linear(x, W[:, :-1], bb, index)
+    with pytest.raises(RuntimeError, match="bias: expected 5 entries"):
+        native.gather_linear(x, W, bb[:-1], index)
+    with pytest.raises(RuntimeError, match="expected Float"):
+        native.gather_linear(x.double(), W, bb, index)
+
+
+@needs_native
+def test_the_flop_counter_counts_the_kernel_as_the_products_of_the_torch_code(torch_threads):
+    from torch.utils.flop_counter import FlopCounterMode
+
+    torch.set_num_threads(1)  # the counter sees its own thread only; the torch code deals chunks to workers
+    g = torch.Generator().manual_seed(5)
+    x, W, bb, index = _problem(30, 30, 4, 6, 7, 9, g)
+    with FlopCounterMode(display=False) as fc:
+        native.gather_linear(x, W, bb, index)
+    with FlopCounterMode(display=False) as ft:
+        GatherLinear.apply(x, W, bb, index, GatherLinear.rows_of(index, 4), 1 << 20)
+    assert fc.get_total_flops() == ft.get_total_flops() == 2 * 30 * 4 * 7 * 9 * 6
+
+
+def test_the_conv_takes_the_torch_code_where_the_kernel_does_not_apply(monkeypatch):
+    """``FWK_SPIRALPP_NATIVE=0``, bf16 autocast and float64 take GatherLinear."""
+    x = torch.zeros(2, 3, 4)
+    monkeypatch.setenv("FWK_SPIRALPP_NATIVE", "0")
+    assert not native.usable(x)
+    monkeypatch.delenv("FWK_SPIRALPP_NATIVE")
+    assert not native.usable(x.double())
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert not native.usable(x)
+    assert native.usable(x) == native.available()
