@@ -142,3 +142,95 @@ def test_the_conv_takes_the_torch_code_where_the_kernel_does_not_apply(monkeypat
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert not native.usable(x)
     assert native.usable(x) == native.available()
+
+
+def _up_problem(n, n_c, b, c, o, L, g):
+    """x (n_c, b, c), W (o, L c), bias and S (n, L n_c) with 1-3 random non-zeros a row (a row with none)."""
+    rows, cols = [], []
+    for i in range(n):
+        k = 0 if i == 1 else int(torch.randint(1, 4, (1,), generator=g))
+        rows += [i] * k
+        cols += torch.randperm(L * n_c, generator=g)[:k].tolist()
+    vals = torch.rand(len(rows), generator=g)
+    S = torch.sparse_coo_tensor(torch.tensor([rows, cols]), vals, (n, L * n_c)).coalesce()
+    St = torch.sparse_coo_tensor(S.indices().flip(0), S.values(), (L * n_c, n)).coalesce()
+    return (torch.randn(n_c, b, c, generator=g), torch.randn(o, L * c, generator=g), torch.randn(o, generator=g),
+            S.to_sparse_csr(), St.to_sparse_csr())
+
+
+def _naive_up(x, W, bias, S, L):
+    """y[i] = bias + sum over S's non-zeros (i, l n_c + j, u) of u W_l x[j], entry by entry."""
+    n_c, b, c = x.shape
+    o = W.shape[0]
+    y = [bias.expand(b, o) for _ in range(S.shape[0])]
+    D = S.to_dense()
+    for i, col in D.nonzero().tolist():
+        l, j = divmod(col, n_c)
+        y[i] = y[i] + D[i, col].to(x.dtype) * (x[j] @ W[:, l * c:(l + 1) * c].T)
+    return torch.stack(y)
+
+
+def _up_call(x, W, bias, S, St, L):
+    return native.up_linear(x, native.per_entry(W, L), bias, S.crow_indices(), S.col_indices(), S.values(),
+                            St.crow_indices(), St.col_indices(), St.values(), L)
+
+
+@needs_native
+@pytest.mark.parametrize("shape", [(40, 12, 4, 3, 8, 9), (30, 10, 16, 8, 3, 9), (25, 9, 2, 33, 17, 5)])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_up_linear_matches_the_loop_in_float64_in_value_and_gradient(shape, threads, torch_threads):
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(sum(shape))
+    n, n_c, b, c, o, L = shape
+    x, W, bias, S, St = _up_problem(n, n_c, b, c, o, L, g)
+    leaves = [t.requires_grad_() for t in (x, W, bias)]
+    y = _up_call(x, W, bias, S, St, L)
+    gy = torch.randn(y.shape, generator=g)
+    got = torch.autograd.grad(y, leaves, gy)
+    ref = [t.detach().double().requires_grad_() for t in leaves]
+    e = _naive_up(*ref, S, L)
+    want = torch.autograd.grad(e, ref, gy.double())
+    assert y.shape == (n, b, o) and (y.double() - e).abs().max() <= 1e-5 * (1 + e.abs().max())
+    for a, w in zip(got, want):
+        assert (a.double() - w).abs().max() <= 1e-5 * (1 + w.abs().max()), (a.double() - w).abs().max()
+
+
+@needs_native
+def test_forward_up_on_the_kernel_equals_the_torch_code_and_repeats_its_bits(monkeypatch):
+    """The conv's fused up-sampling on a real hierarchy: the native kernel against PerEntryLinear
+    + UpGather, value and gradient."""
+    from fwk.graph import torch_sparse
+    from fwk.plugins import get_registry
+    from fwk.testing.sampler import two_components
+
+    h = get_registry().get("sampler", "quadric")(factors=[4]).build(two_components())
+    U = torch_sparse(h.up[0])
+    torch.manual_seed(0)
+    conv = get_registry().get("conv", "spiral++")(6, 5, h, 0)
+    with torch.no_grad():
+        conv.layer.bias.normal_()
+    x = torch.randn(3, h.levels[1].n_vertices, 6, requires_grad=True)
+    gy = torch.randn(3, h.levels[0].n_vertices, 5)
+
+    def run():
+        y = conv.forward_up(x, U)
+        return [y.detach()] + [t.clone() for t in torch.autograd.grad(y, (x, *conv.parameters()), gy)]
+
+    nat = run()
+    assert all(torch.equal(a, b) for a, b in zip(nat, run())), "same bits on repeat"
+    monkeypatch.setenv("FWK_SPIRALPP_NATIVE", "0")
+    tor = run()
+    for a, t in zip(nat, tor):
+        assert (a - t).abs().max() <= 1e-5 * (1 + t.abs().max())
+
+
+@needs_native
+def test_up_linear_refuses_a_malformed_operator():
+    g = torch.Generator().manual_seed(6)
+    x, W, bias, S, St = _up_problem(20, 8, 2, 4, 3, 9, g)
+    with pytest.raises(RuntimeError, match="S: entry out of range"):
+        native.up_linear(x, native.per_entry(W, 9), bias, S.crow_indices(), S.col_indices() + 1000, S.values(),
+                         St.crow_indices(), St.col_indices(), St.values(), 9)
+    with pytest.raises(RuntimeError, match="weight: expected"):  # (L o, c + 1): not x's channels
+        native.up_linear(x, torch.randn(27, 5), bias, S.crow_indices(), S.col_indices(), S.values(),
+                         St.crow_indices(), St.col_indices(), St.values(), 9)

@@ -1,4 +1,5 @@
-// SpiralNet++'s gather and product without the gathered matrix (fwk_spiralpp.native).
+// SpiralNet++'s gather and product without the gathered matrix, and its conv of an up-sampled
+// input (fwk_spiralpp.native).
 //
 //     y_i = W [x_{s(i,1)} || ... || x_{s(i,L)}] + b        x (n_in, b, c) vertex-major, W (o, L c)
 //
@@ -133,7 +134,119 @@ std::vector<torch::Tensor> gather_linear_backward(torch::Tensor gy, torch::Tenso
   return {need_x ? reduce(dxa) : dxa, need_w ? reduce(dWa) : dWa};
 }
 
+// ---- forward_up: the conv of an up-sampled input, y = S Z with Z_l = x W_l^T on the coarse vertices
+//
+//     y_i = b + sum_{(l, j, u) in row i of S} u Z_l[j]      Z (L, n_c, b, o), Z_l = x (n_c b, c) W_l^T,
+//
+// W' (L o, c) the weight laid out per spiral entry (W'[l o + p, :] = W[p, l c : (l + 1) c]); S (n, L n_c)
+// CSR with column l n_c + j (fwk_spiralpp.SpiralPP._up_tables), so that a column names one row of Z
+// viewed as (L n_c, b o). Output rows are independent: each sums its non-zeros in CSR order (the
+// same bits on any thread count). Backward: dZ = S^T dy, row by row (rows of S^T are rows of dZ: no
+// accumulators), then dx = sum_l dZ_l W'_l and dW'_l = dZ_l^T x.
+
+namespace {
+
+void check_csr_rows(const torch::Tensor& crow, const torch::Tensor& col, const torch::Tensor& val, int64_t rows,
+                    int64_t cols, const char* name) {
+  check(crow, name, at::kLong, 1);
+  check(col, name, at::kLong, 1);
+  check(val, name, at::kFloat, 1);
+  TORCH_CHECK(crow.size(0) == rows + 1, name, ": expected ", rows + 1, " row offsets");
+  const int64_t* o = crow.data_ptr<int64_t>();
+  TORCH_CHECK(o[0] == 0 && o[rows] == col.size(0) && col.size(0) == val.size(0), name,
+              ": row offsets must run from 0 to the non-zero count");
+  for (int64_t i = 0; i < rows; ++i) TORCH_CHECK(o[i + 1] >= o[i], name, ": row offsets must not decrease");
+  check_range(col, name, cols);
+}
+
+inline void axpy(float* __restrict y, const float* __restrict x, float a, int64_t n) {
+#pragma omp simd
+  for (int64_t t = 0; t < n; ++t) y[t] += a * x[t];
+}
+
+// out (rows, w) = M z for CSR M (rows x *) and row-major z (*, w); out's rows start from init (w floats) or 0
+void csr_rows(const int64_t* rp, const int64_t* cp, const float* vp, const float* z, int64_t rows, int64_t w,
+              const float* init, float* out) {
+  at::parallel_for(0, rows, 1, [&](int64_t r0, int64_t r1) {
+    for (int64_t r = r0; r < r1; ++r) {
+      float* yr = out + r * w;
+      if (init)
+        std::memcpy(yr, init, w * sizeof(float));
+      else
+        std::fill(yr, yr + w, 0.f);
+      for (int64_t k = rp[r]; k < rp[r + 1]; ++k) axpy(yr, z + cp[k] * w, vp[k], w);
+    }
+  });
+}
+
+}  // namespace
+
+// x (n_c, b, c), Wp (L o, c), bias (o) or empty, S = (crow, col, val) (n, L n_c) -> y (n, b, o)
+torch::Tensor up_linear_forward(torch::Tensor x, torch::Tensor Wp, torch::Tensor bias, torch::Tensor crow,
+                                torch::Tensor col, torch::Tensor val, int64_t L) {
+  check(x, "x", at::kFloat, 3);
+  check(Wp, "weight", at::kFloat, 2);
+  const int64_t n_c = x.size(0), b = x.size(1), c = x.size(2), Lo = Wp.size(0), o = Lo / std::max<int64_t>(L, 1);
+  TORCH_CHECK(L > 0 && o * L == Lo && Wp.size(1) == c, "weight: expected (L o, ", c, ") rows per spiral entry");
+  const int64_t n = crow.size(0) - 1, m = n_c * b;
+  check_csr_rows(crow, col, val, n, L * n_c, "S");
+  const bool has_bias = bias.numel() > 0;
+  if (has_bias) {
+    check(bias, "bias", at::kFloat, 1);
+    TORCH_CHECK(bias.size(0) == o, "bias: expected ", o, " entries");
+  }
+  auto Z = torch::empty({L, m, o}, x.options());
+  auto y = torch::empty({n, b, o}, x.options());
+  const float* Wpp = Wp.data_ptr<float>();
+  const float* xp = x.data_ptr<float>();
+  float* Zp = Z.data_ptr<float>();
+  // Z_l (n_c b x o) = x (n_c b x c) W'_l^T (c x o)
+  for (int64_t l = 0; l < L; ++l) gemm('T', 'N', o, m, c, 1.f, Wpp + l * o * c, c, xp, c, 0.f, Zp + l * m * o, o);
+  std::vector<float> init;
+  if (has_bias) {
+    init.resize(b * o);
+    for (int64_t s = 0; s < b; ++s) std::memcpy(init.data() + s * o, bias.data_ptr<float>(), o * sizeof(float));
+  }
+  csr_rows(crow.data_ptr<int64_t>(), col.data_ptr<int64_t>(), val.data_ptr<float>(), Zp, n, b * o,
+           has_bias ? init.data() : nullptr, y.data_ptr<float>());
+  return y;
+}
+
+// dy (n, b, o), x (n_c, b, c), Wp (L o, c), S^T = (crow, col, val) (L n_c, n) -> dx (n_c, b, c), dWp (L o, c)
+std::vector<torch::Tensor> up_linear_backward(torch::Tensor dy, torch::Tensor x, torch::Tensor Wp, torch::Tensor crow,
+                                              torch::Tensor col, torch::Tensor val, int64_t L, bool need_x,
+                                              bool need_w) {
+  check(dy, "dy", at::kFloat, 3);
+  check(x, "x", at::kFloat, 3);
+  check(Wp, "weight", at::kFloat, 2);
+  const int64_t n_c = x.size(0), b = x.size(1), c = x.size(2), Lo = Wp.size(0), o = Lo / std::max<int64_t>(L, 1),
+                n = dy.size(0), m = n_c * b;
+  TORCH_CHECK(L > 0 && o * L == Lo && Wp.size(1) == c, "weight: expected (L o, ", c, ") rows per spiral entry");
+  TORCH_CHECK(dy.size(1) == b && dy.size(2) == o, "dy: expected (n, ", b, ", ", o, ")");
+  check_csr_rows(crow, col, val, L * n_c, n, "S^T");
+  auto dZ = torch::empty({L, m, o}, x.options());
+  float* dZp = dZ.data_ptr<float>();
+  csr_rows(crow.data_ptr<int64_t>(), col.data_ptr<int64_t>(), val.data_ptr<float>(), dy.data_ptr<float>(), L * n_c,
+           b * o, nullptr, dZp);
+  auto empty = torch::empty({0}, x.options());
+  auto dx = need_x ? torch::empty({n_c, b, c}, x.options()) : empty;
+  auto dWp = need_w ? torch::empty({Lo, c}, x.options()) : empty;
+  const float* Wpp = Wp.data_ptr<float>();
+  const float* xp = x.data_ptr<float>();
+  for (int64_t l = 0; l < L; ++l) {
+    // dx (n_c b x c) += dZ_l (n_c b x o) W'_l (o x c)
+    if (need_x)
+      gemm('N', 'N', c, m, o, 1.f, Wpp + l * o * c, c, dZp + l * m * o, o, l == 0 ? 0.f : 1.f, dx.data_ptr<float>(), c);
+    // dW'_l (o x c) = dZ_l^T (o x n_c b) x (n_c b x c)
+    if (need_w)
+      gemm('N', 'T', c, o, m, 1.f, xp, c, dZp + l * m * o, o, 0.f, dWp.data_ptr<float>() + l * o * c, c);
+  }
+  return {dx, dWp};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("gather_linear_forward", &gather_linear_forward);
   m.def("gather_linear_backward", &gather_linear_backward);
+  m.def("up_linear_forward", &up_linear_forward);
+  m.def("up_linear_backward", &up_linear_backward);
 }

@@ -10,11 +10,19 @@ thread count). In torch the same work is an ``index_select`` of c-float rows per
 the 3-16 channels of a face network's outer layers), a product, and an ``index_add_`` per block,
 dispatched from Python in worker threads.
 
-``gather_linear`` is a ``torch.library`` operator (``fwk_spiralpp::gather_linear``) with its
-gradient and its multiply-adds registered (``torch.utils.flop_counter`` counts it as it counted
+And the conv of an up-sampled input (``SpiralPP.forward_up``, the decoder's fused pooling):
+
+    y_i = b + sum_{(l, j, u) in row i of S} u Z_l[j],    Z_l = x W_l^T on the coarse vertices
+
+the L products and the sparse sum y = S Z in C++ (``up_linear``; the torch code is
+``PerEntryLinear`` and ``UpGather``, whose CSR product zero-fills and copies its output), and its
+backward dZ = S^T dy row by row (no accumulators), dx = sum_l dZ_l W_l, dW_l = dZ_l^T x.
+
+``gather_linear`` and ``up_linear`` are ``torch.library`` operators (``fwk_spiralpp::gather_linear``,
+``fwk_spiralpp::up_linear``) with their gradients and their multiply-adds registered (``torch.utils.flop_counter`` counts it as it counted
 the torch code's products). Float32 on the CPU, compiled on first use (``fwk.native``);
-``FWK_SPIRALPP_NATIVE=0``, bf16 autocast, float64 and CUDA take ``GatherLinear``. Tested against
-the naive per-vertex sum in float64 and against ``GatherLinear``, value and gradient, on 1 and 2
+``FWK_SPIRALPP_NATIVE=0``, bf16 autocast, float64 and CUDA take the torch code. Tested against
+the naive per-vertex sums in float64 and against the torch code, value and gradient, on 1 and 2
 threads (``tests/convs/test_spiralpp_native.py``).
 """
 from __future__ import annotations
@@ -66,12 +74,57 @@ def _backward(ctx, gy):
 gather_linear.register_autograd(_backward, setup_context=_setup)
 
 
+@torch.library.custom_op("fwk_spiralpp::up_linear", mutates_args=())
+def up_linear(x: torch.Tensor, weight_per_entry: torch.Tensor, bias: torch.Tensor, crow: torch.Tensor, col: torch.Tensor,
+              val: torch.Tensor, t_crow: torch.Tensor, t_col: torch.Tensor, t_val: torch.Tensor,
+              length: int) -> torch.Tensor:
+    """y (n, b, o) = S Z + bias with Z (n_c, b, L, o), Z[j, s, l] = W_l x[j, s]: the conv of an
+    up-sampled input (``SpiralPP.forward_up``). x (n_c, b, c); weight_per_entry (L o, c), row
+    l o + p holding W[p, l c : (l + 1) c] (``per_entry``); bias (o,) or (0,); S (n, L n_c) as CSR
+    (crow, col, val), column l n_c + j, and S^T alike (t_crow, t_col, t_val)."""
+    return KERNELS.load().up_linear_forward(x.contiguous(), weight_per_entry.contiguous(), bias.contiguous(), crow,
+                                            col, val, length)
+
+
+@up_linear.register_fake
+def _(x, weight_per_entry, bias, crow, col, val, t_crow, t_col, t_val, length):
+    return x.new_empty(crow.shape[0] - 1, x.shape[1], weight_per_entry.shape[0] // length)
+
+
+def _up_setup(ctx, inputs, output):
+    x, Wp, bias, crow, col, val, t_crow, t_col, t_val, length = inputs
+    ctx.save_for_backward(x, Wp, t_crow, t_col, t_val)
+    ctx.length, ctx.has_bias = length, bias.numel() > 0
+
+
+def _up_backward(ctx, dy):
+    x, Wp, t_crow, t_col, t_val = ctx.saved_tensors
+    need_x, need_w, need_b = ctx.needs_input_grad[:3]
+    dx, dWp = KERNELS.load().up_linear_backward(dy.contiguous(), x.contiguous(), Wp.contiguous(), t_crow, t_col,
+                                                t_val, ctx.length, need_x, need_w)
+    db = dy.sum((0, 1)) if ctx.has_bias and need_b else None
+    return (dx if need_x else None), (dWp if need_w else None), db, None, None, None, None, None, None, None
+
+
+up_linear.register_autograd(_up_backward, setup_context=_up_setup)
+
+
+def per_entry(weight: torch.Tensor, length: int) -> torch.Tensor:
+    """The conv's weight (o, L c) laid out per spiral entry, (L o, c) (differentiable)."""
+    o, Lc = weight.shape
+    return weight.view(o, length, Lc // length).transpose(0, 1).reshape(length * o, Lc // length)
+
+
 def _register_flops():
     from torch.utils.flop_counter import register_flop_formula
 
     @register_flop_formula(torch.ops.fwk_spiralpp.gather_linear)
     def _flops(x_shape, w_shape, b_shape, index_shape, *args, out_shape=None, **kwargs) -> int:
         return 2 * index_shape[0] * x_shape[1] * w_shape[0] * w_shape[1]
+
+    @register_flop_formula(torch.ops.fwk_spiralpp.up_linear)
+    def _up_flops(x_shape, w_shape, *args, out_shape=None, **kwargs) -> int:
+        return 2 * x_shape[0] * x_shape[1] * x_shape[2] * w_shape[0]  # the dense product; S's sums left out, as before
 
 
 _register_flops()
