@@ -8,13 +8,6 @@ import torch
 from fwk_spiralpp import GatherLinear, native
 
 
-@pytest.fixture
-def torch_threads():
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
-
-
 def test_the_native_kernel_builds():
     """CI has a compiler (``.ci/run``): the kernel must build there, not fall back silently."""
     if not native.enabled():

@@ -10,13 +10,6 @@ import torch
 from fwk_vcconv import native
 
 
-@pytest.fixture
-def torch_threads():
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
-
-
 def test_the_native_kernels_build():
     """CI has a compiler (``.ci/run``): the kernels must build there, not fall back silently."""
     if not native.enabled():

@@ -31,13 +31,6 @@ def procs(tmp_path, monkeypatch):
     unregister()
 
 
-@pytest.fixture
-def torch_threads():
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
-
-
 def _registered_child(d):
     """Another process, registered the way fwk registers, alive until killed."""
     code = ("import sys, time; from pathlib import Path; from fwk.engine.threads import register; "
