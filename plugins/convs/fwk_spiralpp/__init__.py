@@ -16,7 +16,8 @@ k-nearest-neighbour fallback. Defaults follow the reference: length 9, dilation 
 
 Evaluation: on float32 CPU tensors a native kernel (``fwk_spiralpp.native``: blocks of output
 vertices whose spiral rows, about 256 KB, are gathered in C++ into the product's layout and
-multiplied while in cache; 1.3-1.6x a training step on 2 threads, docs/methods/autoencoders.md
+multiplied while in cache, and ``forward_up``'s products and sparse sum; 1.5-1.8x a training step
+on 2 threads and 1.2-1.3x on one, docs/methods/autoencoders.md
 "Speed"); elsewhere (bf16 autocast, float64, CUDA, no compiler, ``FWK_SPIRALPP_NATIVE=0``)
 ``GatherLinear``, the same sums in torch: a chunk of about 2 MB of output rows at a time, the
 spiral rows gathered straight into the product's layout and multiplied while in cache; the
