@@ -54,7 +54,6 @@ import sys
 from pathlib import Path
 from unittest import mock
 
-import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
