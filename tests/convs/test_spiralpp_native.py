@@ -126,15 +126,41 @@ def test_the_flop_counter_counts_the_kernel_as_the_products_of_the_torch_code(to
 
 
 def test_the_conv_takes_the_torch_code_where_the_kernel_does_not_apply(monkeypatch):
-    """``FWK_SPIRALPP_NATIVE=0``, bf16 autocast and float64 take GatherLinear."""
-    x = torch.zeros(2, 3, 4)
+    """The conv calls the kernels on float32 CPU tensors, and GatherLinear / PerEntryLinear with
+    ``FWK_SPIRALPP_NATIVE=0``, under bf16 autocast and in float64 (``fwk.native.Extension.usable``'s
+    own rules: tests/core/test_native.py)."""
+    import fwk_spiralpp
+    from fwk.graph import torch_sparse
+    from fwk.plugins import get_registry
+    from fwk.testing.sampler import two_components
+
+    h = get_registry().get("sampler", "quadric")(factors=[4]).build(two_components())
+    U = torch_sparse(h.up[0])
+    conv = get_registry().get("conv", "spiral++")(6, 5, h, 0)
+    x, xc = torch.randn(2, h.levels[0].n_vertices, 6), torch.randn(2, h.levels[1].n_vertices, 6)
+    seen = []
+    for name in ("GatherLinear", "PerEntryLinear"):
+        cls = getattr(fwk_spiralpp, name)
+        monkeypatch.setattr(cls, "apply", (lambda f, n: lambda *a: seen.append(n) or f(*a))(cls.apply, name))
+
+    def torch_code_runs(f=lambda: None):
+        seen.clear()
+        with torch.no_grad():
+            f()
+            conv(x), conv.forward_up(xc, U)
+        return seen == ["GatherLinear", "PerEntryLinear"]
+
+    assert torch_code_runs() != native.available()
     monkeypatch.setenv("FWK_SPIRALPP_NATIVE", "0")
-    assert not native.usable(x)
+    assert torch_code_runs()
     monkeypatch.delenv("FWK_SPIRALPP_NATIVE")
-    assert not native.usable(x.double())
+    conv.double()
+    x, xc = x.double(), xc.double()
+    assert torch_code_runs()
+    conv.float()
+    x, xc = x.float(), xc.float()
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        assert not native.usable(x)
-    assert native.usable(x) == native.available()
+        assert torch_code_runs()
 
 
 def _up_problem(n, n_c, b, c, o, L, g):
