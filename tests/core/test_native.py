@@ -2,6 +2,7 @@
 rebuilt when the shared header changes; torch's stale build locks removed."""
 import os
 import time
+from pathlib import Path
 
 import torch
 
@@ -64,3 +65,33 @@ def test_the_headers_digest_is_a_build_flag(tmp_path, monkeypatch):
     header = (native.HEADER_DIR / "fwk_native.h").read_bytes()
     _extension(tmp_path).load()
     assert f"-DFWK_NATIVE_H={hashlib.sha256(header).hexdigest()[:16]}" in seen[0]
+
+
+def test_processes_that_start_together_take_turns_and_one_says_it_compiles(tmp_path, monkeypatch, capsys):
+    """The build lock (flock) lets one build; the next finds the module built and says nothing.
+    Two threads with their own Extension objects stand in for two processes (flock locks belong to
+    each open file, so they exclude each other within one process too); torch's build is replaced
+    by one that takes a second and writes the module."""
+    import threading
+
+    import torch.utils.cpp_extension as ce
+
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
+    building = []
+
+    def fake_load(name, build_directory, **kw):
+        building.append(name)
+        assert len(building) == 1 or (Path(build_directory) / f"{name}.so").exists(), "two builds at once"
+        time.sleep(1.0)
+        (Path(build_directory) / f"{name}.so").write_text("")
+        return object()
+
+    monkeypatch.setattr(ce, "load", fake_load)
+    exts = [_extension(tmp_path) for _ in range(2)]
+    threads = [threading.Thread(target=e.load) for e in exts]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(e.failed is None and e._module is not None for e in exts)
+    assert capsys.readouterr().err.count("compiling its native kernels") == 1

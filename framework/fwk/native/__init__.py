@@ -13,10 +13,12 @@ define and a changed header rebuilds. A build takes 40-60 s, once per machine an
 (a C++ compiler and ninja: ``.ci/run`` and fwk's dependencies bring them). When it fails, the
 reason is printed once and kept in ``Extension.failed``. A build lock older than
 ``STALE_LOCK_SECONDS`` is a build that was killed: torch would wait for it forever, so it is
-removed.
+removed. Processes that start together (a run's models side by side) take turns on a lock of
+fwk's own, so one builds and says so, and the others find the module built.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import sys
@@ -46,6 +48,25 @@ def clear_stale_lock(build: Path, label: str = "native kernels") -> None:
             _say(f"{label}: removed a stale build lock {lock} (a build killed earlier)")
     except FileNotFoundError:
         pass
+
+
+@contextlib.contextmanager
+def _build_lock(build: Path):
+    """An exclusive lock on ``build`` across processes (``flock``: released by the kernel when its
+    holder dies, so never stale), held while a process builds or loads the module there: the
+    models a run fits side by side start at once, and without it each said it was compiling while
+    one compiled and the other waited on torch's own lock. Where ``fcntl`` is missing, no lock."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: torch's own lock still keeps two builds apart
+        yield
+        return
+    with open(Path(build) / "fwk-build.lock", "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 class Extension:
@@ -85,13 +106,14 @@ class Extension:
                 clear_stale_lock(build, self.label)
                 so = build / f"{self.name}.so"
                 newest = max(p.stat().st_mtime for p in [*self.sources, header])
-                if not so.exists() or so.stat().st_mtime < newest:
-                    _say(f"{self.label}: compiling its native kernels into {build} (once per machine and torch "
-                         "version, about a minute)")
-                self._module = load(name=self.name, sources=[str(s) for s in self.sources],
-                                    build_directory=str(build), extra_include_paths=[str(HEADER_DIR)],
-                                    extra_cflags=["-O3", "-fopenmp", f"-DFWK_NATIVE_H={digest}"],
-                                    extra_ldflags=["-fopenmp"], verbose=False)
+                with _build_lock(build):  # one process builds; the others then find it built and say nothing
+                    if not so.exists() or so.stat().st_mtime < newest:
+                        _say(f"{self.label}: compiling its native kernels into {build} (once per machine and torch "
+                             "version, about a minute)")
+                    self._module = load(name=self.name, sources=[str(s) for s in self.sources],
+                                        build_directory=str(build), extra_include_paths=[str(HEADER_DIR)],
+                                        extra_cflags=["-O3", "-fopenmp", f"-DFWK_NATIVE_H={digest}"],
+                                        extra_ldflags=["-fopenmp"], verbose=False)
             except Exception as e:  # no compiler, no ninja, a torch without BLAS symbols: the torch code runs
                 last = str(e).strip().splitlines()[-1] if str(e).strip() else ""
                 self.failed = f"{type(e).__name__}: {last}"
