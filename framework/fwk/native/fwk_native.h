@@ -51,6 +51,19 @@ inline void check_range(const torch::Tensor& idx, const char* name, int64_t n) {
   for (int64_t t = 0; t < idx.numel(); ++t) TORCH_CHECK(s[t] >= 0 && s[t] < n, name, ": entry out of range");
 }
 
+// a CSR structure: offs (n_rows + 1) running from 0 to idx's length without decreasing, every idx entry in
+// [0, n_target)
+inline void check_csr(const torch::Tensor& offs, const torch::Tensor& idx, int64_t n_rows, int64_t n_target,
+                      const char* offs_name = "offs", const char* idx_name = "index") {
+  check(offs, offs_name, at::kLong, 1);
+  check(idx, idx_name, at::kLong, 1);
+  TORCH_CHECK(offs.size(0) == n_rows + 1, offs_name, ": expected ", n_rows + 1, " entries");
+  const int64_t* o = offs.data_ptr<int64_t>();
+  TORCH_CHECK(o[0] == 0 && o[n_rows] == idx.size(0), offs_name, ": must run from 0 to the slot count");
+  for (int64_t i = 0; i < n_rows; ++i) TORCH_CHECK(o[i + 1] >= o[i], offs_name, ": must not decrease");
+  check_range(idx, idx_name, n_target);
+}
+
 // this thread's accumulator in acc (nt, size...): at::parallel_for splits the range statically
 inline float* thread_accumulator(float* acc, int nt, int64_t size) {
   const int tid = at::get_thread_num();

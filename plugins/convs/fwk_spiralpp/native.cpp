@@ -10,7 +10,7 @@
 // back a kept copy, without keeping the (n b, L c) matrix: 200 MB in the thesis's largest layer)
 // and scatters dG = dY W to dx. dW and dx go to per-thread accumulators summed in thread order
 // (fwk_native.h): the same bits on every run with the same thread count.
-#include "fwk_native.h"  // gemm, add_row, check, check_range, thread_accumulator, reduce (fwk.native)
+#include "fwk_native.h"  // gemm, add_row, check, check_range, check_csr, thread_accumulator, reduce (fwk.native)
 
 #include <algorithm>
 #include <cstring>
@@ -146,17 +146,12 @@ std::vector<torch::Tensor> gather_linear_backward(torch::Tensor gy, torch::Tenso
 
 namespace {
 
+// a sparse matrix as CSR (crow, col, val): fwk_native.h's structure check and one value a column index
 void check_csr_rows(const torch::Tensor& crow, const torch::Tensor& col, const torch::Tensor& val, int64_t rows,
                     int64_t cols, const char* name) {
-  check(crow, name, at::kLong, 1);
-  check(col, name, at::kLong, 1);
+  check_csr(crow, col, rows, cols, name, name);
   check(val, name, at::kFloat, 1);
-  TORCH_CHECK(crow.size(0) == rows + 1, name, ": expected ", rows + 1, " row offsets");
-  const int64_t* o = crow.data_ptr<int64_t>();
-  TORCH_CHECK(o[0] == 0 && o[rows] == col.size(0) && col.size(0) == val.size(0), name,
-              ": row offsets must run from 0 to the non-zero count");
-  for (int64_t i = 0; i < rows; ++i) TORCH_CHECK(o[i + 1] >= o[i], name, ": row offsets must not decrease");
-  check_range(col, name, cols);
+  TORCH_CHECK(col.size(0) == val.size(0), name, ": one value a non-zero");
 }
 
 inline void axpy(float* __restrict y, const float* __restrict x, float a, int64_t n) {

@@ -23,7 +23,7 @@
 // (n_out K, M) coefficients, distinct) and their gradients written there, so no gathered copy and
 // no scatter-add of them is made. Scatters into a shared result (the ``sum`` order's dx, the
 // ``basis`` order's y) go to per-thread accumulators (fwk_native.h).
-#include "fwk_native.h"  // gemm, add_row, check, thread_accumulator, reduce (fwk.native)
+#include "fwk_native.h"  // gemm, add_row, check, check_csr, thread_accumulator, reduce (fwk.native)
 
 #include <algorithm>
 #include <cstring>
@@ -37,16 +37,6 @@ int64_t max_run(const int64_t* offs, int64_t n) {
   int64_t k = 0;
   for (int64_t i = 0; i < n; ++i) k = std::max(k, offs[i + 1] - offs[i]);
   return k;
-}
-
-void check_csr(const torch::Tensor& offs, const torch::Tensor& idx, int64_t n_rows, int64_t n_target) {
-  check(offs, "offs", at::kLong, 1);
-  check(idx, "index", at::kLong, 1);
-  TORCH_CHECK(offs.size(0) == n_rows + 1, "offs: expected ", n_rows + 1, " entries");
-  const int64_t* o = offs.data_ptr<int64_t>();
-  TORCH_CHECK(o[0] == 0 && o[n_rows] == idx.size(0), "offs: must run from 0 to the slot count");
-  for (int64_t i = 0; i < n_rows; ++i) TORCH_CHECK(o[i + 1] >= o[i], "offs: must not decrease");
-  check_range(idx, "index", n_target);
 }
 
 // rows base[idx[s]] (B floats each) of slots [s0, s0 + K) into buf (K x B)
