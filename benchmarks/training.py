@@ -11,7 +11,9 @@ vertices) when ICT-FaceKit is present, else a synthetic head of the same size (p
 
 Today's rows run on the native kernels (``fwk_vcconv.native``, ``fwk_spiralpp.native``; issue 28);
 the line below each ("torch code") times the same network on its conv's torch evaluation
-(``FWK_VCCONV_NATIVE=0``, ``FWK_SPIRALPP_NATIVE=0``) in the same alternation.
+(``FWK_VCCONV_NATIVE=0``, ``FWK_SPIRALPP_NATIVE=0``) in the same alternation; for the two vcconv
+rows, "no tall" times the native kernels with the products with the basis on torch's product
+instead of ``fwk_vcconv.native.tall_product``.
 
 * ``vcconv VAE``: the fully convolutional VAE at the thesis's width (its Mesh Autoencoder and
   Deep Spectral Meshes' bands, issue 28's "thesis-width" network), channels [3, 32, 64, 128,
@@ -187,6 +189,25 @@ def native_line(r: dict, ts: dict, g_torch: float, rate: float) -> None:
           f"the native kernels are {r['native_speedup']:.2f}x faster)")
 
 
+def without_tall(step):
+    """The step with vcconv's products with the basis on torch's product (``fwk_vcconv.native.tall_product``
+    off), for a side-by-side timing of that kernel alone."""
+    from fwk_vcconv import native as vcconv_native
+
+    def run():
+        with mock.patch.object(vcconv_native, "TALL_MAX_B", 0):
+            return step()
+
+    return run
+
+
+def tall_line(r: dict, ts: dict) -> None:
+    """Adds the step without ``tall_product`` to a vcconv row and prints it."""
+    r.update({"no_tall_ms": 1e3 * ts["after_no_tall"], "tall_speedup": ts["after_no_tall"] / ts["after"]})
+    print(f"{'  no tall':<13} {'':>10} {r['no_tall_ms']:>9.0f}   (the basis products on torch's: tall_product is "
+          f"{r['tall_speedup']:.2f}x faster)")
+
+
 def load_average() -> float:
     return os.getloadavg()[0]
 
@@ -280,6 +301,8 @@ def main():
         g_new, g_old = gflop(enc, dec, x), gflop(oenc, odec, x)
         steps = {"before": stepper(oenc, odec, x, fused=False), "after": stepper(enc, dec, x)}
         g_torch = add_torch_code(steps, enc, dec, x)
+        if key == "vcconv_vae":
+            steps["after_no_tall"] = without_tall(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x))
         if a.bf16:
             e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
             steps["after_bf16"] = stepper(e16, d16, x, bf16=True)
@@ -290,6 +313,8 @@ def main():
         print(f"{label:<13} {r['before_ms']:>10.0f} {r['after_ms']:>9.0f} {r['ratio']:>6.2f} {g_old:>13.1f} "
               f"{g_new:>12.1f} {r['gflops_after']:>14.1f} {100 * r['of_matmul']:>9.0f}%")
         native_line(r, ts, g_torch, rate)
+        if key == "vcconv_vae":
+            tall_line(r, ts)
         if a.bf16:
             dev = loss_deviation(enc, dec, x)
             r.update({"after_bf16_ms": 1e3 * ts["after_bf16"], "bf16_speedup": ts["after"] / ts["after_bf16"],
@@ -308,6 +333,8 @@ def main():
         g = gflop(enc, dec, x)
         steps = {"after": stepper(enc, dec, x)}
         g_torch = add_torch_code(steps, enc, dec, x)
+        if key == "vcconv_vae_ch5":
+            steps["after_no_tall"] = without_tall(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x))
         if a.bf16:
             steps["after_bf16"] = stepper(copy.deepcopy(enc), copy.deepcopy(dec), x, bf16=True)
         ts = alternate(steps, a.steps, a.cpu_time)
@@ -316,6 +343,8 @@ def main():
         print(f"{label:<13} {'':>10} {r['after_ms']:>9.0f} {'':>6} {'':>13} {g:>12.1f} {r['gflops_after']:>14.1f} "
               f"{100 * r['of_matmul']:>9.0f}%   ({what})")
         native_line(r, ts, g_torch, rate)
+        if key == "vcconv_vae_ch5":
+            tall_line(r, ts)
         if a.bf16:
             r.update({"after_bf16_ms": 1e3 * ts["after_bf16"], "bf16_speedup": ts["after"] / ts["after_bf16"]})
             print(f"{'  bf16':<13} {'':>10} {r['after_bf16_ms']:>9.0f} {r['bf16_speedup']:>6.2f}x over fp32")

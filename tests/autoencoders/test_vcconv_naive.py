@@ -15,13 +15,17 @@ REG = get_registry()
 
 @pytest.fixture(autouse=True, params=["native", "torch"])
 def evaluation(request, monkeypatch):
-    """Every test runs on the native kernels (``fwk_vcconv.native``) and on the torch code."""
+    """Every test runs on the native kernels (``fwk_vcconv.native``) and on the torch code. On the
+    native kernels every product with the basis takes ``tall_product`` (which, by default, only
+    products of 4,096 rows or more do; these meshes are smaller)."""
     from fwk_vcconv import native
 
     if request.param == "torch":
         monkeypatch.setenv("FWK_VCCONV_NATIVE", "0")
     elif not native.available():
         pytest.skip(f"native kernels unavailable: {native.failed()}")
+    else:
+        monkeypatch.setattr(native, "TALL_MIN_ROWS", 0)
     return request.param
 
 

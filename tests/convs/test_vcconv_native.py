@@ -197,3 +197,73 @@ def test_without_a_compiler_vcconv_says_so_once_and_runs_its_torch_code(tmp_path
     assert out.returncode == 0, out.stderr[-2000:]
     assert "available False" in out.stdout
     assert out.stderr.count("native kernels unavailable") == 1, out.stderr[-2000:]
+
+
+# ---- the products with the basis (``tall_product``)
+TALL_SHAPES = [(700, 8, 105), (700, 105, 8), (513, 3, 8), (300, 40, 16), (9, 5, 3), (1, 4, 20)]  # N >= 16 and N < 16,
+# N >= K and N < K (the two orientations of each product), a partial last block, fewer rows than a block
+
+
+@pytestmark_native
+@pytest.mark.parametrize("R,K,N", TALL_SHAPES)
+@pytest.mark.parametrize("bias", [False, True])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_tall_product_matches_the_dense_product_in_value_and_gradient(R, K, N, bias, threads, torch_threads):
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(R + K + N)
+    A, B, b, up = (torch.randn(*s, generator=g, dtype=torch.float64) for s in ((R, K), (K, N), (N,), (R, N)))
+    Af, Bf, bf = (t.float().requires_grad_() for t in (A, B, b))
+    C = native.tall_product(Af, Bf, bf if bias else Af.new_empty(0))
+    ref = A @ B + (b if bias else 0)
+    got = torch.autograd.grad(C, (Af, Bf, bf) if bias else (Af, Bf), up.float())
+    want = (up @ B.t(), A.t() @ up, up.sum(0))
+    for x, y in zip((C, *got), (ref, *want)):
+        assert x.shape == y.shape
+        assert torch.allclose(x.double(), y, rtol=1e-5, atol=1e-5 * y.abs().max().item()), (x.double() - y).abs().max()
+
+
+@pytestmark_native
+def test_tall_product_is_the_same_bits_on_repeat_and_its_forward_on_any_thread_count(torch_threads):
+    """The forward's row blocks do not depend on the thread count; the gradient of B sums per
+    thread in thread order (the same bits with the same count)."""
+    g = torch.Generator().manual_seed(7)
+    A, B, b = torch.randn(5000, 105, generator=g), torch.randn(105, 8, generator=g), torch.randn(8, generator=g)
+    runs = {}
+    for threads in (1, 2, 2):
+        torch.set_num_threads(threads)
+        Bg = B.clone().requires_grad_()
+        C = native.tall_product(A, Bg, b)
+        (dB,) = torch.autograd.grad(C, Bg, torch.ones_like(C))
+        if threads in runs:
+            assert torch.equal(C, runs[threads][0]) and torch.equal(dB, runs[threads][1])
+        runs[threads] = (C, dB)
+    assert torch.equal(runs[1][0], runs[2][0])
+
+
+@pytestmark_native
+def test_tall_product_refuses_mismatched_shapes():
+    A, B = torch.randn(10, 4), torch.randn(4, 3)
+    with pytest.raises(RuntimeError, match="expected 4 rows"):
+        native.tall_product(A, torch.randn(5, 3), A.new_empty(0))
+    with pytest.raises(RuntimeError, match="bias"):
+        native.tall_product(A, B, torch.randn(4))
+    with pytest.raises(RuntimeError, match="Float"):
+        native.tall_product(A.double(), B.double(), A.new_empty(0).double())
+
+
+@pytestmark_native
+def test_the_flop_counter_counts_tall_products():
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as fc:
+        native.tall_product(torch.randn(50, 7), torch.randn(7, 3), torch.empty(0))
+    assert fc.get_total_flops() == 2 * 50 * 7 * 3
+
+
+def test_vcconv_takes_tall_product_for_tall_narrow_products_only():
+    """``tall``: the shapes MKL runs slowly (many rows, a small B); the thesis width's 64 x 1120
+    basis stays with torch's product."""
+    assert native.tall(torch.empty(49424, 105), torch.empty(105, 8))
+    assert native.tall(torch.empty(49424, 8), torch.empty(8, 105))
+    assert not native.tall(torch.empty(10096, 64), torch.empty(64, 1120))
+    assert not native.tall(torch.empty(100, 8), torch.empty(8, 105))

@@ -48,7 +48,9 @@ gathers and scatters move whole rows and their backward passes are an ``index_ad
 
 On float32 CPU tensors the ``sum`` and ``basis`` orders run their per-vertex products in native
 kernels (``fwk_vcconv.native``: the exact supports, no padding, no gathered intermediates;
-1.3-1.6x a training step, docs/methods/autoencoders.md "Speed"); elsewhere (bf16 autocast,
+1.3-1.6x a training step, docs/methods/autoencoders.md "Speed"), and their products with the
+basis, where tall and narrow (``native.tall``: the outer layers' (n b) x c M @ c M x o), in
+``native.tall_product`` (1.1-1.2x the chapter 5 width's step); elsewhere (bf16 autocast,
 float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. ``auto`` prices the
 orders for the code that runs (the native kernels skip the padding and the slot-sized
 intermediates), which moves one layer measured: the chapter 5 width's first encoder layer takes
@@ -127,6 +129,14 @@ def _bucketed(rows: list[np.ndarray], cols: list[np.ndarray], n_rows: int):
         pos.append(p.ravel())
         valid.append(v.ravel())
     return order, spans, np.concatenate(other), np.concatenate(pos), np.concatenate(valid)
+
+
+def _dense(A: torch.Tensor, B: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+    """A @ B (+ bias) on the native kernels' path: ``native.tall_product`` for the tall, narrow
+    shapes MKL runs slowly (``native.tall``), torch's product otherwise."""
+    if native.tall(A, B):
+        return native.tall_product(A, B, bias if bias is not None else A.new_empty(0))
+    return A @ B if bias is None else torch.addmm(bias, A, B)
 
 
 class VCConv(nn.Module):
@@ -371,7 +381,7 @@ class VCConv(nn.Module):
         T, r = native.sum_product(x2, self.coef.reshape(-1, M), w, self._nat_out_offs, self._nat_out_src,
                                   self._nat_out_pos)  # (n_out, b c, M), (n_out, b c)
         Bm = self.basis.permute(1, 0, 2).reshape(c * M, o)  # rows (p, m): T's rows (i, beta) are [(i, b), (p, m)]
-        y = torch.addmm(self.bias, T.reshape(self.n_out * b, c * M), Bm).reshape(self.n_out, b, o)
+        y = _dense(T.reshape(self.n_out * b, c * M), Bm, self.bias).reshape(self.n_out, b, o)
         res = None
         if has_res:
             res = r.reshape(self.n_out, b, c)
@@ -388,7 +398,7 @@ class VCConv(nn.Module):
         d = o if res_first else c
         x2 = xv.reshape(self.n_in, b * c)
         Bm = self.basis.permute(1, 2, 0).reshape(c, o * M)
-        Z = (x2.reshape(self.n_in * b, c) @ Bm).reshape(self.n_in, b * o, M)  # Z_j^T: rows (b, q), columns m
+        Z = _dense(x2.reshape(self.n_in * b, c), Bm).reshape(self.n_in, b * o, M)  # Z_j^T: rows (b, q), columns m
         y = native.basis_product(Z, self.coef.reshape(-1, M), self._nat_in_offs, self._nat_in_dst, self._nat_in_pos,
                                  self.n_out)
         y = (y.reshape(self.n_out, b, o) + self.bias)

@@ -23,7 +23,7 @@
 // (n_out K, M) coefficients, distinct) and their gradients written there, so no gathered copy and
 // no scatter-add of them is made. Scatters into a shared result (the ``sum`` order's dx, the
 // ``basis`` order's y) go to per-thread accumulators (fwk_native.h).
-#include "fwk_native.h"  // gemm, add_row, check, check_csr, thread_accumulator, reduce (fwk.native)
+#include "fwk_native.h"  // gemm, add_row, check, check_csr, thread_accumulator, reduce, tall_mm, tall_tn (fwk.native)
 
 #include <algorithm>
 #include <cstring>
@@ -251,7 +251,43 @@ std::vector<torch::Tensor> basis_backward(torch::Tensor dy, torch::Tensor Z, tor
   return {dZ, dcoef};
 }
 
+// the products with the basis: C (R, N) = A (R, K) B (K, N) + bias (N, or empty (0,)), R large, K and N
+// small (fwk_native.h's tall_mm: row blocks in cache, one BLAS call each)
+torch::Tensor tall_forward(torch::Tensor A, torch::Tensor B, torch::Tensor bias) {
+  check(A, "A", at::kFloat, 2);
+  check(B, "B", at::kFloat, 2);
+  check(bias, "bias", at::kFloat, 1);
+  const int64_t R = A.size(0), K = A.size(1), N = B.size(1);
+  TORCH_CHECK(B.size(0) == K, "B: expected ", K, " rows, got ", B.size(0));
+  TORCH_CHECK(bias.size(0) == 0 || bias.size(0) == N, "bias: expected ", N, " entries or none");
+  auto C = torch::empty({R, N}, A.options());
+  tall_mm(A.data_ptr<float>(), B.data_ptr<float>(), bias.size(0) ? bias.data_ptr<float>() : nullptr,
+          C.data_ptr<float>(), R, K, N);
+  return C;
+}
+
+// its backward: dA = dC B^T (R, K) and dB = A^T dC (K, N) (empty (0,) where not asked for)
+std::vector<torch::Tensor> tall_backward(torch::Tensor dC, torch::Tensor A, torch::Tensor B, bool need_A,
+                                         bool need_B) {
+  check(dC, "dC", at::kFloat, 2);
+  check(A, "A", at::kFloat, 2);
+  check(B, "B", at::kFloat, 2);
+  const int64_t R = A.size(0), K = A.size(1), N = B.size(1);
+  TORCH_CHECK(dC.size(0) == R && dC.size(1) == N && B.size(0) == K, "dC: expected (", R, ", ", N, ")");
+  auto empty = torch::empty({0}, A.options());
+  torch::Tensor dA = empty, dB = empty;
+  if (need_A) {
+    auto Bt = B.t().contiguous();  // (N, K): small
+    dA = torch::empty({R, K}, A.options());
+    tall_mm(dC.data_ptr<float>(), Bt.data_ptr<float>(), nullptr, dA.data_ptr<float>(), R, N, K);
+  }
+  if (need_B) dB = tall_tn(A.data_ptr<float>(), dC.data_ptr<float>(), R, K, N, A.options());
+  return {dA, dB};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("tall_forward", &tall_forward);
+  m.def("tall_backward", &tall_backward);
   m.def("sum_forward", &sum_forward);
   m.def("sum_backward", &sum_backward);
   m.def("basis_forward", &basis_forward);

@@ -21,13 +21,22 @@ written there: no gathered copy of them, no scatter-add back. ``sum_product`` an
 registered for ``torch.utils.flop_counter`` (so the training benchmark counts them as it counts
 torch's own products).
 
+A third operator, ``tall_product`` (``fwk_vcconv::tall_product``), does the products with the
+basis that surround those kernels, where they are tall and narrow (``tall``): T (n_out b, c M) @
+B (c M, o) in the ``sum`` order and x (n_in b, c) @ B (c, o M) in the ``basis`` order, 49,424 rows
+by 8 x 105 in the chapter 5 width's outer layers. MKL runs these at 6-25 GFLOP/s on 2 threads
+and its gradient A^T dC 6x slower than the same product transposed; ``fwk_native.h``'s
+``tall_mm`` / ``tall_tn`` cut them into row blocks that stay in cache, one single-threaded BLAS
+call each, the long side first (1.1-1.2x the chapter 5 width's training step; the thesis width's
+wider bases stay with torch's product, which is as fast there).
+
 The kernels are float32 and compiled on first use (``fwk.native``: a C++ compiler and ninja;
 about a minute, once per machine and torch version). ``available()`` is False when the build
 fails (the reason is printed once, ``failed()``) or ``FWK_VCCONV_NATIVE=0``; ``usable()`` is
 also False for other dtypes, devices and bf16 autocast; ``VCConv`` then runs its torch code.
-Tested against per-vertex loops in float64, value and gradient
-(``tests/convs/test_vcconv_native.py``), and the whole conv against the naive sum on both paths
-(``tests/autoencoders/test_vcconv_naive.py``).
+Tested against per-vertex loops (``tall_product``: the dense product) in float64, value and
+gradient (``tests/convs/test_vcconv_native.py``), and the whole conv against the naive sum on both
+paths, every product with the basis on ``tall_product`` (``tests/autoencoders/test_vcconv_naive.py``).
 """
 from __future__ import annotations
 
@@ -118,6 +127,53 @@ def _basis_backward(ctx, dy):
 basis_product.register_autograd(_basis_backward, setup_context=_basis_setup)
 
 
+# ---- the products with the basis
+#: ``tall_product`` is used where B has at most this many floats (and A at least TALL_MIN_ROWS rows):
+#: the shapes MKL runs slowly. At the thesis width's 64 x 1120 and 128 x 2240 MKL's own blocking
+#: is as fast or faster (measured 2026-12-06, ``benchmarks/training.py``)
+TALL_MAX_B = 16384
+TALL_MIN_ROWS = 4096
+
+
+def tall(A: torch.Tensor, B: torch.Tensor) -> bool:
+    """Whether ``tall_product`` takes the product A @ B (see ``TALL_MAX_B``)."""
+    return A.shape[0] >= TALL_MIN_ROWS and B.numel() <= TALL_MAX_B
+
+
+@torch.library.custom_op("fwk_vcconv::tall_product", mutates_args=())
+def tall_product(A: torch.Tensor, B: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """C (R, N) = A (R, K) @ B (K, N) + bias (N; or (0,): none), for R large and K, N small:
+    blocks of rows that stay in cache, one single-threaded BLAS call each, in parallel
+    (``fwk_native.h``'s ``tall_mm``; MKL runs (49,424 x 8) @ (8 x 105) at 6-25 GFLOP/s on 2 threads,
+    its gradient A^T dC 6x slower than the same product transposed). The gradients:
+    dA = dC B^T by the same blocks, dB = A^T dC summed per thread in thread order, dbias = dC's
+    column sums."""
+    return _load().tall_forward(A.contiguous(), B.contiguous(), bias.contiguous())
+
+
+@tall_product.register_fake
+def _(A, B, bias):
+    return A.new_empty(A.shape[0], B.shape[1])
+
+
+def _tall_setup(ctx, inputs, output):
+    A, B, bias = inputs
+    ctx.save_for_backward(A, B)
+    ctx.has_bias = bias.shape[0] > 0
+
+
+def _tall_backward(ctx, dC):
+    A, B = ctx.saved_tensors
+    need_A, need_B, need_bias = ctx.needs_input_grad
+    dC = dC.contiguous()
+    dA, dB = _load().tall_backward(dC, A.contiguous(), B.contiguous(), need_A, need_B)
+    dbias = dC.sum(0) if need_bias and ctx.has_bias else None
+    return (dA if need_A else None), (dB if need_B else None), dbias
+
+
+tall_product.register_autograd(_tall_backward, setup_context=_tall_setup)
+
+
 # ---- multiply-adds for torch.utils.flop_counter (2 flops each)
 def _register_flops():
     from torch.utils.flop_counter import register_flop_formula
@@ -131,6 +187,10 @@ def _register_flops():
     def _basis_flops(Z_shape, coef_shape, offs_shape, dst_shape, pos_shape, n_out, *args, out_shape=None,
                      **kwargs) -> int:
         return 2 * dst_shape[0] * Z_shape[1] * Z_shape[2]
+
+    @register_flop_formula(torch.ops.fwk_vcconv.tall_product)
+    def _tall_flops(A_shape, B_shape, bias_shape, *args, out_shape=None, **kwargs) -> int:
+        return 2 * A_shape[0] * A_shape[1] * B_shape[1]
 
 
 _register_flops()
