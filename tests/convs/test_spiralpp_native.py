@@ -195,7 +195,10 @@ def _up_call(x, W, bias, S, St, L):
 
 
 @needs_native
-@pytest.mark.parametrize("shape", [(40, 12, 4, 3, 8, 9), (30, 10, 16, 8, 3, 9), (25, 9, 2, 33, 17, 5)])
+# (60, 200, 16, 3, 8, 3): the products with W_l have n_c b = 3,200 rows, more than one of fwk_native.h's
+# tall_mm blocks (2,978 rows at c + o = 11), the last one short; o = 17 and c = 33 take the wide orientation
+@pytest.mark.parametrize("shape", [(40, 12, 4, 3, 8, 9), (30, 10, 16, 8, 3, 9), (25, 9, 2, 33, 17, 5),
+                                   (60, 200, 16, 3, 8, 3)])
 @pytest.mark.parametrize("threads", [1, 2])
 def test_up_linear_matches_the_loop_in_float64_in_value_and_gradient(shape, threads, torch_threads):
     torch.set_num_threads(threads)

@@ -78,37 +78,52 @@ inline torch::Tensor reduce(const torch::Tensor& acc) {
   return acc.size(0) == 1 ? acc[0] : acc.sum(0);
 }
 
+// Row-major products with a narrow result. BLAS vectorises along the first dimension of its
+// (column-major) result; a row-major C (r x N) handed over as its transpose puts N first, which for
+// N < 16 (an output of 3-9 channels) leaves most of each vector register empty. There, C is
+// computed column-major (r first) into ``tmp`` and transposed back while in cache.
+constexpr int64_t NARROW = 16;
+
+// row-major C (r x N) = A (r x K) op(B) + beta C: op(B) = B (row-major K x N) or, with ``bt``, B^T for
+// B row-major (N x K). ``tmp``: scratch, resized as needed.
+inline void rows_gemm(int64_t r, int64_t N, int64_t K, const float* a, int64_t lda, const float* b, bool bt,
+                      float beta, float* c, int64_t ldc, std::vector<float>& tmp) {
+  if (N >= NARROW) {  // column-major C^T (N x r) = op(B)^T (N x K) A^T (K x r)
+    gemm(bt ? 'T' : 'N', 'N', N, r, K, 1.f, b, bt ? K : N, a, lda, beta, c, ldc);
+    return;
+  }
+  if (tmp.size() < size_t(r * N)) tmp.resize(r * N);
+  // column-major tmp (r x N) = A (r x K) op(B) (K x N)
+  gemm('T', bt ? 'N' : 'T', r, N, K, 1.f, a, lda, b, bt ? K : N, 0.f, tmp.data(), r);
+  for (int64_t i = 0; i < r; ++i)
+    for (int64_t n = 0; n < N; ++n) c[i * ldc + n] = tmp[n * r + i] + (beta == 0.f ? 0.f : beta * c[i * ldc + n]);
+}
+
 // Tall products: (R x K) @ (K x N) with R in the thousands to hundreds of thousands and K, N small
-// (vcconv's products with its basis: 49,424 x 8 @ 8 x 105 in the chapter 5 width's last layer).
-// MKL runs these shapes at 6-25 GFLOP/s on 2 threads, and 2-6x faster or slower by orientation
-// alone (A^T dC (105 x 8) took 13 ms, (dC^T A)^T 2 ms); cut into blocks of rows that stay in
-// cache, one single-threaded BLAS call per block, blocks in parallel, they run at 40-60.
-// A block's rows fit about 128 KB of A's and C's floats together.
+// (vcconv's products with its basis: 49,424 x 8 @ 8 x 105 in the chapter 5 width's last layer;
+// spiral++'s up-sampling products). MKL runs these shapes at 6-25 GFLOP/s on 2 threads, and 2-6x
+// faster or slower by orientation alone (A^T dC (105 x 8) took 13 ms, (dC^T A)^T 2 ms); cut into
+// blocks of rows that stay in cache, one single-threaded BLAS call per block (``rows_gemm``),
+// blocks in parallel, they run at 40-60. A block's rows fit about 128 KB of A's and C's floats.
 inline int64_t tall_block_rows(int64_t K, int64_t N) {
   return std::max<int64_t>(8, int64_t(32768) / std::max<int64_t>(K + N, 1));
 }
 
-// row-major C (R x N) = A (R x K) B (K x N) (+ bias (N), when not null). Every row block is one BLAS call
-// and the blocks do not depend on the thread count: the same bits on any number of threads.
-inline void tall_mm(const float* a, const float* b, const float* bias, float* c, int64_t R, int64_t K,
-                    int64_t N) {
+// row-major C (R x N) = A (R x K) op(B) + bias (N; none when null), or, with ``accumulate`` (and no bias),
+// C += A op(B); op(B) as in rows_gemm. Every row block is one BLAS call and the blocks do not depend on
+// the thread count: the same bits on any number of threads.
+inline void tall_mm(const float* a, const float* b, bool bt, const float* bias, float* c, int64_t R, int64_t K,
+                    int64_t N, bool accumulate = false) {
+  TORCH_CHECK(!(bias && accumulate), "tall_mm: a bias or accumulate, not both");
   const int64_t rb = tall_block_rows(K, N);
   at::parallel_for(0, (R + rb - 1) / rb, 1, [&](int64_t q0, int64_t q1) {
-    std::vector<float> tmp(N < 16 ? rb * N : 0);
+    std::vector<float> tmp;
     for (int64_t q = q0; q < q1; ++q) {
       const int64_t r0 = q * rb, r = std::min(rb, R - r0);
       float* cb = c + r0 * N;
-      if (N >= 16) {
-        if (bias)
-          for (int64_t i = 0; i < r; ++i) std::copy(bias, bias + N, cb + i * N);
-        // C_b (r x N) = A_b (r x K) B (K x N): column-major C_b^T (N x r) = B^T (N x K) A_b^T (K x r)
-        gemm('N', 'N', N, r, K, 1.f, b, N, a + r0 * K, K, bias ? 1.f : 0.f, cb, N);
-      } else {  // narrow C: BLAS vectorises along the long side, so compute C_b^T and transpose it here
-        // column-major tmp (r x N) = A_b (r x K) B (K x N)
-        gemm('T', 'T', r, N, K, 1.f, a + r0 * K, K, b, N, 0.f, tmp.data(), r);
-        for (int64_t i = 0; i < r; ++i)
-          for (int64_t n = 0; n < N; ++n) cb[i * N + n] = tmp[n * r + i] + (bias ? bias[n] : 0.f);
-      }
+      if (bias)
+        for (int64_t i = 0; i < r; ++i) std::copy(bias, bias + N, cb + i * N);
+      rows_gemm(r, N, K, a + r0 * K, K, b, bt, bias || accumulate ? 1.f : 0.f, cb, N, tmp);
     }
   });
 }

@@ -10,7 +10,8 @@
 // back a kept copy, without keeping the (n b, L c) matrix: 200 MB in the thesis's largest layer)
 // and scatters dG = dY W to dx. dW and dx go to per-thread accumulators summed in thread order
 // (fwk_native.h): the same bits on every run with the same thread count.
-#include "fwk_native.h"  // gemm, add_row, check, check_range, check_csr, thread_accumulator, reduce (fwk.native)
+#include "fwk_native.h"  // gemm, rows_gemm, tall_mm, tall_tn, add_row, check, check_range, check_csr, thread_accumulator,
+                          // reduce (fwk.native)
 
 #include <algorithm>
 #include <cstring>
@@ -77,15 +78,15 @@ torch::Tensor gather_linear_forward(torch::Tensor x, torch::Tensor W, torch::Ten
   float* yp = y.data_ptr<float>();
   const int64_t Lc = L * c, rows = block_rows(b, Lc);
   at::parallel_for(0, n_out, 1, [&](int64_t a0, int64_t a1) {
-    std::vector<float> G(std::max<int64_t>(1, std::min(rows, a1 - a0) * b * Lc));
+    std::vector<float> G(std::max<int64_t>(1, std::min(rows, a1 - a0) * b * Lc)), tmp;
     for (int64_t i0 = a0; i0 < a1; i0 += rows) {
       const int64_t k = std::min(rows, a1 - i0);
       gather_spiral(G.data(), xp, ip, i0, k, L, b, c);
       float* Y = yp + i0 * b * o;
       if (has_bias)
         for (int64_t r = 0; r < k * b; ++r) std::memcpy(Y + r * o, bp, o * sizeof(float));
-      // Y (k b x o) = G (k b x L c) W^T (L c x o) (+ Y holding the bias)
-      gemm('T', 'N', o, k * b, Lc, 1.f, Wp, Lc, G.data(), Lc, has_bias ? 1.f : 0.f, Y, o);
+      // Y (k b x o) = G (k b x L c) W^T (L c x o) (+ Y holding the bias); narrow o the long side first
+      rows_gemm(k * b, o, Lc, G.data(), Lc, Wp, true, has_bias ? 1.f : 0.f, Y, o, tmp);
     }
   });
   return y;
@@ -195,8 +196,8 @@ torch::Tensor up_linear_forward(torch::Tensor x, torch::Tensor Wp, torch::Tensor
   const float* Wpp = Wp.data_ptr<float>();
   const float* xp = x.data_ptr<float>();
   float* Zp = Z.data_ptr<float>();
-  // Z_l (n_c b x o) = x (n_c b x c) W'_l^T (c x o)
-  for (int64_t l = 0; l < L; ++l) gemm('T', 'N', o, m, c, 1.f, Wpp + l * o * c, c, xp, c, 0.f, Zp + l * m * o, o);
+  // Z_l (n_c b x o) = x (n_c b x c) W'_l^T (c x o): tall and narrow (fwk_native.h's tall_mm)
+  for (int64_t l = 0; l < L; ++l) tall_mm(xp, Wpp + l * o * c, true, nullptr, Zp + l * m * o, m, c, o);
   std::vector<float> init;
   if (has_bias) {
     init.resize(b * o);
@@ -229,12 +230,10 @@ std::vector<torch::Tensor> up_linear_backward(torch::Tensor dy, torch::Tensor x,
   const float* Wpp = Wp.data_ptr<float>();
   const float* xp = x.data_ptr<float>();
   for (int64_t l = 0; l < L; ++l) {
-    // dx (n_c b x c) += dZ_l (n_c b x o) W'_l (o x c)
-    if (need_x)
-      gemm('N', 'N', c, m, o, 1.f, Wpp + l * o * c, c, dZp + l * m * o, o, l == 0 ? 0.f : 1.f, dx.data_ptr<float>(), c);
-    // dW'_l (o x c) = dZ_l^T (o x n_c b) x (n_c b x c)
-    if (need_w)
-      gemm('N', 'T', c, o, m, 1.f, xp, c, dZp + l * m * o, o, 0.f, dWp.data_ptr<float>() + l * o * c, c);
+    // dx (n_c b x c) += dZ_l (n_c b x o) W'_l (o x c)  (tall and narrow: fwk_native.h's tall_mm)
+    if (need_x) tall_mm(dZp + l * m * o, Wpp + l * o * c, false, nullptr, dx.data_ptr<float>(), m, o, c, l > 0);
+    // dW'_l (o x c) = dZ_l^T (o x n_c b) x (n_c b x c)  (tall_tn: row blocks summed per thread)
+    if (need_w) dWp.narrow(0, l * o, o).copy_(tall_tn(dZp + l * m * o, xp, m, o, c, x.options()));
   }
   return {dx, dWp};
 }

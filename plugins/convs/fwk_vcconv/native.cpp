@@ -261,7 +261,7 @@ torch::Tensor tall_forward(torch::Tensor A, torch::Tensor B, torch::Tensor bias)
   TORCH_CHECK(B.size(0) == K, "B: expected ", K, " rows, got ", B.size(0));
   TORCH_CHECK(bias.size(0) == 0 || bias.size(0) == N, "bias: expected ", N, " entries or none");
   auto C = torch::empty({R, N}, A.options());
-  tall_mm(A.data_ptr<float>(), B.data_ptr<float>(), bias.size(0) ? bias.data_ptr<float>() : nullptr,
+  tall_mm(A.data_ptr<float>(), B.data_ptr<float>(), false, bias.size(0) ? bias.data_ptr<float>() : nullptr,
           C.data_ptr<float>(), R, K, N);
   return C;
 }
@@ -277,9 +277,8 @@ std::vector<torch::Tensor> tall_backward(torch::Tensor dC, torch::Tensor A, torc
   auto empty = torch::empty({0}, A.options());
   torch::Tensor dA = empty, dB = empty;
   if (need_A) {
-    auto Bt = B.t().contiguous();  // (N, K): small
-    dA = torch::empty({R, K}, A.options());
-    tall_mm(dC.data_ptr<float>(), Bt.data_ptr<float>(), nullptr, dA.data_ptr<float>(), R, N, K);
+    dA = torch::empty({R, K}, A.options());  // dC (R x N) B^T: B (K x N) is op(B)'s transpose
+    tall_mm(dC.data_ptr<float>(), B.data_ptr<float>(), true, nullptr, dA.data_ptr<float>(), R, N, K);
   }
   if (need_B) dB = tall_tn(A.data_ptr<float>(), dC.data_ptr<float>(), R, K, N, A.options());
   return {dA, dB};
