@@ -414,6 +414,31 @@ def memo(namespace: str, key, build: Callable[[], Any], size: int = 64) -> Any:
     return value
 
 
+def memo_each(namespace: str, keys: list, build: Callable[[list[int]], list], max_bytes: int) -> list:
+    """One value per key, as ``memo`` keeps them but key by key: the values made earlier in this
+    process for some of ``keys`` are reused, and ``build(missing)`` makes the others together
+    (``missing``: their positions in ``keys``, each key once; it returns their values in that
+    order). For results made sample by sample (features of meshes), so that a later call on some
+    of the same samples, in another batch, finds them. The namespace keeps at most ``max_bytes``
+    of values (``nbytes``), the oldest dropped first; the values of a call that would not fit
+    are returned and not kept. Returns the values themselves: copy them before writing into them."""
+    table = _MEMOS.setdefault(namespace, {})
+    missing, seen = [], set()
+    for i, k in enumerate(keys):
+        if k not in table and k not in seen:
+            missing.append(i)
+            seen.add(k)
+    made = dict(zip((keys[i] for i in missing), build(missing))) if missing else {}
+    out = [table[k] if k in table else made[k] for k in keys]
+    size = sum(getattr(v, "nbytes", 0) for v in made.values())
+    if made and size <= max_bytes:
+        held = sum(getattr(v, "nbytes", 0) for v in table.values())
+        while table and held + size > max_bytes:
+            held -= getattr(table.pop(next(iter(table))), "nbytes", 0)
+        table.update(made)
+    return out
+
+
 def forget(namespace: str | None = None) -> None:
     """Drop the values ``memo`` holds for ``namespace`` (every namespace when None): the next
     ``memo`` builds again (from the disk cache where its ``build`` reads one)."""

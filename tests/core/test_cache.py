@@ -41,3 +41,31 @@ def test_memmap_array(tmp_path):
 def test_disabled_or_unwritable_cache_still_computes(tmp_path):
     c = Cache(tmp_path / "nope", enabled=False)
     assert c.get_or_build("ns", (1,), lambda: 5) == 5
+
+
+def test_memo_each_builds_only_the_missing_keys_together_and_keeps_at_most_max_bytes():
+    from fwk.cache import forget, memo_each
+
+    forget("test.memo_each")
+    built = []
+
+    def build(missing):
+        built.append(list(missing))
+        return [np.full(4, float(keys[i])) for i in missing]  # 32 bytes each
+
+    keys = [1, 2, 2, 3]  # a key twice: built once
+    out = memo_each("test.memo_each", keys, build, max_bytes=128)
+    assert built == [[0, 1, 3]] and [v[0] for v in out] == [1, 2, 2, 3]
+    keys = [3, 4, 1]
+    out = memo_each("test.memo_each", keys, build, max_bytes=128)
+    assert built[-1] == [1] and [v[0] for v in out] == [3, 4, 1]  # 1 and 3 remembered; 4 fills the 128 bytes
+    keys = [5]
+    memo_each("test.memo_each", keys, build, max_bytes=128)  # 1, the oldest, dropped for 5
+    keys = [1, 2]
+    memo_each("test.memo_each", keys, build, max_bytes=128)
+    assert built[-1] == [0]  # 1 again; 2 was kept
+    keys = list(range(10, 15))  # 160 bytes: more than max_bytes, returned and not kept
+    memo_each("test.memo_each", keys, build, max_bytes=128)
+    memo_each("test.memo_each", keys, build, max_bytes=128)
+    assert built[-2:] == [[0, 1, 2, 3, 4]] * 2
+    forget("test.memo_each")

@@ -66,6 +66,7 @@ def test_features_are_remembered_for_the_same_meshes_only(head, monkeypatch):  #
     reference, another fitted mean or another parameter compute afresh; a remembered result
     equals a fresh one, and writing into it leaves the remembered one alone; results over
     MEMO_BYTES are not remembered."""
+    # (the same meshes in other batches: test_features_are_remembered_mesh_by_mesh)
     V, t = head
     P = _samples(V, 4)
     R = _samples(V, 4, seed0=100, amplitude=0.02)
@@ -82,14 +83,48 @@ def test_features_are_remembered_for_the_same_meshes_only(head, monkeypatch):  #
     F[0, 0, 0] += 1.0
     assert np.array_equal(r.raw_features(P), real(r, P, None)) and len(calls) == 1
     assert np.array_equal(X, r.scaler.transform(real(r, P, None)).astype(np.float32))
-    r.raw_features(P[:3])  # other meshes
+    r.raw_features(P[:3] + 0.01)  # other meshes
     r.raw_features(P, R)  # another reference
     DR(scaling="std", normal_weight=0.2).fit(P, None, t)  # another parameter
     r2 = DR(scaling="std")
     r2.fit(P[:3], None, t)  # another fitted mean
     r2.raw_features(P)
     assert len(calls) == 6
+    forget("fwk_dr.raw_features")
     monkeypatch.setattr(fwk_dr, "MEMO_BYTES", P.size * 3 * 8 - 1)  # too large to remember
     r.raw_features(P)
     r.raw_features(P)
     assert len(calls) == 8
+
+
+def test_features_are_remembered_mesh_by_mesh(head, monkeypatch):  # noqa: F811
+    """Meshes fitted together and encoded in other batches (PB's expression networks: every
+    expression at once, then expression by expression), each with its own reference, are computed
+    once; only the meshes not seen are computed, in one batch; the results equal fresh ones (to the
+    polar decomposition's tolerance: the batch decides its last iteration); the oldest meshes are
+    dropped first when MEMO_BYTES would be passed."""
+    V, t = head
+    P = _samples(V, 6)
+    R = _samples(V, 6, seed0=100, amplitude=0.02)
+    forget("fwk_dr.raw_features")
+    batches = []
+    real = fwk_dr.DR._raw_features
+    monkeypatch.setattr(fwk_dr.DR, "_raw_features", lambda self, P, r: batches.append(len(P)) or real(self, P, r))
+    r = DR(scaling="std")
+    r.fit(P, R, t)
+    assert batches == [6]
+    for part in (slice(0, 3), slice(3, 6), [5, 0]):
+        F = r.raw_features(P[part], R[part])
+        assert np.allclose(F, real(r, P[part], R[part]), rtol=0, atol=1e-12)
+    assert batches == [6]  # the three batches were all remembered
+    Q = np.concatenate([P[:2], _samples(V, 2, seed0=50)])
+    F = r.raw_features(Q, np.concatenate([R[:2], R[:2]]))
+    assert batches == [6, 2] and np.allclose(F, real(r, Q, np.concatenate([R[:2], R[:2]])), atol=1e-12)
+    one = P[0].size * 3 * 8  # one mesh's (n, 9) float64 features
+    forget("fwk_dr.raw_features")
+    monkeypatch.setattr(fwk_dr, "MEMO_BYTES", 4 * one)
+    batches.clear()
+    r.raw_features(P[:4], R[:4])
+    r.raw_features(P[4:6], R[4:6])  # drops meshes 0 and 1
+    r.raw_features(P[:4], R[:4])
+    assert batches == [4, 2, 2]

@@ -110,7 +110,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
-from fwk.cache import content_key, memo
+from fwk.cache import content_key, memo, memo_each
 from fwk.errors import DataError, RecipeError
 from fwk.geometry import kabsch
 from fwk.geometry.operators import cotangent_laplacian
@@ -123,9 +123,8 @@ REFS = ("mean", "sample")
 #: per-half-edge terms (chunk, halfedges, 10) in float64, stays under this many bytes: all at once,
 #: 1,368 ICT-FaceKit meshes (11,248 vertices) took over 22 GB and were killed for memory
 CHUNK_BYTES = 256 * 2**20
-#: ``raw_features`` remembers its last MEMO_SIZE results of at most MEMO_BYTES each
-MEMO_SIZE = 4
-MEMO_BYTES = 256 * 2**20
+#: ``raw_features`` remembers the features of the meshes it computed last, at most MEMO_BYTES of them
+MEMO_BYTES = 512 * 2**20
 
 
 def _rows(a, i: int, j: int, b: int):
@@ -364,11 +363,15 @@ class DR:
     def raw_features(self, P, ref=None) -> np.ndarray:
         """(b, n, 9) unscaled features [log R | upper triangle of S - I] of P against ``ref``.
 
-        Remembered (``fwk.cache.memo``, the last ``MEMO_SIZE`` results of at most ``MEMO_BYTES``
-        each, keyed by the content of P, ref, the fitted mean and every parameter the features
-        depend on): ``fit`` then ``encode`` of the same meshes, as every caller does, and a second
-        model on the same neutrals compute them once (the main job computed each of its two
-        160-mesh feature sets twice and the neutrals' a third time: half of its DR time). Each call
+        Remembered mesh by mesh (``fwk.cache.memo_each``, at most ``MEMO_BYTES`` in all, keyed by
+        the content of the mesh, its reference, the fitted mean and every parameter the features
+        depend on): ``fit`` then ``encode`` of the same meshes compute them once, also when they
+        come in other batches. PB's expression networks fit on every expression's meshes at once
+        and encode them expression by expression: with one result per call remembered, the main
+        job computed them twice (16 of each PBS process's 40 s of DR features). A mesh's features
+        do not depend on the others of its batch except through the polar decomposition's
+        stopping test (the batch iterates until its slowest matrix converges, to 1e-14): a
+        remembered mesh may differ from one computed in another batch by that much. Each call
         returns its own copy."""
         P = np.asarray(P, dtype=np.float64)
         single = P.ndim == 2
@@ -377,12 +380,14 @@ class DR:
         r = None if ref is None else np.asarray(ref, dtype=np.float64)
         if r is not None and r.ndim == 2:
             r = r[None]
-        if P.size * 3 * 8 > MEMO_BYTES:  # (b, n, 9) float64 features
-            F = self._raw_features(P, r)
-        else:
-            key = content_key(P, r, self.mean, self.F, self.normal_weight, self.weight_floor, self.weight_ceiling,
-                              self.regularisation)
-            F = memo(f"{__name__}.raw_features", key, lambda: self._raw_features(P, r), size=MEMO_SIZE).copy()
+        fitted = content_key(self.mean, self.F, self.normal_weight, self.weight_floor, self.weight_ceiling,
+                             self.regularisation)
+        keys = [content_key(fitted, P[s], None if r is None else r[s if len(r) > 1 else 0]) for s in range(len(P))]
+
+        def build(missing):  # the meshes not remembered, in one batch
+            return list(self._raw_features(P[missing], r if r is None or len(r) == 1 else r[missing]))
+
+        F = np.stack(memo_each(f"{__name__}.raw_features", keys, build, MEMO_BYTES))
         return F[0] if single else F
 
     def _raw_features(self, P, r) -> np.ndarray:
