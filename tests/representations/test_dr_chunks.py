@@ -61,6 +61,16 @@ def test_memory_is_bounded_by_the_chunk(head, monkeypatch):  # noqa: F811
     assert small - out_bytes < 0.25 * (whole - out_bytes), (small, whole)
 
 
+def _count_batches(monkeypatch):
+    """Forgets the remembered features and records the size of every batch ``DR._raw_features``
+    computes from then on; returns (those sizes, the real ``_raw_features``)."""
+    forget("fwk_dr.raw_features")
+    sizes = []
+    real = fwk_dr.DR._raw_features
+    monkeypatch.setattr(fwk_dr.DR, "_raw_features", lambda self, P, r: sizes.append(len(P)) or real(self, P, r))
+    return sizes, real
+
+
 def test_features_are_remembered_for_the_same_meshes_only(head, monkeypatch):  # noqa: F811
     """fit then encode of the same meshes computes the features once; other meshes, another
     reference, another fitted mean or another parameter compute afresh; a remembered result
@@ -70,10 +80,7 @@ def test_features_are_remembered_for_the_same_meshes_only(head, monkeypatch):  #
     V, t = head
     P = _samples(V, 4)
     R = _samples(V, 4, seed0=100, amplitude=0.02)
-    forget("fwk_dr.raw_features")
-    calls = []
-    real = fwk_dr.DR._raw_features
-    monkeypatch.setattr(fwk_dr.DR, "_raw_features", lambda self, *a: calls.append(1) or real(self, *a))
+    calls, real = _count_batches(monkeypatch)
     r = DR(scaling="std")
     r.fit(P, None, t)
     X = r.encode(P)
@@ -106,10 +113,7 @@ def test_features_are_remembered_mesh_by_mesh(head, monkeypatch):  # noqa: F811
     V, t = head
     P = _samples(V, 6)
     R = _samples(V, 6, seed0=100, amplitude=0.02)
-    forget("fwk_dr.raw_features")
-    batches = []
-    real = fwk_dr.DR._raw_features
-    monkeypatch.setattr(fwk_dr.DR, "_raw_features", lambda self, P, r: batches.append(len(P)) or real(self, P, r))
+    batches, real = _count_batches(monkeypatch)
     r = DR(scaling="std")
     r.fit(P, R, t)
     assert batches == [6]
