@@ -95,6 +95,70 @@ def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, 
     assert (got[1][unread] == 0).all(), "a coefficient row no slot reads gets no gradient"
 
 
+def _naive_kernel(x, Wk, w, offs, src, pos, b, c, o):
+    """y_i = sum_k x[src_k] (b x c) @ Wk[pos_k] (c x o), r_i = sum_k w[pos_k] x[src_k], slot by slot."""
+    y, r = [], []
+    for i in range(len(offs) - 1):
+        yi, ri = x.new_zeros(b, o), x.new_zeros(b * c)
+        for s in range(int(offs[i]), int(offs[i + 1])):
+            yi = yi + x[src[s]].reshape(b, c) @ Wk[pos[s]].reshape(c, o)
+            if w.numel():
+                ri = ri + w[pos[s]] * x[src[s]]
+        y.append(yi)
+        r.append(ri)
+    return torch.stack(y), (torch.stack(r) if w.numel() else None)
+
+
+@pytestmark_native
+@pytest.mark.parametrize("residual", [False, True])
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("b,c,o", [(4, 3, 8), (3, 5, 17), (2, 16, 3)])  # narrow and wide results
+def test_kernel_product_matches_the_loops_in_value_and_gradient(residual, threads, b, c, o, torch_threads):
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(b + c + o)
+    n_in, n_out = 23, 9
+    offs, src = _csr(n_out, n_in, 6, g)
+    x = torch.randn(n_in, b * c, generator=g, requires_grad=True)
+    Wk, w, pos = _coefficients(len(src), c * o, g, residual)
+    y, r = native.kernel_product(x, Wk, w, offs, src, pos, b, c, o)
+    xd, Wd, wd = _double(x, Wk, w)
+    ye, re = _naive_kernel(xd, Wd, wd, offs, src, pos, b, c, o)
+    assert y.shape == (n_out, b, o) and torch.allclose(y.double(), ye, atol=1e-5)
+    assert (y[1] == 0).all(), "an empty support gives zeros"
+    gy = torch.randn(y.shape, generator=g)
+    if residual:
+        assert torch.allclose(r.double(), re, atol=1e-5)
+        gr = torch.randn(r.shape, generator=g)
+        got, exp = _grads((y, r), (x, Wk, w), (gy, gr)), _grads((ye, re), (xd, Wd, wd), (gy.double(), gr.double()))
+    else:
+        assert r.numel() == 0
+        got, exp = _grads(y, (x, Wk), gy), _grads(ye, (xd, Wd), gy.double())
+    for a, e in zip(got, exp):
+        assert torch.allclose(a.double(), e, atol=1e-4)
+    unread = torch.ones(len(Wk), dtype=torch.bool)
+    unread[pos] = False
+    assert (got[1][unread] == 0).all(), "a kernel row no slot reads gets no gradient"
+
+
+@pytestmark_native
+def test_kernel_product_refuses_malformed_arguments_and_is_counted():
+    from torch.utils.flop_counter import FlopCounterMode
+
+    x, Wk, w = torch.randn(4, 6), torch.randn(3, 6), torch.randn(3)
+    pos, offs, src = torch.tensor([0, 1, 2]), torch.tensor([0, 2, 3]), torch.tensor([0, 1, 1])
+    with pytest.raises(RuntimeError, match="out of range"):
+        native.kernel_product(x, Wk, w, offs, torch.tensor([0, 4, 1]), pos, 2, 3, 2)
+    with pytest.raises(RuntimeError, match="named twice"):
+        native.kernel_product(x, Wk, w, offs, src, torch.tensor([0, 1, 1]), 2, 3, 2)
+    with pytest.raises(RuntimeError, match="b c"):
+        native.kernel_product(x, Wk, w, offs, src, pos, 3, 3, 2)
+    with pytest.raises(RuntimeError, match="c o"):
+        native.kernel_product(x, Wk, w, offs, src, pos, 2, 3, 3)
+    with FlopCounterMode(display=False) as fc:
+        native.kernel_product(x, Wk, w, offs, src, pos, 2, 3, 2)
+    assert fc.get_total_flops() == 2 * 3 * 2 * 3 * (2 + 1)  # slots x b x c x (o + the residual's weight)
+
+
 @pytestmark_native
 @pytest.mark.parametrize("threads", [1, 2])
 def test_basis_product_matches_the_loops_in_value_and_gradient(threads, torch_threads):

@@ -46,15 +46,17 @@ of the thesis's supports in one bucket). Activations run vertex-major ((n, b, c)
 gathers and scatters move whole rows and their backward passes are an ``index_add`` and an
 ``index_select``; the output is returned as a (b, n, c) view of that layout.
 
-On float32 CPU tensors the ``sum`` and ``basis`` orders run their per-vertex products in native
-kernels (``fwk_vcconv.native``: the exact supports, no padding, no gathered intermediates;
-1.3-1.6x a training step, docs/methods/autoencoders.md "Speed"), and their products with the
-basis, where tall and narrow (``native.tall``: the outer layers' (n b) x c M @ c M x o), in
-``native.tall_product`` (1.1-1.2x the chapter 5 width's step); elsewhere (bf16 autocast,
+On float32 CPU tensors every order runs its per-vertex products in native kernels
+(``fwk_vcconv.native``: the exact supports, no padding, no gathered intermediates; 1.3-1.6x a
+training step, docs/methods/autoencoders.md "Speed"; ``kernel``: every coefficient row's kernel
+from one product, then y_i = G_i W_i per output vertex on its gathered rows), and the products
+with the basis, where tall and narrow (``native.tall``: the outer layers' (n b) x c M @ c M x o),
+in ``native.tall_product`` (1.1-1.2x the chapter 5 width's step); elsewhere (bf16 autocast,
 float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. ``auto`` prices the
 orders for the code that runs (the native kernels skip the padding and the slot-sized
-intermediates), which moves one layer measured: the chapter 5 width's first encoder layer takes
-``sum`` (48.6 ms forward and backward) instead of ``kernel`` (63.0 ms).
+intermediates, but ``kernel`` still copies each slot's input row into its vertex's block), which
+moves one layer measured: the chapter 5 width's first encoder layer takes ``kernel`` (20-30 ms
+forward and backward against ``sum``'s 25-34; ``benchmarks/vcconv_orders.py``).
 """
 from __future__ import annotations
 
@@ -277,12 +279,13 @@ class VCConv(nn.Module):
 
     def multiply_adds(self, b: int, native_kernels: bool = False) -> dict:
         """Multiply-adds of one forward pass per order for batch size b (on the torch code, or on
-        the native kernels, which skip the padded slots; ``kernel`` is torch code either way)."""
+        the native kernels, which skip the padded slots; there ``kernel`` makes every coefficient row's kernel)."""
         M, c, o = self.basis.shape
         P_out, P_in = self._slots(native_kernels)
+        R = self.coef.shape[0] * self.coef.shape[1]  # the native kernels make every coefficient row's kernel
         return {"sum": P_out * M * b * c + self.n_out * b * M * c * o,
                 "basis": self.n_in * b * c * M * o + P_in * M * b * o,
-                "kernel": self._out_slots * M * c * o + self._out_slots * b * c * o}
+                "kernel": (R if native_kernels else self._out_slots) * M * c * o + P_out * b * c * o}
 
     def traffic(self, b: int, native_kernels: bool = False) -> dict:
         """Floats of the large intermediates one forward pass materialises per order for batch
@@ -299,9 +302,12 @@ class VCConv(nn.Module):
         P_out, P_in = self._out_slots, self._in_slots
         y = self.n_out * b * o
         gathered, sent = (0, 0) if native_kernels else (P_out * b * c, 2 * P_in * b * o)
+        # the explicit kernels (every coefficient row's on the native kernels), and the gathered inputs: the
+        # native kernels copy each slot's input row once, transposed into the vertex's (b, K c) block
+        kernel = self.coef.shape[0] * self.coef.shape[1] * c * o + (1 if native_kernels else 3) * P_out * b * c
         return {"sum": gathered + self.n_out * (M + 1) * b * c + y,
                 "basis": self.n_in * M * b * o + sent + y,
-                "kernel": P_out * c * o + 3 * P_out * b * c + y}
+                "kernel": kernel + y}
 
     def costs(self, b: int, native_kernels: bool = False) -> dict:
         """The cost model ``auto`` minimises: multiply-adds + ``FLOAT_COST`` x traffic, per order."""
@@ -450,6 +456,24 @@ class VCConv(nn.Module):
                 res = res @ self.res_lin.weight.t()
         return y, res
 
+    def _kernel_native(self, xv, b, c, o, M):
+        """``kernel`` with the native kernels: every coefficient row's kernel W = A B from one tall
+        product (``_dense``), then per output vertex y_i = G_i W_i on its exact support
+        (``native.kernel_product``: the rows gathered in cache, one BLAS call), the residual's
+        weighted average in the same pass."""
+        has_res = self.r is not None and self.res_w is not None
+        w = self._res_weights() if has_res else self.coef.new_empty(0)
+        Wk = _dense(self.coef.reshape(-1, M), self.basis.reshape(M, c * o))  # (n_out K, c o)
+        y, r = native.kernel_product(xv.reshape(self.n_in, b * c), Wk, w, self._nat_out_offs, self._nat_out_src,
+                                     self._nat_out_pos, b, c, o)
+        y = y + self.bias
+        res = None
+        if has_res:
+            res = r.reshape(self.n_out, b, c)
+            if self.res_lin is not None:
+                res = res @ self.res_lin.weight.t()
+        return y, res
+
     def _kernel(self, xv, b, c, o, M):
         """Explicit kernels W_ij = sum_m A_ijm B_m, then y_i = sum_j W_ij^T x_j per output vertex."""
         has_res = self.r is not None and self.res_w is not None
@@ -478,9 +502,9 @@ class VCConv(nn.Module):
         xv = x.transpose(0, 1)  # vertex-major (n_in, b, c); free when x is the previous layer's output
         usable = native.usable(x, self.coef)
         order = self.chosen_order(b, usable)
-        nat = usable and order != "kernel"
+        nat = usable
         evaluate = {"sum": self._sum_native if nat else self._sum, "basis": self._basis_native if nat else self._basis,
-                    "kernel": self._kernel}[order]
+                    "kernel": self._kernel_native if nat else self._kernel}[order]
         y, res = evaluate(xv, b, c, o, M)  # y includes the bias; res (strided modes) includes sqrt(r)
         if self.activation is not None:
             y = self.activation(y)

@@ -68,6 +68,13 @@ inline void scatter_coef(const float* buf, float* dcoef, float* dw, const int64_
   }
 }
 
+// a row x (b x c, row-major) into the columns [0, c) of b rows of ld floats (dst row q at dst + q ld); c is
+// a few floats (3-32): plain loops, not a memcpy call per piece
+inline void gather_transposed(float* dst, int64_t ld, const float* x, int64_t b, int64_t c) {
+  for (int64_t q = 0; q < b; ++q)
+    for (int64_t p = 0; p < c; ++p) dst[q * ld + p] = x[q * c + p];
+}
+
 void check_coef(const torch::Tensor& coef, const torch::Tensor& w, const torch::Tensor& pos, int64_t slots) {
   check(coef, "coef", at::kFloat, 2);
   check(w, "w", at::kFloat, 1);
@@ -251,6 +258,139 @@ std::vector<torch::Tensor> basis_backward(torch::Tensor dy, torch::Tensor Z, tor
   return {dZ, dcoef};
 }
 
+// kernel order, forward. x (n_in, b c); Wk (R, c o): each coefficient row's kernel W = sum_m A_m B_m
+// (c x o, row-major); w (R, or empty) the residual's weights, read at pos (slots); offs (n_out + 1), src
+// (slots). For output vertex i with slots s in [offs[i], offs[i+1]) (K of them):
+//     y_i (b x o) = G_i (b x K c) W_i (K c x o),   G_i[beta, (k, p)] = x[src[s_k], beta, p],  W_i = Wk[pos[s_k]] stacked
+//     r_i (b c) = sum_k w[pos[s_k]] x[src[s_k]]
+// Returns y (n_out, b, o) (no bias) and r (n_out, b c) (empty (0,) without w).
+std::vector<torch::Tensor> kernel_forward(torch::Tensor x, torch::Tensor Wk, torch::Tensor w, torch::Tensor offs,
+                                          torch::Tensor src, torch::Tensor pos, int64_t b, int64_t c, int64_t o) {
+  check(x, "x", at::kFloat, 2);
+  check(Wk, "Wk", at::kFloat, 2);
+  const int64_t n_in = x.size(0), B = x.size(1), n_out = offs.size(0) - 1, co = c * o;
+  TORCH_CHECK(b > 0 && c > 0 && o > 0 && B == b * c, "x: expected b c = ", b * c, " columns");
+  TORCH_CHECK(Wk.size(1) == co, "Wk: expected c o = ", co, " columns");
+  check_csr(offs, src, n_out, n_in);
+  check_coef(Wk, w, pos, src.size(0));
+  const bool res = w.size(0) > 0;
+  auto y = torch::empty({n_out, b, o}, x.options());
+  auto r = res ? torch::empty({n_out, B}, x.options()) : torch::empty({0}, x.options());
+  const float* xp = x.data_ptr<float>();
+  const float* Wp = Wk.data_ptr<float>();
+  const float* wp = res ? w.data_ptr<float>() : nullptr;
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* sp = src.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
+  float* yp = y.data_ptr<float>();
+  float* rp = res ? r.data_ptr<float>() : nullptr;
+  const int64_t Kmax = max_run(op, n_out);
+  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+    std::vector<float> G(std::max<int64_t>(b * Kmax * c, 1)), Wi(std::max<int64_t>(Kmax * co, 1)), tmp;
+    for (int64_t i = i0; i < i1; ++i) {
+      const int64_t s0 = op[i], K = op[i + 1] - s0, Kc = K * c;
+      float* yi = yp + i * b * o;
+      if (res) std::fill(rp + i * B, rp + (i + 1) * B, 0.f);
+      if (K == 0) {
+        std::fill(yi, yi + b * o, 0.f);
+        continue;
+      }
+      for (int64_t k = 0; k < K; ++k) {
+        const float* xr = xp + sp[s0 + k] * B;
+        gather_transposed(G.data() + k * c, Kc, xr, b, c);
+        std::memcpy(Wi.data() + k * co, Wp + pp[s0 + k] * co, co * sizeof(float));
+        if (res) {
+          const float wk = wp[pp[s0 + k]];
+          float* ri = rp + i * B;
+          for (int64_t t = 0; t < B; ++t) ri[t] += wk * xr[t];
+        }
+      }
+      rows_gemm(b, o, Kc, G.data(), Kc, Wi.data(), false, 0.f, yi, o, tmp);
+    }
+  });
+  return {y, r};
+}
+
+// kernel order, backward. dy (n_out, b, o), dr (n_out, b c) or empty; returns dx (n_in, b c), dWk (R, c o)
+// and dw (R) (zero at the rows no slot reads; empty where not asked for):
+//     dW_i = G_i^T dy_i (to Wk's rows at pos),  dG_i = dy_i W_i^T (to x's rows),  dx[src] += w dr_i,  dw = x[src] . dr_i
+std::vector<torch::Tensor> kernel_backward(torch::Tensor dy, torch::Tensor dr, torch::Tensor x, torch::Tensor Wk,
+                                           torch::Tensor w, torch::Tensor offs, torch::Tensor src, torch::Tensor pos,
+                                           int64_t b, int64_t c, int64_t o, bool need_x, bool need_W, bool need_w) {
+  check(dy, "dy", at::kFloat, 3);
+  const int64_t n_in = x.size(0), B = x.size(1), n_out = offs.size(0) - 1, co = c * o;
+  TORCH_CHECK(dy.size(0) == n_out && dy.size(1) == b && dy.size(2) == o, "dy: expected (", n_out, ", ", b, ", ", o, ")");
+  const bool res = w.size(0) > 0;
+  if (res) check(dr, "dr", at::kFloat, 2);
+  need_w = need_w && res;
+  const int nt = at::get_num_threads();
+  auto empty = torch::empty({0}, x.options());
+  auto acc = need_x ? torch::zeros({nt, n_in, B}, x.options()) : empty;
+  auto dWk = need_W ? torch::zeros({Wk.size(0), co}, x.options()) : empty;
+  auto dw = need_w ? torch::zeros({w.size(0)}, x.options()) : empty;
+  const float* xp = x.data_ptr<float>();
+  const float* Wp = Wk.data_ptr<float>();
+  const float* wp = res ? w.data_ptr<float>() : nullptr;
+  const float* dyp = dy.data_ptr<float>();
+  const float* drp = res ? dr.data_ptr<float>() : nullptr;
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* sp = src.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
+  float* accp = need_x ? acc.data_ptr<float>() : nullptr;
+  float* dWp = need_W ? dWk.data_ptr<float>() : nullptr;
+  float* dwp = need_w ? dw.data_ptr<float>() : nullptr;
+  const int64_t Kmax = max_run(op, n_out);
+  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+    float* mine = need_x ? thread_accumulator(accp, nt, n_in * B) : nullptr;
+    std::vector<float> G(std::max<int64_t>(b * Kmax * c, 1)), Wi(std::max<int64_t>(Kmax * co, 1)),
+        T(std::max<int64_t>(Kmax * co, 1)), tmp;
+    for (int64_t i = i0; i < i1; ++i) {
+      const int64_t s0 = op[i], K = op[i + 1] - s0, Kc = K * c;
+      if (K == 0) continue;
+      const float* dyi = dyp + i * b * o;
+      if (need_W) {
+        for (int64_t k = 0; k < K; ++k) gather_transposed(G.data() + k * c, Kc, xp + sp[s0 + k] * B, b, c);
+        // column-major T (K c x o) = G_i^T (K c x b) dy_i (b x o): the long side first; Wk's rows take it back
+        gemm('N', 'T', Kc, o, b, 1.f, G.data(), Kc, dyi, o, 0.f, T.data(), Kc);
+        for (int64_t k = 0; k < K; ++k) {
+          float* dst = dWp + pp[s0 + k] * co;
+          for (int64_t p = 0; p < c; ++p)
+            for (int64_t q = 0; q < o; ++q) dst[p * o + q] = T[q * Kc + k * c + p];
+        }
+      }
+      if (need_x) {
+        for (int64_t k = 0; k < K; ++k) std::memcpy(Wi.data() + k * co, Wp + pp[s0 + k] * co, co * sizeof(float));
+        // dG_i (b x K c) = dy_i (b x o) W_i^T (o x K c), scattered to x's rows
+        rows_gemm(b, Kc, o, dyi, o, Wi.data(), true, 0.f, G.data(), Kc, tmp);
+        for (int64_t k = 0; k < K; ++k) {
+          float* xr = mine + sp[s0 + k] * B;
+          const float* g = G.data() + k * c;
+          for (int64_t q = 0; q < b; ++q)
+            for (int64_t p = 0; p < c; ++p) xr[q * c + p] += g[q * Kc + p];
+        }
+      }
+      if (res) {
+        const float* dri = drp + i * B;
+        for (int64_t k = 0; k < K; ++k) {
+          const int64_t j = sp[s0 + k];
+          if (need_x) {
+            const float wk = wp[pp[s0 + k]];
+            float* xr = mine + j * B;
+            for (int64_t t = 0; t < B; ++t) xr[t] += wk * dri[t];
+          }
+          if (need_w) {
+            const float* xr = xp + j * B;
+            float d = 0.f;
+            for (int64_t t = 0; t < B; ++t) d += xr[t] * dri[t];
+            dwp[pp[s0 + k]] = d;
+          }
+        }
+      }
+    }
+  });
+  return {need_x ? reduce(acc) : acc, dWk, dw};
+}
+
 // the products with the basis: C (R, N) = A (R, K) B (K, N) + bias (N, or empty (0,)), R large, K and N
 // small (fwk_native.h's tall_mm: row blocks in cache, one BLAS call each)
 torch::Tensor tall_forward(torch::Tensor A, torch::Tensor B, torch::Tensor bias) {
@@ -285,6 +425,8 @@ std::vector<torch::Tensor> tall_backward(torch::Tensor dC, torch::Tensor A, torc
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("kernel_forward", &kernel_forward);
+  m.def("kernel_backward", &kernel_backward);
   m.def("tall_forward", &tall_forward);
   m.def("tall_backward", &tall_backward);
   m.def("sum_forward", &sum_forward);
