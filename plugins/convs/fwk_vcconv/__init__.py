@@ -388,12 +388,7 @@ class VCConv(nn.Module):
                                   self._nat_out_pos)  # (n_out, b c, M), (n_out, b c)
         Bm = self.basis.permute(1, 0, 2).reshape(c * M, o)  # rows (p, m): T's rows (i, beta) are [(i, b), (p, m)]
         y = _dense(T.reshape(self.n_out * b, c * M), Bm, self.bias).reshape(self.n_out, b, o)
-        res = None
-        if has_res:
-            res = r.reshape(self.n_out, b, c)
-            if self.res_lin is not None:
-                res = res @ self.res_lin.weight.t()
-        return y, res
+        return y, (self._mapped_residual(r, b, c) if has_res else None)
 
     def _basis_native(self, xv, b, c, o, M):
         """``basis`` with the native kernel (``native.basis_product``): Z_j from one dense product,
@@ -466,13 +461,12 @@ class VCConv(nn.Module):
         Wk = _dense(self.coef.reshape(-1, M), self.basis.reshape(M, c * o))  # (n_out K, c o)
         y, r = native.kernel_product(xv.reshape(self.n_in, b * c), Wk, w, self._nat_out_offs, self._nat_out_src,
                                      self._nat_out_pos, b, c, o)
-        y = y + self.bias
-        res = None
-        if has_res:
-            res = r.reshape(self.n_out, b, c)
-            if self.res_lin is not None:
-                res = res @ self.res_lin.weight.t()
-        return y, res
+        return y + self.bias, (self._mapped_residual(r, b, c) if has_res else None)
+
+    def _mapped_residual(self, r, b, c):
+        """The native kernels' residual average r (n_out, b c) as (n_out, b, c_out): R applied when c != c_out."""
+        res = r.reshape(self.n_out, b, c)
+        return res if self.res_lin is None else res @ self.res_lin.weight.t()
 
     def _kernel(self, xv, b, c, o, M):
         """Explicit kernels W_ij = sum_m A_ijm B_m, then y_i = sum_j W_ij^T x_j per output vertex."""
