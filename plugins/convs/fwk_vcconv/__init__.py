@@ -294,8 +294,10 @@ class VCConv(nn.Module):
         * ``sum``: the gathered inputs (slots x b c; not on the native kernels) and T (n_out (M + 1) b c);
         * ``basis``: Z (n_in M b o), the per-slot products and residual terms sent to the outputs
           (2 x slots b o; not on the native kernels);
-        * ``kernel``: the explicit kernels (slots c o), the gathered inputs, their copy laid out
-          for the product and the residual's weighted copy (3 x slots b c);
+        * ``kernel``: the explicit kernels (slots c o; on the native kernels, every coefficient
+          row's, n_out K c o), the gathered inputs, their copy laid out for the product and the
+          residual's weighted copy (3 x slots b c; on the native kernels the one copy of each slot's
+          input row into its vertex's block, slots b c);
 
         and the output (n_out b o) for every order."""
         M, c, o = self.basis.shape
@@ -304,7 +306,8 @@ class VCConv(nn.Module):
         gathered, sent = (0, 0) if native_kernels else (P_out * b * c, 2 * P_in * b * o)
         # the explicit kernels (every coefficient row's on the native kernels), and the gathered inputs: the
         # native kernels copy each slot's input row once, transposed into the vertex's (b, K c) block
-        kernel = self.coef.shape[0] * self.coef.shape[1] * c * o + (1 if native_kernels else 3) * P_out * b * c
+        kernel = (self.coef.shape[0] * self.coef.shape[1] * c * o + self._slots(True)[0] * b * c if native_kernels
+                  else P_out * c * o + 3 * P_out * b * c)
         return {"sum": gathered + self.n_out * (M + 1) * b * c + y,
                 "basis": self.n_in * M * b * o + sent + y,
                 "kernel": kernel + y}
