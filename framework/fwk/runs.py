@@ -385,13 +385,17 @@ def _write_failed(run_dir: Path, exc: BaseException) -> None:
 
 def versions(registry: Registry) -> dict:
     """Python, platform, library and plugin versions and the git commit, for ``versions.json``."""
+    from importlib import metadata
+
     out = {"python": sys.version.split()[0], "platform": platform.platform(), "fwk": __version__}
     for mod in ("numpy", "scipy", "torch", "lightning", "torch_geometric", "trimesh", "pyvista", "open3d"):
-        try:
-            m = __import__(mod)
-            out[mod] = getattr(m, "__version__", "")
-        except Exception:
-            pass
+        try:  # the installed distribution's version: importing pyvista and open3d only for it took 1-3 s a run
+            out[mod] = metadata.version(mod)
+        except metadata.PackageNotFoundError:
+            try:  # a module without distribution metadata (a source checkout on sys.path)
+                out[mod] = getattr(__import__(mod), "__version__", "")
+            except Exception:
+                pass
     out["plugins"] = {}
     for e in registry:
         out["plugins"].setdefault(e.plugin, e.version)
