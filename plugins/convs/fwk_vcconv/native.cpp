@@ -298,13 +298,13 @@ std::vector<torch::Tensor> kernel_forward(torch::Tensor x, torch::Tensor Wk, tor
       for (int64_t k = 0; k < K; ++k) {
         const float* xr = xp + sp[s0 + k] * B;
         gather_transposed(G.data() + k * c, Kc, xr, b, c);
-        std::memcpy(Wi.data() + k * co, Wp + pp[s0 + k] * co, co * sizeof(float));
         if (res) {
           const float wk = wp[pp[s0 + k]];
           float* ri = rp + i * B;
           for (int64_t t = 0; t < B; ++t) ri[t] += wk * xr[t];
         }
       }
+      gather_coef(Wi.data(), Wp, nullptr, pp, s0, K, co, co);  // W_i: the slots' kernels stacked (K c x o)
       rows_gemm(b, o, Kc, G.data(), Kc, Wi.data(), false, 0.f, yi, o, tmp);
     }
   });
@@ -359,7 +359,7 @@ std::vector<torch::Tensor> kernel_backward(torch::Tensor dy, torch::Tensor dr, t
         }
       }
       if (need_x) {
-        for (int64_t k = 0; k < K; ++k) std::memcpy(Wi.data() + k * co, Wp + pp[s0 + k] * co, co * sizeof(float));
+        gather_coef(Wi.data(), Wp, nullptr, pp, s0, K, co, co);
         // dG_i (b x K c) = dy_i (b x o) W_i^T (o x K c), scattered to x's rows
         rows_gemm(b, Kc, o, dyi, o, Wi.data(), true, 0.f, G.data(), Kc, tmp);
         for (int64_t k = 0; k < K; ++k) {

@@ -86,14 +86,20 @@ def _sum_setup(ctx, inputs, output):
     ctx.save_for_backward(*inputs)
 
 
+def _residual_grad(dr, x, w, n_out):
+    """The gradient of the residual's average r (n_out, B) as the kernels take it: zeros where autograd
+    gives none, (0,) without residual weights w."""
+    if not w.shape[0]:
+        return x.new_empty(0)
+    B = x.shape[1]
+    return x.new_zeros(n_out, B) if dr is None or dr.shape != (n_out, B) else dr.contiguous()
+
+
 def _sum_backward(ctx, dT, dr):
     x, coef, w, offs, src, pos = ctx.saved_tensors
     n_out, B = offs.shape[0] - 1, x.shape[1]
     dT = x.new_zeros(n_out, B, coef.shape[1]) if dT is None else dT.contiguous()
-    if w.shape[0]:
-        dr = x.new_zeros(n_out, B) if dr is None or dr.shape != (n_out, B) else dr.contiguous()
-    else:
-        dr = x.new_empty(0)
+    dr = _residual_grad(dr, x, w, n_out)
     need = ctx.needs_input_grad
     dx, dcoef, dw = _load().sum_backward(dT, dr, x.contiguous(), coef.contiguous(), w.contiguous(), offs, src, pos,
                                          need[0], need[1], need[2] and w.shape[0] > 0)
@@ -163,10 +169,7 @@ def _kernel_backward(ctx, dy, dr):
     b, c, o = ctx.bco
     n_out = offs.shape[0] - 1
     dy = x.new_zeros(n_out, b, o) if dy is None else dy.contiguous()
-    if w.shape[0]:
-        dr = x.new_zeros(n_out, x.shape[1]) if dr is None or dr.shape != (n_out, x.shape[1]) else dr.contiguous()
-    else:
-        dr = x.new_empty(0)
+    dr = _residual_grad(dr, x, w, n_out)
     need = ctx.needs_input_grad
     dx, dWk, dw = _load().kernel_backward(dy, dr, x.contiguous(), Wk.contiguous(), w.contiguous(), offs, src, pos,
                                           b, c, o, need[0], need[1], need[2] and w.shape[0] > 0)
