@@ -13,7 +13,8 @@ Today's rows run on the native kernels (``fwk_vcconv.native``, ``fwk_spiralpp.na
 the line below each ("torch code") times the same network on its conv's torch evaluation
 (``FWK_VCCONV_NATIVE=0``, ``FWK_SPIRALPP_NATIVE=0``) in the same alternation; for the two vcconv
 rows, "no tall" times the native kernels with the products with the basis on torch's product
-instead of ``fwk_vcconv.native.tall_product``.
+instead of ``fwk_vcconv.native.tall_product``, and "no lanes" with the narrow ``basis`` layers on the
+tall product and ``basis_product`` instead of ``fwk_vcconv.native.basis_lanes``.
 
 * ``vcconv VAE``: the fully convolutional VAE at the thesis's width (its Mesh Autoencoder and
   Deep Spectral Meshes' bands, issue 28's "thesis-width" network), channels [3, 32, 64, 128,
@@ -189,23 +190,37 @@ def native_line(r: dict, ts: dict, g_torch: float, rate: float) -> None:
           f"the native kernels are {r['native_speedup']:.2f}x faster)")
 
 
-def without_tall(step):
-    """The step with vcconv's products with the basis on torch's product (``fwk_vcconv.native.tall_product``
-    off), for a side-by-side timing of that kernel alone."""
-    from fwk_vcconv import native as vcconv_native
+def patched(step, target, name, value):
+    """The step with ``target.name`` set to ``value`` while it runs, for a side-by-side timing of one
+    kernel alone: ``fwk_vcconv.native.TALL_MAX_B = 0`` puts vcconv's products with the basis on torch's
+    product ("no tall"), ``fwk_vcconv.LANES_MAX_OUT = 0`` takes its ``basis`` layers out of lanes
+    ("no lanes")."""
 
     def run():
-        with mock.patch.object(vcconv_native, "TALL_MAX_B", 0):
+        with mock.patch.object(target, name, value):
             return step()
 
     return run
 
 
-def tall_line(r: dict, ts: dict) -> None:
-    """Adds the step without ``tall_product`` to a vcconv row and prints it."""
-    r.update({"no_tall_ms": 1e3 * ts["after_no_tall"], "tall_speedup": ts["after_no_tall"] / ts["after"]})
+def add_variants(steps, enc, dec, x) -> None:
+    """The vcconv rows' "no tall" and "no lanes" steps (``patched``), on copies of the network."""
+    import fwk_vcconv
+    from fwk_vcconv import native as vcconv_native
+
+    steps["after_no_tall"] = patched(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x), vcconv_native, "TALL_MAX_B", 0)
+    steps["after_no_lanes"] = patched(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x), fwk_vcconv,
+                                      "LANES_MAX_OUT", 0)
+
+
+def variant_lines(r: dict, ts: dict) -> None:
+    """Adds the steps without ``tall_product`` and without lanes to a vcconv row and prints them."""
+    r.update({"no_tall_ms": 1e3 * ts["after_no_tall"], "tall_speedup": ts["after_no_tall"] / ts["after"],
+              "no_lanes_ms": 1e3 * ts["after_no_lanes"], "lanes_speedup": ts["after_no_lanes"] / ts["after"]})
     print(f"{'  no tall':<13} {'':>10} {r['no_tall_ms']:>9.0f}   (the basis products on torch's: tall_product is "
           f"{r['tall_speedup']:.2f}x faster)")
+    print(f"{'  no lanes':<13} {'':>10} {r['no_lanes_ms']:>9.0f}   (the narrow basis layers on the tall product and "
+          f"basis_product: basis_lanes is {r['lanes_speedup']:.2f}x faster)")
 
 
 def load_average() -> float:
@@ -302,7 +317,7 @@ def main():
         steps = {"before": stepper(oenc, odec, x, fused=False), "after": stepper(enc, dec, x)}
         g_torch = add_torch_code(steps, enc, dec, x)
         if key == "vcconv_vae":
-            steps["after_no_tall"] = without_tall(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x))
+            add_variants(steps, enc, dec, x)
         if a.bf16:
             e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
             steps["after_bf16"] = stepper(e16, d16, x, bf16=True)
@@ -314,7 +329,7 @@ def main():
               f"{g_new:>12.1f} {r['gflops_after']:>14.1f} {100 * r['of_matmul']:>9.0f}%")
         native_line(r, ts, g_torch, rate)
         if key == "vcconv_vae":
-            tall_line(r, ts)
+            variant_lines(r, ts)
         if a.bf16:
             dev = loss_deviation(enc, dec, x)
             r.update({"after_bf16_ms": 1e3 * ts["after_bf16"], "bf16_speedup": ts["after"] / ts["after_bf16"],
@@ -334,7 +349,7 @@ def main():
         steps = {"after": stepper(enc, dec, x)}
         g_torch = add_torch_code(steps, enc, dec, x)
         if key == "vcconv_vae_ch5":
-            steps["after_no_tall"] = without_tall(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x))
+            add_variants(steps, enc, dec, x)
         if a.bf16:
             steps["after_bf16"] = stepper(copy.deepcopy(enc), copy.deepcopy(dec), x, bf16=True)
         ts = alternate(steps, a.steps, a.cpu_time)
@@ -344,7 +359,7 @@ def main():
               f"{100 * r['of_matmul']:>9.0f}%   ({what})")
         native_line(r, ts, g_torch, rate)
         if key == "vcconv_vae_ch5":
-            tall_line(r, ts)
+            variant_lines(r, ts)
         if a.bf16:
             r.update({"after_bf16_ms": 1e3 * ts["after_bf16"], "bf16_speedup": ts["after"] / ts["after_bf16"]})
             print(f"{'  bf16':<13} {'':>10} {r['after_bf16_ms']:>9.0f} {r['bf16_speedup']:>6.2f}x over fp32")

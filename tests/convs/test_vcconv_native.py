@@ -331,3 +331,115 @@ def test_vcconv_takes_tall_product_for_tall_narrow_products_only():
     assert native.tall(torch.empty(49424, 8), torch.empty(8, 105))
     assert not native.tall(torch.empty(10096, 64), torch.empty(64, 1120))
     assert not native.tall(torch.empty(100, 8), torch.empty(8, 105))
+
+
+# ---- the basis order in lanes (native.basis_lanes)
+pytestmark_lanes = pytest.mark.skipif(not (native.available() and native.lanes(35)),
+                                      reason="the lane kernels need the native kernels and an AVX-512 CPU")
+
+
+def _naive_basis_lanes(x, basis, coef, offs, dst, pos, n_out):
+    """The basis order by its definition, slot by slot: y[dst[s]] += x_j (sum_m A_sm B_m) for input vertex j."""
+    b, o = x.shape[1], basis.shape[2]
+    y = x.new_zeros(n_out, b, o)
+    for j in range(len(offs) - 1):
+        for s in range(int(offs[j]), int(offs[j + 1])):
+            W = torch.einsum("m,mpq->pq", coef[pos[s]], basis)  # the slot's c x o kernel
+            y[dst[s]] = y[dst[s]] + x[j] @ W
+    return y
+
+
+@pytestmark_lanes
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("b,c,o,M", [(16, 8, 3, 35), (5, 3, 8, 7), (20, 4, 5, 16), (33, 2, 1, 64), (1, 6, 7, 17)])
+def test_basis_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, o, M, torch_threads):
+    """Batches of 16 and not (the lanes past b are zero), kernel counts in 1-4 chunks of 16 (the dA
+    and Zm paths), supports of 0 to 9 slots: value and gradients of x, the basis and the
+    coefficients against the slot loop in float64; coefficient rows no slot reads get zero."""
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(11)
+    n_in, n_out = 13, 40
+    offs, dst = _csr(n_in, n_out, 9, g, empty=(2, 7))
+    x = torch.randn(n_in, b, c, generator=g, requires_grad=True)
+    basis = torch.randn(M, c, o, generator=g, requires_grad=True)
+    coef, _, pos = _coefficients(len(dst), M, g, False)
+    y = native.basis_lanes(x, basis, coef, offs, dst, pos, n_out)
+    xd, bd, cd = _double(x, basis, coef)
+    ye = _naive_basis_lanes(xd, bd, cd, offs, dst, pos, n_out)
+    assert y.shape == (n_out, b, o)
+    assert torch.allclose(y.double(), ye, rtol=1e-5, atol=1e-4)
+    gy = torch.randn(y.shape, generator=g)
+    got, exp = _grads(y, (x, basis, coef), gy), _grads(ye, (xd, bd, cd), gy.double())
+    for a, e in zip(got, exp):
+        assert torch.allclose(a.double(), e, rtol=1e-5, atol=1e-3), (a.double() - e).abs().max()
+    assert (got[0][2] == 0).all() and (got[0][7] == 0).all(), "an input vertex with no slots gets no gradient"
+    read = torch.zeros(coef.shape[0], dtype=torch.bool)
+    read[pos] = True
+    assert (got[2][~read] == 0).all(), "coefficient rows no slot reads get no gradient"
+
+
+@pytestmark_lanes
+def test_basis_lanes_is_the_same_bits_on_repeat_and_asks_only_what_is_needed(torch_threads):
+    torch.set_num_threads(2)
+    g = torch.Generator().manual_seed(12)
+    offs, dst = _csr(300, 700, 12, g)
+    x = torch.randn(300, 16, 8, generator=g)
+    basis = torch.randn(35, 8, 3, generator=g)
+    coef, _, pos = _coefficients(len(dst), 35, g, False)
+    coef = coef.detach()
+    runs = [native.basis_lanes(x, basis, coef, offs, dst, pos, 700) for _ in range(3)]
+    assert all(torch.equal(r, runs[0]) for r in runs[1:])
+    xr = x.clone().requires_grad_()
+    (dx,) = torch.autograd.grad(native.basis_lanes(xr, basis, coef, offs, dst, pos, 700).sum(), xr)
+    (dx2,) = torch.autograd.grad(native.basis_lanes(xr, basis, coef, offs, dst, pos, 700).sum(), xr)
+    assert torch.equal(dx, dx2)
+
+
+@pytestmark_lanes
+def test_basis_lanes_refuses_malformed_arguments_and_is_counted():
+    from torch.utils.flop_counter import FlopCounterMode
+
+    x, basis, coef = torch.randn(3, 4, 2), torch.randn(5, 2, 3), torch.randn(4, 5)
+    offs, dst, pos = torch.tensor([0, 2, 2, 4]), torch.tensor([0, 1, 1, 2]), torch.tensor([3, 0, 1, 2])
+    with pytest.raises(RuntimeError, match="out of range"):
+        native.basis_lanes(x, basis, coef, offs, torch.tensor([0, 1, 1, 3]), pos, 3)
+    with pytest.raises(RuntimeError, match="named twice"):
+        native.basis_lanes(x, basis, coef, offs, dst, torch.tensor([0, 0, 1, 2]), 3)
+    with pytest.raises(RuntimeError, match="input channels"):
+        native.basis_lanes(x, torch.randn(5, 3, 3), coef, offs, dst, pos, 3)
+    with pytest.raises(RuntimeError, match="1 to 64 kernels"):
+        native.basis_lanes(x, torch.randn(65, 2, 3), torch.randn(4, 65), offs, dst, pos, 3)
+    with pytest.raises(RuntimeError, match="Float"):
+        native.basis_lanes(x.double(), basis.double(), coef.double(), offs, dst, pos, 3)
+    assert not native.lanes(65) and native.lanes(64)
+    with FlopCounterMode(display=False) as fc:
+        native.basis_lanes(x, basis, coef, offs, dst, pos, 3)
+    assert fc.get_total_flops() == 2 * 3 * 4 * 2 * 5 * 3 + 2 * 4 * 5 * 4 * 3  # as the tall product and basis_product
+
+
+@pytestmark_lanes
+@pytest.mark.parametrize("c_out,lanes", [(3, True), (8, True), (9, False)])
+def test_vcconv_runs_narrow_basis_layers_in_lanes(c_out, lanes, monkeypatch):
+    """The ``basis`` order of a layer with at most ``LANES_MAX_OUT`` output channels takes
+    ``basis_lanes``, a wider one the tall product and ``basis_product``; with lanes off
+    (``LANES_MAX_OUT = 0``) the same layer agrees in value and gradient."""
+    import fwk_vcconv
+    from fwk.plugins import get_registry
+    from fwk.testing.sampler import two_components
+
+    h = get_registry().get("sampler", "simple")(levels=3).build(two_components())
+    torch.manual_seed(0)
+    conv = get_registry().get("conv", "vcconv")(6, c_out, h, 1, weight_num=5, mode="up", residual_rate=0.5,
+                                                order="basis")
+    calls = []
+    real = native.basis_lanes
+    monkeypatch.setattr(native, "basis_lanes", lambda *a: calls.append(a[1].shape) or real(*a))
+    x = torch.randn(3, conv.n_in, 6, requires_grad=True)
+    runs = []
+    for limit in (fwk_vcconv.LANES_MAX_OUT, 0):
+        monkeypatch.setattr(fwk_vcconv, "LANES_MAX_OUT", limit)
+        y = conv(x)
+        runs.append((y, *torch.autograd.grad(y.square().sum(), [x, conv.basis, conv.coef])))
+    assert calls == ([(5, 6, c_out)] if lanes else [])
+    for a, e in zip(*runs):  # the same sums in another order: equal to float32 rounding of the largest entry
+        assert (a - e).abs().max() <= 1e-5 * (1 + e.abs().max())

@@ -51,7 +51,10 @@ On float32 CPU tensors every order runs its per-vertex products in native kernel
 training step, docs/methods/autoencoders.md "Speed"; ``kernel``: every coefficient row's kernel
 from one product, then y_i = G_i W_i per output vertex on its gathered rows), and the products
 with the basis, where tall and narrow (``native.tall``: the outer layers' (n b) x c M @ c M x o),
-in ``native.tall_product`` (1.1-1.2x the chapter 5 width's step); elsewhere (bf16 autocast,
+in ``native.tall_product`` (1.1-1.2x the chapter 5 width's step); the ``basis`` order of layers with
+at most ``LANES_MAX_OUT`` output channels runs in one pass with the batch as the vector
+(``native.basis_lanes``: the basis product made in cache; 1.19x the chapter 5 width's step, on
+CPUs with AVX-512); elsewhere (bf16 autocast,
 float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. ``auto`` prices the
 orders for the code that runs (the native kernels skip the padding and the slot-sized
 intermediates, but ``kernel`` still copies each slot's input row into its vertex's block), which
@@ -131,6 +134,13 @@ def _bucketed(rows: list[np.ndarray], cols: list[np.ndarray], n_rows: int):
         pos.append(p.ravel())
         valid.append(v.ravel())
     return order, spans, np.concatenate(other), np.concatenate(pos), np.concatenate(valid)
+
+
+#: the ``basis`` order runs in lanes (``native.basis_lanes``: the batch as the vector, the basis product
+#: made in cache) for layers with at most this many output channels, where MKL's per-vertex products
+#: are narrow; wider layers keep the tall product and ``native.basis_product`` (measured 2026-12-07,
+#: ``benchmarks/vcconv_orders.py``)
+LANES_MAX_OUT = 8
 
 
 def _dense(A: torch.Tensor, B: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
@@ -401,10 +411,14 @@ class VCConv(nn.Module):
         res_first = has_res and self._residual_map_first(c, o)
         d = o if res_first else c
         x2 = xv.reshape(self.n_in, b * c)
-        Bm = self.basis.permute(1, 2, 0).reshape(c, o * M)
-        Z = _dense(x2.reshape(self.n_in * b, c), Bm).reshape(self.n_in, b * o, M)  # Z_j^T: rows (b, q), columns m
-        y = native.basis_product(Z, self.coef.reshape(-1, M), self._nat_in_offs, self._nat_in_dst, self._nat_in_pos,
-                                 self.n_out)
+        if o <= LANES_MAX_OUT and native.lanes(M):  # the basis product and the slots' products in one pass
+            y = native.basis_lanes(xv, self.basis, self.coef.reshape(-1, M), self._nat_in_offs, self._nat_in_dst,
+                                   self._nat_in_pos, self.n_out)
+        else:
+            Bm = self.basis.permute(1, 2, 0).reshape(c, o * M)
+            Z = _dense(x2.reshape(self.n_in * b, c), Bm).reshape(self.n_in, b * o, M)  # Z_j^T: rows (b, q), columns m
+            y = native.basis_product(Z, self.coef.reshape(-1, M), self._nat_in_offs, self._nat_in_dst,
+                                     self._nat_in_pos, self.n_out)
         y = (y.reshape(self.n_out, b, o) + self.bias)
         res = None
         if has_res:

@@ -424,7 +424,390 @@ std::vector<torch::Tensor> tall_backward(torch::Tensor dC, torch::Tensor A, torc
   return {dA, dB};
 }
 
+// ---- the basis order in lanes (``lanes_forward`` / ``lanes_backward``)
+//
+// The batch is the vector: a vertex's b rows are taken 16 batch entries at a time (one AVX-512 register of
+// floats, zero past b), so every product below is a multiply-add of whole registers whatever the channel
+// counts (3-32 at the chapter 5 width, where MKL runs the per-vertex products at 30-50 GFLOP/s). For input
+// vertex j and a group of 16 batch entries:
+//     Z_j[(m, q)] = sum_p B[m, p, q] x_j[p]                      (the basis product, made in cache: no Z tensor)
+//     y[dst[s]][q] += sum_m A_s[m] Z_j[(m, q)]                   (per-thread accumulators in lanes, summed at the end)
+// and the backward, with dY_s = dy[dst[s]] in lanes:
+//     dZ_j[(m, q)] = sum_s A_s[m] dY_s[q],   dx_j[p] = sum_(m, q) B[m, p, q] dZ_j[(m, q)],
+//     dB[m, p, q] += <x_j[p], dZ_j[(m, q)]>  (per-thread lane accumulators),
+//     dA_s[m] = sum_(q, l) dY_s[q][l] Z_j[(m, q)][l]  (with Z_j laid out m-innermost, Zm: the kernels are the vector)
+// Compiled for AVX-512 (the functions of this block only; ``lanes_supported`` says whether this CPU runs
+// them, else ``fwk_vcconv`` keeps the tall product and ``basis_forward``).
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+#define FWK_VCCONV_LANES 1
+#pragma GCC push_options
+#pragma GCC target("avx512f,avx512vl,avx512bw,avx512dq,avx2,fma,prefer-vector-width=512")
+#endif
+
+namespace lanes {
+constexpr int L = 16;  // lanes: batch entries per group
+constexpr int64_t MAX_M = 4 * L;  // da_all / zm_all up to 4 chunks of L kernels
+
+// the lane kernels' arguments: float32 contiguous tensors, a basis of at most MAX_M kernels, a CSR support
+inline void lanes_check(const torch::Tensor& x, const torch::Tensor& B, const torch::Tensor& coef,
+                        const torch::Tensor& offs, const torch::Tensor& dst, const torch::Tensor& pos, int64_t n_out) {
+  check(x, "x", at::kFloat, 3);
+  check(B, "B", at::kFloat, 3);
+  check(coef, "coef", at::kFloat, 2);
+  TORCH_CHECK(B.size(1) == x.size(2), "B: expected ", x.size(2), " input channels");
+  TORCH_CHECK(coef.size(1) == B.size(0), "coef: expected ", B.size(0), " columns");
+  TORCH_CHECK(B.size(0) >= 1 && B.size(0) <= MAX_M, "B: 1 to ", MAX_M, " kernels");
+  check_csr(offs, dst, x.size(0), n_out);
+  check_coef(coef, torch::empty({0}, x.options()), pos, dst.size(0));
+}
+
+// rows (b x w, row-major) of one vertex, batch entries [L g, L g + L), transposed: d[p][l] (zero past b)
+inline void to_lanes(float* __restrict d, const float* __restrict x, int64_t b, int64_t w, int64_t g) {
+  const int64_t l1 = std::min<int64_t>(L, b - g * L);
+  for (int64_t p = 0; p < w; ++p)
+    for (int64_t l = 0; l < L; ++l) d[p * L + l] = l < l1 ? x[(g * L + l) * w + p] : 0.f;
+}
+
+// back: x[(L g + l) w + p] = d[p][l] (op: = or +=) for the batch entries that exist
+template <bool ADD>
+inline void from_lanes(float* __restrict x, const float* __restrict d, int64_t b, int64_t w, int64_t g) {
+  const int64_t l1 = std::min<int64_t>(L, b - g * L);
+  for (int64_t l = 0; l < l1; ++l)
+    for (int64_t p = 0; p < w; ++p) {
+      if (ADD) x[(g * L + l) * w + p] += d[p * L + l];
+      else x[(g * L + l) * w + p] = d[p * L + l];
+    }
+}
+
+// Z[r][l] = sum_p W[r][p] xT[p][l] for RB rows from r0 (W (R, c) row-major)
+template <int RB>
+inline void rows_times_lanes(float* __restrict Z, const float* __restrict W, const float* __restrict xT, int64_t c,
+                             int64_t r0) {
+  float acc[RB][L] = {};
+  for (int64_t p = 0; p < c; ++p) {
+    const float* xp = xT + p * L;
+    for (int r = 0; r < RB; ++r) {
+      const float w = W[(r0 + r) * c + p];
+#pragma omp simd
+      for (int l = 0; l < L; ++l) acc[r][l] += w * xp[l];
+    }
+  }
+  std::memcpy(Z + r0 * L, acc, sizeof acc);
+}
+
+// Z (R x L) = W (R x c) xT (c x L)
+inline void matrix_times_lanes(float* Z, const float* W, const float* xT, int64_t R, int64_t c) {
+  int64_t r0 = 0;
+  for (; r0 + 8 <= R; r0 += 8) rows_times_lanes<8>(Z, W, xT, c, r0);
+  for (; r0 < R; ++r0) rows_times_lanes<1>(Z, W, xT, c, r0);
+}
+
+// out[k][q][l] += sum_m A[k][m] Z[m o + q][l] for KB rows k, q in [q0, q0 + QB)
+template <int KB, int QB>
+inline void y_block(float* const* out, const float* const* A, const float* __restrict Z, int64_t M, int64_t o,
+                    int64_t q0) {
+  float acc[KB][QB][L] = {};
+  for (int64_t m = 0; m < M; ++m) {
+    float a[KB];
+    for (int k = 0; k < KB; ++k) a[k] = A[k][m];
+    const float* z = Z + (m * o + q0) * L;
+    for (int q = 0; q < QB; ++q)
+      for (int k = 0; k < KB; ++k) {
+#pragma omp simd
+        for (int l = 0; l < L; ++l) acc[k][q][l] += a[k] * z[q * L + l];
+      }
+  }
+  for (int k = 0; k < KB; ++k)
+    for (int q = 0; q < QB; ++q) {
+      float* d = out[k] + (q0 + q) * L;
+#pragma omp simd
+      for (int l = 0; l < L; ++l) d[l] += acc[k][q][l];
+    }
+}
+
+template <int KB>
+inline void y_rows(float* const* out, const float* const* A, const float* Z, int64_t M, int64_t o) {
+  int64_t q0 = 0;
+  for (; q0 + 4 <= o; q0 += 4) y_block<KB, 4>(out, A, Z, M, o, q0);
+  switch (o - q0) {
+    case 3: y_block<KB, 3>(out, A, Z, M, o, q0); break;
+    case 2: y_block<KB, 2>(out, A, Z, M, o, q0); break;
+    case 1: y_block<KB, 1>(out, A, Z, M, o, q0); break;
+    default: break;
+  }
+}
+
+// dZ[m o + q][l] = sum_k A[k][m] dY[k][q][l] for m in [m0, m0 + MB), q in [q0, q0 + QB)
+template <int MB, int QB>
+inline void dz_block(float* __restrict dZ, const float* const* A, const float* const* dY, int64_t K, int64_t o,
+                     int64_t m0, int64_t q0) {
+  float acc[MB][QB][L] = {};
+  for (int64_t k = 0; k < K; ++k) {
+    const float* a = A[k] + m0;
+    const float* y = dY[k] + q0 * L;
+    for (int q = 0; q < QB; ++q)
+      for (int m = 0; m < MB; ++m) {
+#pragma omp simd
+        for (int l = 0; l < L; ++l) acc[m][q][l] += a[m] * y[q * L + l];
+      }
+  }
+  for (int m = 0; m < MB; ++m)
+    for (int q = 0; q < QB; ++q) std::memcpy(dZ + ((m0 + m) * o + q0 + q) * L, acc[m][q], L * sizeof(float));
+}
+
+template <int MB>
+inline void dz_cols(float* dZ, const float* const* A, const float* const* dY, int64_t K, int64_t o, int64_t m0) {
+  int64_t q0 = 0;
+  for (; q0 + 3 <= o; q0 += 3) dz_block<MB, 3>(dZ, A, dY, K, o, m0, q0);
+  switch (o - q0) {
+    case 2: dz_block<MB, 2>(dZ, A, dY, K, o, m0, q0); break;
+    case 1: dz_block<MB, 1>(dZ, A, dY, K, o, m0, q0); break;
+    default: break;
+  }
+}
+
+// Zm[ql][m] (m innermost, NV chunks of L) = sum_p xT[p][l] Bq[p][q][m] for the (q, l) pairs [ql0, ql0 + 4)
+template <int NV>
+inline void zm_block(float* __restrict Zm, const float* __restrict Bq, const float* __restrict xT, int64_t c,
+                     int64_t o, int64_t ql0) {
+  float acc[4][NV][L] = {};
+  for (int64_t p = 0; p < c; ++p)
+    for (int i = 0; i < 4; ++i) {
+      const int64_t ql = ql0 + i, q = ql / L, l = ql % L;
+      const float w = xT[p * L + l];
+      const float* bq = Bq + (p * o + q) * NV * L;
+      for (int v = 0; v < NV; ++v) {
+#pragma omp simd
+        for (int t = 0; t < L; ++t) acc[i][v][t] += w * bq[v * L + t];
+      }
+    }
+  std::memcpy(Zm + ql0 * NV * L, acc, sizeof acc);
+}
+
+// dA[k][m] += sum_ql dYt[ql][k] Zm[ql][m] for KB rows (dYt: the rows' dY transposed, ld 8)
+template <int KB, int NV>
+inline void da_block(float* const* dA, const float* __restrict dYt, const float* __restrict Zm, int64_t QL, int64_t M) {
+  float acc[KB][NV][L] = {};
+  for (int64_t ql = 0; ql < QL; ++ql) {
+    const float* z = Zm + ql * NV * L;
+    for (int k = 0; k < KB; ++k) {
+      const float y = dYt[ql * 8 + k];
+      for (int v = 0; v < NV; ++v) {
+#pragma omp simd
+        for (int t = 0; t < L; ++t) acc[k][v][t] += y * z[v * L + t];
+      }
+    }
+  }
+  for (int k = 0; k < KB; ++k)
+    for (int64_t m = 0; m < M; ++m) dA[k][m] += acc[k][m / L][m % L];
+}
+
+template <int NV>
+void da_all(float* const* dA, const float* const* dY, float* dYt, const float* Zm, int64_t K, int64_t QL, int64_t M) {
+  for (int64_t k0 = 0; k0 < K; k0 += 8) {
+    const int64_t kb = std::min<int64_t>(8, K - k0);
+    for (int64_t k = 0; k < kb; ++k)
+      for (int64_t ql = 0; ql < QL; ++ql) dYt[ql * 8 + k] = dY[k0 + k][ql];
+    if (kb == 8) da_block<8, NV>(dA + k0, dYt, Zm, QL, M);
+    else
+      for (int64_t k = 0; k < kb; ++k) {
+        for (int64_t ql = 0; ql < QL; ++ql) dYt[ql * 8] = dY[k0 + k][ql];
+        da_block<1, NV>(dA + k0 + k, dYt, Zm, QL, M);
+      }
+  }
+}
+
+template <int NV>
+void zm_all(float* Zm, const float* Bq, const float* xT, int64_t c, int64_t o) {
+  for (int64_t ql0 = 0; ql0 < o * L; ql0 += 4) zm_block<NV>(Zm, Bq, xT, c, o, ql0);
+}
+
+// dxT[p][l] = sum_r W[r][p] dZ[r][l] for PB columns p from p0 (W (R, c))
+template <int PB>
+inline void dx_block(float* __restrict dxT, const float* __restrict W, const float* __restrict dZ, int64_t R, int64_t c,
+                     int64_t p0) {
+  float acc[PB][L] = {};
+  for (int64_t r = 0; r < R; ++r) {
+    const float* z = dZ + r * L;
+    for (int p = 0; p < PB; ++p) {
+      const float w = W[r * c + p0 + p];
+#pragma omp simd
+      for (int l = 0; l < L; ++l) acc[p][l] += w * z[l];
+    }
+  }
+  std::memcpy(dxT + p0 * L, acc, sizeof acc);
+}
+}  // namespace lanes
+
+// basis order in lanes, forward. x (n_in, b, c), B the basis (M, c, o), coef (R, M) read at pos (slots), offs
+// (n_in + 1), dst (slots). y (n_out, b, o) = the sum over input vertices j and their slots s of (A_s Z_j) at dst[s],
+// Z_j = B^T x_j made in cache (no bias).
+torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef, torch::Tensor offs, torch::Tensor dst,
+                            torch::Tensor pos, int64_t n_out) {
+  using namespace lanes;
+  lanes_check(x, B, coef, offs, dst, pos, n_out);
+  const int64_t n_in = x.size(0), b = x.size(1), c = x.size(2), M = B.size(0), o = B.size(2);
+  const int64_t G = (b + L - 1) / L;
+  const int nt = at::get_num_threads();
+  auto acc = torch::zeros({nt, n_out, G, o, L}, x.options());
+  auto W = B.permute({0, 2, 1}).contiguous();  // (M, o, c): row r = m o + q
+  const float* xp = x.data_ptr<float>();
+  const float* Wp = W.data_ptr<float>();
+  const float* cp = coef.data_ptr<float>();
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* dp = dst.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
+  float* accp = acc.data_ptr<float>();
+  at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
+    float* mine = accp + at::get_thread_num() * n_out * G * o * L;
+    std::vector<float> xT(c * L), Z(o * M * L);
+    for (int64_t j = j0; j < j1; ++j) {
+      const int64_t s0 = op[j], K = op[j + 1] - s0;
+      if (K == 0) continue;
+      for (int64_t g = 0; g < G; ++g) {
+        to_lanes(xT.data(), xp + j * b * c, b, c, g);
+        matrix_times_lanes(Z.data(), Wp, xT.data(), M * o, c);
+        int64_t k = 0;
+        for (; k + 4 <= K; k += 4) {
+          float* out[4]; const float* A[4];
+          for (int t = 0; t < 4; ++t) { out[t] = mine + (dp[s0 + k + t] * G + g) * o * L; A[t] = cp + pp[s0 + k + t] * M; }
+          y_rows<4>(out, A, Z.data(), M, o);
+        }
+        for (; k < K; ++k) {
+          float* out[1] = {mine + (dp[s0 + k] * G + g) * o * L}; const float* A[1] = {cp + pp[s0 + k] * M};
+          y_rows<1>(out, A, Z.data(), M, o);
+        }
+      }
+    }
+  });
+  auto y = torch::empty({n_out, b, o}, x.options());
+  float* yp = y.data_ptr<float>();
+  at::parallel_for(0, n_out, 64, [&](int64_t i0, int64_t i1) {
+    std::vector<float> s(o * L);
+    for (int64_t i = i0; i < i1; ++i)
+      for (int64_t g = 0; g < G; ++g) {
+        std::fill(s.begin(), s.end(), 0.f);
+        for (int t = 0; t < nt; ++t) {
+          const float* a = accp + ((t * n_out + i) * G + g) * o * L;
+          for (int64_t u = 0; u < o * L; ++u) s[u] += a[u];
+        }
+        from_lanes<false>(yp + i * b * o, s.data(), b, o, g);
+      }
+  });
+  return y;
+}
+
+// its backward: dy (n_out, b, o); returns dx (n_in, b, c), dB (M, c, o) and dcoef (R, M) (zero at the rows no slot
+// reads; empty where not asked for)
+std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, torch::Tensor B, torch::Tensor coef,
+                                          torch::Tensor offs, torch::Tensor dst, torch::Tensor pos, bool need_x,
+                                          bool need_B, bool need_coef) {
+  using namespace lanes;
+  const int64_t n_out_ = dy.size(0);
+  lanes_check(x, B, coef, offs, dst, pos, n_out_);
+  check(dy, "dy", at::kFloat, 3);
+  TORCH_CHECK(dy.size(1) == x.size(1) && dy.size(2) == B.size(2), "dy: expected (n_out, b, o)");
+  const int64_t n_in = x.size(0), b = x.size(1), c = x.size(2), M = B.size(0), o = B.size(2), n_out = dy.size(0);
+  const int64_t G = (b + L - 1) / L, NV = (M + L - 1) / L, QL = o * L;
+  const int nt = at::get_num_threads();
+  auto dyT = torch::empty({n_out, G, o, L}, x.options());  // dy in lanes, zero past b
+  const float* dyp = dy.data_ptr<float>();
+  float* dyTp = dyT.data_ptr<float>();
+  at::parallel_for(0, n_out, 64, [&](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i)
+      for (int64_t g = 0; g < G; ++g) to_lanes(dyTp + (i * G + g) * o * L, dyp + i * b * o, b, o, g);
+  });
+  auto empty = torch::empty({0}, x.options());
+  auto dx = need_x ? torch::empty({n_in, b, c}, x.options()) : empty;
+  auto dcoef = need_coef ? torch::zeros({coef.size(0), M}, x.options()) : empty;
+  auto dBv = need_B ? torch::zeros({nt, M * o, c, L}, x.options()) : empty;
+  auto W = B.permute({0, 2, 1}).contiguous();  // (M, o, c)
+  auto Bq = torch::zeros({c, o, NV * L}, x.options());  // (p, q, m), zero past M
+  Bq.narrow(2, 0, M).copy_(B.permute({1, 2, 0}));
+  const float* xp = x.data_ptr<float>();
+  const float* Wp = W.data_ptr<float>();
+  const float* Bqp = Bq.data_ptr<float>();
+  const float* cp = coef.data_ptr<float>();
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* dp = dst.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
+  float* dxp = need_x ? dx.data_ptr<float>() : nullptr;
+  float* dcp = need_coef ? dcoef.data_ptr<float>() : nullptr;
+  float* dBvp = need_B ? dBv.data_ptr<float>() : nullptr;
+  const int64_t Kmax = max_run(op, n_in);
+  at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
+    float* myB = need_B ? dBvp + at::get_thread_num() * M * o * c * L : nullptr;
+    std::vector<float> xT(c * L), Zm(QL * NV * L), dZ(o * M * L), dxT(c * L), dYt(QL * 8);
+    std::vector<const float*> A(Kmax), dY(Kmax);
+    std::vector<float*> dA(Kmax);
+    for (int64_t j = j0; j < j1; ++j) {
+      const int64_t s0 = op[j], K = op[j + 1] - s0;
+      if (K == 0) {
+        if (need_x) std::fill(dxp + j * b * c, dxp + (j + 1) * b * c, 0.f);
+        continue;
+      }
+      for (int64_t k = 0; k < K; ++k) {
+        A[k] = cp + pp[s0 + k] * M;
+        if (need_coef) dA[k] = dcp + pp[s0 + k] * M;
+      }
+      for (int64_t g = 0; g < G; ++g) {
+        to_lanes(xT.data(), xp + j * b * c, b, c, g);
+        for (int64_t k = 0; k < K; ++k) dY[k] = dyTp + (dp[s0 + k] * G + g) * o * L;
+        if (need_coef) {
+          switch (NV) {
+            case 1: zm_all<1>(Zm.data(), Bqp, xT.data(), c, o); da_all<1>(dA.data(), dY.data(), dYt.data(), Zm.data(), K, QL, M); break;
+            case 2: zm_all<2>(Zm.data(), Bqp, xT.data(), c, o); da_all<2>(dA.data(), dY.data(), dYt.data(), Zm.data(), K, QL, M); break;
+            case 3: zm_all<3>(Zm.data(), Bqp, xT.data(), c, o); da_all<3>(dA.data(), dY.data(), dYt.data(), Zm.data(), K, QL, M); break;
+            default: zm_all<4>(Zm.data(), Bqp, xT.data(), c, o); da_all<4>(dA.data(), dY.data(), dYt.data(), Zm.data(), K, QL, M); break;
+          }
+        }
+        if (!need_x && !need_B) continue;
+        int64_t m0 = 0;
+        for (; m0 + 4 <= M; m0 += 4) dz_cols<4>(dZ.data(), A.data(), dY.data(), K, o, m0);
+        for (; m0 < M; ++m0) dz_cols<1>(dZ.data(), A.data(), dY.data(), K, o, m0);
+        if (need_x) {
+          int64_t p0 = 0;
+          for (; p0 + 8 <= c; p0 += 8) dx_block<8>(dxT.data(), Wp, dZ.data(), M * o, c, p0);
+          for (; p0 < c; ++p0) dx_block<1>(dxT.data(), Wp, dZ.data(), M * o, c, p0);
+          from_lanes<false>(dxp + j * b * c, dxT.data(), b, c, g);
+        }
+        if (need_B)
+          for (int64_t r = 0; r < M * o; ++r) {
+            const float* z = dZ.data() + r * L;
+            float* d = myB + r * c * L;
+            for (int64_t p = 0; p < c; ++p) {
+              const float* xv = xT.data() + p * L;
+#pragma omp simd
+              for (int l = 0; l < L; ++l) d[p * L + l] += xv[l] * z[l];
+            }
+          }
+      }
+    }
+  });
+  // dB[m][p][q] = sum over threads and lanes of dBv[(m o + q)][p]
+  auto dB = need_B ? dBv.sum(at::IntArrayRef{0, 3}).reshape({M, o, c}).permute({0, 2, 1}).contiguous() : empty;
+  return {dx, dB, dcoef};
+}
+
+
+#ifdef FWK_VCCONV_LANES
+#pragma GCC pop_options
+#endif
+
+// whether this build and CPU run the lane kernels (AVX-512F)
+bool lanes_supported() {
+#ifdef FWK_VCCONV_LANES
+  __builtin_cpu_init();
+  return __builtin_cpu_supports("avx512f");
+#else
+  return false;
+#endif
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("lanes_supported", &lanes_supported);
+  m.def("lanes_forward", &lanes_forward);
+  m.def("lanes_backward", &lanes_backward);
   m.def("kernel_forward", &kernel_forward);
   m.def("kernel_backward", &kernel_backward);
   m.def("tall_forward", &tall_forward);
