@@ -302,8 +302,8 @@ class VCConv(nn.Module):
         size b (each is written, read, and has a gradient of its size in the backward):
 
         * ``sum``: the gathered inputs (slots x b c; not on the native kernels) and T (n_out (M + 1) b c);
-        * ``basis``: Z (n_in M b o), the per-slot products and residual terms sent to the outputs
-          (2 x slots b o; not on the native kernels);
+        * ``basis``: Z (n_in M b o; not in lanes, ``native.basis_lanes``, where it is made in cache), the
+          per-slot products and residual terms sent to the outputs (2 x slots b o; not on the native kernels);
         * ``kernel``: the explicit kernels (slots c o; on the native kernels, every coefficient
           row's, n_out K c o), the gathered inputs, their copy laid out for the product and the
           residual's weighted copy (3 x slots b c; on the native kernels the one copy of each slot's
@@ -318,8 +318,9 @@ class VCConv(nn.Module):
         # native kernels copy each slot's input row once, transposed into the vertex's (b, K c) block
         kernel = (self.coef.shape[0] * self.coef.shape[1] * c * o + self._slots(True)[0] * b * c if native_kernels
                   else P_out * c * o + 3 * P_out * b * c)
+        Z = 0 if native_kernels and self._in_lanes(o, M) else self.n_in * M * b * o
         return {"sum": gathered + self.n_out * (M + 1) * b * c + y,
-                "basis": self.n_in * M * b * o + sent + y,
+                "basis": Z + sent + y,
                 "kernel": kernel + y}
 
     def costs(self, b: int, native_kernels: bool = False) -> dict:
@@ -336,6 +337,12 @@ class VCConv(nn.Module):
             native_kernels = native.available()
         cost = self.costs(b, native_kernels)
         return min(cost, key=cost.get)
+
+    @staticmethod
+    def _in_lanes(o: int, M: int) -> bool:
+        """Whether the ``basis`` order of this layer (o output channels, M kernels) runs in lanes on the
+        native path (``native.basis_lanes``; ``LANES_MAX_OUT``)."""
+        return o <= LANES_MAX_OUT and native.lanes(M)
 
     def _res_weights(self):
         """sqrt(r) w~ (n_out * K,), w~_ij = |w_ij| / sum_j |w_ij| over the valid support (flat
@@ -411,7 +418,7 @@ class VCConv(nn.Module):
         res_first = has_res and self._residual_map_first(c, o)
         d = o if res_first else c
         x2 = xv.reshape(self.n_in, b * c)
-        if o <= LANES_MAX_OUT and native.lanes(M):  # the basis product and the slots' products in one pass
+        if self._in_lanes(o, M):  # the basis product and the slots' products in one pass
             y = native.basis_lanes(xv, self.basis, self.coef.reshape(-1, M), self._nat_in_offs, self._nat_in_dst,
                                    self._nat_in_pos, self.n_out)
         else:
