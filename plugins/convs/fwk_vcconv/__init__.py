@@ -53,8 +53,8 @@ from one product, then y_i = G_i W_i per output vertex on its gathered rows), an
 with the basis, where tall and narrow (``native.tall``: the outer layers' (n b) x c M @ c M x o),
 in ``native.tall_product`` (1.1-1.2x the chapter 5 width's step); the ``basis`` order of layers with
 at most ``LANES_MAX_OUT`` output channels runs in one pass with the batch as the vector
-(``native.basis_lanes``: the basis product made in cache; 1.19x the chapter 5 width's step, on
-CPUs with AVX-512); elsewhere (bf16 autocast,
+(``native.basis_lanes``: the basis product made in cache; 1.13-1.33x the chapter 5 width's step,
+on CPUs with AVX-512); elsewhere (bf16 autocast,
 float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. ``auto`` prices the
 orders for the code that runs (the native kernels skip the padding and the slot-sized
 intermediates, but ``kernel`` still copies each slot's input row into its vertex's block), which

@@ -468,15 +468,11 @@ inline void to_lanes(float* __restrict d, const float* __restrict x, int64_t b, 
     for (int64_t l = 0; l < L; ++l) d[p * L + l] = l < l1 ? x[(g * L + l) * w + p] : 0.f;
 }
 
-// back: x[(L g + l) w + p] = d[p][l] (op: = or +=) for the batch entries that exist
-template <bool ADD>
+// back: x[(L g + l) w + p] = d[p][l] for the batch entries that exist
 inline void from_lanes(float* __restrict x, const float* __restrict d, int64_t b, int64_t w, int64_t g) {
   const int64_t l1 = std::min<int64_t>(L, b - g * L);
   for (int64_t l = 0; l < l1; ++l)
-    for (int64_t p = 0; p < w; ++p) {
-      if (ADD) x[(g * L + l) * w + p] += d[p * L + l];
-      else x[(g * L + l) * w + p] = d[p * L + l];
-    }
+    for (int64_t p = 0; p < w; ++p) x[(g * L + l) * w + p] = d[p * L + l];
 }
 
 // Z[r][l] = sum_p W[r][p] xT[p][l] for RB rows from r0 (W (R, c) row-major)
@@ -622,6 +618,19 @@ void zm_all(float* Zm, const float* Bq, const float* xT, int64_t c, int64_t o) {
   for (int64_t ql0 = 0; ql0 < o * L; ql0 += 4) zm_block<NV>(Zm, Bq, xT, c, o, ql0);
 }
 
+// Zm = zm_all(Bq, X) (X: contract x L, Zm's rows (q, l) for q < width) and then dA[k] += sum_ql rows[k][ql] Zm[ql]
+// (da_all), for NV = ceil(M / L) chunks of kernels
+inline void zm_then_da(float* const* dA, const float* const* rows, float* dYt, float* Zm, const float* Bq,
+                       const float* X, int64_t contract, int64_t width, int64_t K, int64_t M) {
+  const int64_t QL = width * L;
+  switch ((M + L - 1) / L) {
+    case 1: zm_all<1>(Zm, Bq, X, contract, width); da_all<1>(dA, rows, dYt, Zm, K, QL, M); break;
+    case 2: zm_all<2>(Zm, Bq, X, contract, width); da_all<2>(dA, rows, dYt, Zm, K, QL, M); break;
+    case 3: zm_all<3>(Zm, Bq, X, contract, width); da_all<3>(dA, rows, dYt, Zm, K, QL, M); break;
+    default: zm_all<4>(Zm, Bq, X, contract, width); da_all<4>(dA, rows, dYt, Zm, K, QL, M); break;
+  }
+}
+
 // dxT[p][l] = sum_r W[r][p] dZ[r][l] for PB columns p from p0 (W (R, c))
 template <int PB>
 inline void dx_block(float* __restrict dxT, const float* __restrict W, const float* __restrict dZ, int64_t R, int64_t c,
@@ -667,15 +676,17 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
       for (int64_t g = 0; g < G; ++g) {
         to_lanes(xT.data(), xp + j * b * c, b, c, g);
         matrix_times_lanes(Z.data(), Wp, xT.data(), M * o, c);
-        int64_t k = 0;
-        for (; k + 4 <= K; k += 4) {
-          float* out[4]; const float* A[4];
-          for (int t = 0; t < 4; ++t) { out[t] = mine + (dp[s0 + k + t] * G + g) * o * L; A[t] = cp + pp[s0 + k + t] * M; }
-          y_rows<4>(out, A, Z.data(), M, o);
-        }
-        for (; k < K; ++k) {
-          float* out[1] = {mine + (dp[s0 + k] * G + g) * o * L}; const float* A[1] = {cp + pp[s0 + k] * M};
-          y_rows<1>(out, A, Z.data(), M, o);
+        for (int64_t k0 = 0; k0 < K; k0 += 4) {  // the slots 4 at a time (their rows of y, their coefficients)
+          const int64_t kb = std::min<int64_t>(4, K - k0);
+          float* out[4];
+          const float* A[4];
+          for (int64_t t = 0; t < kb; ++t) {
+            out[t] = mine + (dp[s0 + k0 + t] * G + g) * o * L;
+            A[t] = cp + pp[s0 + k0 + t] * M;
+          }
+          if (kb == 4) y_rows<4>(out, A, Z.data(), M, o);
+          else
+            for (int64_t t = 0; t < kb; ++t) y_rows<1>(out + t, A + t, Z.data(), M, o);
         }
       }
     }
@@ -691,7 +702,7 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
           const float* a = accp + ((t * n_out + i) * G + g) * o * L;
           for (int64_t u = 0; u < o * L; ++u) s[u] += a[u];
         }
-        from_lanes<false>(yp + i * b * o, s.data(), b, o, g);
+        from_lanes(yp + i * b * o, s.data(), b, o, g);
       }
   });
   return y;
@@ -703,11 +714,10 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
                                           torch::Tensor offs, torch::Tensor dst, torch::Tensor pos, bool need_x,
                                           bool need_B, bool need_coef) {
   using namespace lanes;
-  const int64_t n_out_ = dy.size(0);
-  lanes_check(x, B, coef, offs, dst, pos, n_out_);
   check(dy, "dy", at::kFloat, 3);
-  TORCH_CHECK(dy.size(1) == x.size(1) && dy.size(2) == B.size(2), "dy: expected (n_out, b, o)");
+  lanes_check(x, B, coef, offs, dst, pos, dy.size(0));
   const int64_t n_in = x.size(0), b = x.size(1), c = x.size(2), M = B.size(0), o = B.size(2), n_out = dy.size(0);
+  TORCH_CHECK(dy.size(1) == b && dy.size(2) == o, "dy: expected (n_out, b, o)");
   const int64_t G = (b + L - 1) / L, NV = (M + L - 1) / L, QL = o * L;
   const int nt = at::get_num_threads();
   auto dyT = torch::empty({n_out, G, o, L}, x.options());  // dy in lanes, zero past b
@@ -753,14 +763,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
       for (int64_t g = 0; g < G; ++g) {
         to_lanes(xT.data(), xp + j * b * c, b, c, g);
         for (int64_t k = 0; k < K; ++k) dY[k] = dyTp + (dp[s0 + k] * G + g) * o * L;
-        if (need_coef) {
-          switch (NV) {
-            case 1: zm_all<1>(Zm.data(), Bqp, xT.data(), c, o); da_all<1>(dA.data(), dY.data(), dYt.data(), Zm.data(), K, QL, M); break;
-            case 2: zm_all<2>(Zm.data(), Bqp, xT.data(), c, o); da_all<2>(dA.data(), dY.data(), dYt.data(), Zm.data(), K, QL, M); break;
-            case 3: zm_all<3>(Zm.data(), Bqp, xT.data(), c, o); da_all<3>(dA.data(), dY.data(), dYt.data(), Zm.data(), K, QL, M); break;
-            default: zm_all<4>(Zm.data(), Bqp, xT.data(), c, o); da_all<4>(dA.data(), dY.data(), dYt.data(), Zm.data(), K, QL, M); break;
-          }
-        }
+        if (need_coef) zm_then_da(dA.data(), dY.data(), dYt.data(), Zm.data(), Bqp, xT.data(), c, o, K, M);
         if (!need_x && !need_B) continue;
         int64_t m0 = 0;
         for (; m0 + 4 <= M; m0 += 4) dz_cols<4>(dZ.data(), A.data(), dY.data(), K, o, m0);
@@ -769,7 +772,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
           int64_t p0 = 0;
           for (; p0 + 8 <= c; p0 += 8) dx_block<8>(dxT.data(), Wp, dZ.data(), M * o, c, p0);
           for (; p0 < c; ++p0) dx_block<1>(dxT.data(), Wp, dZ.data(), M * o, c, p0);
-          from_lanes<false>(dxp + j * b * c, dxT.data(), b, c, g);
+          from_lanes(dxp + j * b * c, dxT.data(), b, c, g);
         }
         if (need_B)
           for (int64_t r = 0; r < M * o; ++r) {

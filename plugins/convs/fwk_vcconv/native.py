@@ -46,19 +46,21 @@ and every per-vertex product is a multiply-add of whole registers whatever the c
 loop in registers at 100-140). Its backward makes dZ_j in cache the same way, dx_j and dB from it,
 and dA with Z laid out kernels-innermost (the kernels as the vector, no horizontal sums). Those
 functions are compiled for AVX-512 only (``lanes``: False on other CPUs, where the tall product and
-``basis_product`` run). 1.19x the chapter 5 width's training step (``benchmarks/training.py``, "no
-lanes").
+``basis_product`` run). 1.13-1.33x the chapter 5 width's training step (``benchmarks/training.py``,
+"no lanes", four runs).
 
 The kernels are float32 and compiled on first use (``fwk.native``: a C++ compiler and ninja;
 about a minute, once per machine and torch version). ``available()`` is False when the build
 fails (the reason is printed once, ``failed()``) or ``FWK_VCCONV_NATIVE=0``; ``usable()`` is
 also False for other dtypes, devices and bf16 autocast; ``VCConv`` then runs its torch code.
 Tested against per-vertex loops (``tall_product``: the dense product; ``basis_lanes``: the slot loop
-with each slot's kernel) in float64, value and gradient (``tests/convs/test_vcconv_native.py``), and the whole conv against the naive sum on both
-paths, every product with the basis on ``tall_product`` (``tests/autoencoders/test_vcconv_naive.py``).
+with each slot's kernel) in float64, value and gradient (``tests/convs/test_vcconv_native.py``), and
+the whole conv against the naive sum on both paths, every product with the basis on ``tall_product``
+(``tests/autoencoders/test_vcconv_naive.py``).
 """
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import torch
@@ -241,18 +243,14 @@ tall_product.register_autograd(_tall_backward, setup_context=_tall_setup)
 # ---- the basis order in lanes
 def lanes(M: int) -> bool:
     """Whether ``basis_lanes`` can take a layer with a basis of M kernels on this machine: the kernels
-    built, a CPU with AVX-512F, and M at most 64."""
-    mod = _load()
-    return mod is not None and 1 <= M <= 64 and _lanes_cpu(mod)
+    enabled and built, a CPU with AVX-512F, and M at most 64."""
+    return 1 <= M <= 64 and available() and _cpu_runs_lanes()
 
 
-_LANES_CPU: list[bool] = []
-
-
-def _lanes_cpu(mod) -> bool:
-    if not _LANES_CPU:
-        _LANES_CPU.append(bool(mod.lanes_supported()))
-    return _LANES_CPU[0]
+@functools.cache
+def _cpu_runs_lanes() -> bool:
+    """The built module's answer (its lane functions are compiled for AVX-512; asked once)."""
+    return bool(_load().lanes_supported())
 
 
 @torch.library.custom_op("fwk_vcconv::basis_lanes", mutates_args=())
@@ -271,8 +269,7 @@ def _(x, basis, coef, offs, dst, pos, n_out):
 
 
 def _lanes_setup(ctx, inputs, output):
-    x, basis, coef, offs, dst, pos, n_out = inputs
-    ctx.save_for_backward(x, basis, coef, offs, dst, pos)
+    ctx.save_for_backward(*inputs[:6])  # x, basis, coef, offs, dst, pos (not n_out)
 
 
 def _lanes_backward(ctx, dy):
