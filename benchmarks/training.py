@@ -13,8 +13,9 @@ Today's rows run on the native kernels (``fwk_vcconv.native``, ``fwk_spiralpp.na
 the line below each ("torch code") times the same network on its conv's torch evaluation
 (``FWK_VCCONV_NATIVE=0``, ``FWK_SPIRALPP_NATIVE=0``) in the same alternation; for the two vcconv
 rows, "no tall" times the native kernels with the products with the basis on torch's product
-instead of ``fwk_vcconv.native.tall_product``, and "no lanes" with the narrow ``basis`` layers on the
-tall product and ``basis_product`` instead of ``fwk_vcconv.native.basis_lanes``.
+instead of ``fwk_vcconv.native.tall_product``, and "no lanes" with the narrow ``basis`` and ``kernel``
+layers on the BLAS kernels (the tall product and ``basis_product``, ``kernel_product``) instead of
+``fwk_vcconv.native.basis_lanes`` and ``kernel_lanes``.
 
 * ``vcconv VAE``: the fully convolutional VAE at the thesis's width (its Mesh Autoencoder and
   Deep Spectral Meshes' bands, issue 28's "thesis-width" network), channels [3, 32, 64, 128,
@@ -193,7 +194,7 @@ def native_line(r: dict, ts: dict, g_torch: float, rate: float) -> None:
 def patched(step, target, name, value):
     """The step with ``target.name`` set to ``value`` while it runs, for a side-by-side timing of one
     kernel alone: ``fwk_vcconv.native.TALL_MAX_B = 0`` puts vcconv's products with the basis on torch's
-    product ("no tall"), ``fwk_vcconv.LANES_MAX_OUT = 0`` takes its ``basis`` layers out of lanes
+    product ("no tall"), ``fwk_vcconv.native.lanes`` answering False takes its layers out of lanes
     ("no lanes")."""
 
     def run():
@@ -205,12 +206,11 @@ def patched(step, target, name, value):
 
 def add_variants(steps, enc, dec, x) -> None:
     """The vcconv rows' "no tall" and "no lanes" steps (``patched``), on copies of the network."""
-    import fwk_vcconv
     from fwk_vcconv import native as vcconv_native
 
     steps["after_no_tall"] = patched(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x), vcconv_native, "TALL_MAX_B", 0)
-    steps["after_no_lanes"] = patched(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x), fwk_vcconv,
-                                      "LANES_MAX_OUT", 0)
+    steps["after_no_lanes"] = patched(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x), vcconv_native, "lanes",
+                                      lambda M: False)
 
 
 def variant_lines(r: dict, ts: dict) -> None:
@@ -219,8 +219,8 @@ def variant_lines(r: dict, ts: dict) -> None:
               "no_lanes_ms": 1e3 * ts["after_no_lanes"], "lanes_speedup": ts["after_no_lanes"] / ts["after"]})
     print(f"{'  no tall':<13} {'':>10} {r['no_tall_ms']:>9.0f}   (the basis products on torch's: tall_product is "
           f"{r['tall_speedup']:.2f}x faster)")
-    print(f"{'  no lanes':<13} {'':>10} {r['no_lanes_ms']:>9.0f}   (the narrow basis layers on the tall product and "
-          f"basis_product: basis_lanes is {r['lanes_speedup']:.2f}x faster)")
+    print(f"{'  no lanes':<13} {'':>10} {r['no_lanes_ms']:>9.0f}   (the narrow layers on the BLAS kernels: "
+          f"basis_lanes and kernel_lanes are {r['lanes_speedup']:.2f}x faster)")
 
 
 def load_average() -> float:

@@ -443,3 +443,87 @@ def test_vcconv_runs_narrow_basis_layers_in_lanes(c_out, lanes, monkeypatch):
     assert calls == ([(5, 6, c_out)] if lanes else [])
     for a, e in zip(*runs):  # the same sums in another order: equal to float32 rounding of the largest entry
         assert (a - e).abs().max() <= 1e-5 * (1 + e.abs().max())
+
+
+def _naive_kernel_lanes(x, Wk, w, offs, src, pos, o):
+    """y_i = sum_s x_src[s] W_pos[s] and r_i = sum_s w_pos[s] x_src[s], slot by slot."""
+    n_out, (b, c) = len(offs) - 1, x.shape[1:]
+    y, r = x.new_zeros(n_out, b, o), x.new_zeros(n_out, b, c)
+    for i in range(n_out):
+        for s in range(int(offs[i]), int(offs[i + 1])):
+            y[i] = y[i] + x[src[s]] @ Wk[pos[s]].reshape(c, o)
+            if w.numel():
+                r[i] = r[i] + w[pos[s]] * x[src[s]]
+    return y, r
+
+
+@pytestmark_lanes
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("b,c,o,residual", [(16, 3, 8, True), (5, 8, 16, False), (20, 4, 5, True), (33, 2, 11, True)])
+def test_kernel_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, o, residual, torch_threads):
+    """``kernel_lanes`` (the kernel order, 16 batch entries a register; the kernels' gradient by
+    ``kernel_product``'s backward) against the slot loop in float64: y, the residual's average, and the
+    gradients of x, the kernels and the residual's weights; batches of 16 and not, supports of 0-9 slots."""
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(13)
+    offs, src = _csr(11, 30, 9, g, empty=(2,))
+    x = torch.randn(30, b, c, generator=g, requires_grad=True)
+    Wk, w, pos = _coefficients(len(src), c * o, g, residual)
+    y, r = native.kernel_lanes(x, Wk, w, offs, src, pos, o)
+    xd, Wd, wd = _double(x, Wk, w)
+    ye, re = _naive_kernel_lanes(xd, Wd, wd, offs, src, pos, o)
+    assert torch.allclose(y.double(), ye, atol=1e-4)
+    gy, gr = torch.randn(y.shape, generator=g), torch.randn(re.shape, generator=g)
+    out, oute = (y * gy).sum(), (ye * gy.double()).sum()
+    if residual:
+        assert torch.allclose(r.double(), re, atol=1e-5)
+        out, oute = out + (r * gr).sum(), oute + (re * gr.double()).sum()
+    else:
+        assert r.numel() == 0
+    ins, insd = ((x, Wk, w), (xd, Wd, wd)) if residual else ((x, Wk), (xd, Wd))
+    for a, e in zip(torch.autograd.grad(out, ins), torch.autograd.grad(oute, insd)):
+        assert torch.allclose(a.double(), e, atol=1e-4), (a.double() - e).abs().max()
+
+
+@pytestmark_lanes
+def test_kernel_lanes_is_counted_as_kernel_product_and_refuses_malformed_arguments():
+    from torch.utils.flop_counter import FlopCounterMode
+
+    g = torch.Generator().manual_seed(14)
+    offs, src = _csr(6, 20, 5, g)
+    x = torch.randn(20, 4, 3, generator=g)
+    Wk, w, pos = _coefficients(len(src), 3 * 8, g, True)
+    with FlopCounterMode(display=False) as fc:
+        native.kernel_lanes(x, Wk.detach(), w.detach(), offs, src, pos, 8)
+    assert fc.get_total_flops() == 2 * len(src) * 4 * 3 * (8 + 1)
+    with pytest.raises(RuntimeError, match="c o"):
+        native.kernel_lanes(x, Wk.detach(), w.detach(), offs, src, pos, 7)
+    with pytest.raises(RuntimeError, match="out of range"):
+        native.kernel_lanes(x, Wk.detach(), w.detach(), offs, torch.full_like(src, 20), pos, 8)
+
+
+@pytestmark_lanes
+@pytest.mark.parametrize("c_in,lanes", [(3, True), (8, True), (9, False)])
+def test_vcconv_runs_narrow_kernel_layers_in_lanes(c_in, lanes, monkeypatch):
+    """The ``kernel`` order of a layer with at most ``KERNEL_LANES_MAX_IN`` input channels takes
+    ``kernel_lanes``, a wider one ``kernel_product``; with lanes off the same layer agrees."""
+    import fwk_vcconv
+    from fwk.plugins import get_registry
+    from fwk.testing.sampler import two_components
+
+    h = get_registry().get("sampler", "simple")(levels=3).build(two_components())
+    torch.manual_seed(0)
+    conv = get_registry().get("conv", "vcconv")(c_in, 8, h, 1, weight_num=5, mode="down", residual_rate=0.5,
+                                                order="kernel")
+    calls = []
+    real = native.kernel_lanes
+    monkeypatch.setattr(native, "kernel_lanes", lambda *a: calls.append(a[0].shape[2]) or real(*a))
+    x = torch.randn(3, conv.n_in, c_in, requires_grad=True)
+    runs = []
+    for limit in (fwk_vcconv.KERNEL_LANES_MAX_IN, 0):
+        monkeypatch.setattr(fwk_vcconv, "KERNEL_LANES_MAX_IN", limit)
+        y = conv(x)
+        runs.append((y, *torch.autograd.grad(y.square().sum(), [x, conv.basis, conv.coef, conv.res_w])))
+    assert calls == ([c_in] if lanes else [])
+    for a, e in zip(*runs):  # the same sums in another order: equal to float32 rounding of the largest entry
+        assert (a - e).abs().max() <= 1e-5 * (1 + e.abs().max())

@@ -53,8 +53,9 @@ from one product, then y_i = G_i W_i per output vertex on its gathered rows), an
 with the basis, where tall and narrow (``native.tall``: the outer layers' (n b) x c M @ c M x o),
 in ``native.tall_product`` (1.1-1.2x the chapter 5 width's step); the ``basis`` order of layers with
 at most ``LANES_MAX_OUT`` output channels runs in one pass with the batch as the vector
-(``native.basis_lanes``: the basis product made in cache; 1.13-1.33x the chapter 5 width's step,
-on CPUs with AVX-512); elsewhere (bf16 autocast,
+(``native.basis_lanes``: the basis product made in cache), and so does the ``kernel`` order of layers
+with at most ``KERNEL_LANES_MAX_IN`` input channels (``native.kernel_lanes``): 1.13-1.33x the chapter 5
+width's step, on CPUs with AVX-512; elsewhere (bf16 autocast,
 float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. ``auto`` prices the
 orders for the code that runs (the native kernels skip the padding and the slot-sized
 intermediates, but ``kernel`` still copies each slot's input row into its vertex's block), which
@@ -141,6 +142,10 @@ def _bucketed(rows: list[np.ndarray], cols: list[np.ndarray], n_rows: int):
 #: are narrow; wider layers keep the tall product and ``native.basis_product`` (measured 2026-12-07,
 #: ``benchmarks/vcconv_orders.py``)
 LANES_MAX_OUT = 8
+#: the ``kernel`` order runs in lanes (``native.kernel_lanes``) for layers with at most this many input
+#: channels (the chapter 5 width's first layer, 3 -> 8: 1.7-2.4x its per-vertex products forward and
+#: 2x the input's gradient; the kernels' gradient stays with ``kernel_product``'s BLAS call)
+KERNEL_LANES_MAX_IN = 8
 
 
 def _dense(A: torch.Tensor, B: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
@@ -483,6 +488,9 @@ class VCConv(nn.Module):
         has_res = self.r is not None and self.res_w is not None
         w = self._res_weights() if has_res else self.coef.new_empty(0)
         Wk = _dense(self.coef.reshape(-1, M), self.basis.reshape(M, c * o))  # (n_out K, c o)
+        if c <= KERNEL_LANES_MAX_IN and native.lanes(M):  # each slot's kernel on 16 batch entries a register
+            y, r = native.kernel_lanes(xv, Wk, w, self._nat_out_offs, self._nat_out_src, self._nat_out_pos, o)
+            return y + self.bias, (self._mapped_residual(r, b, c) if has_res else None)
         y, r = native.kernel_product(xv.reshape(self.n_in, b * c), Wk, w, self._nat_out_offs, self._nat_out_src,
                                      self._nat_out_pos, b, c, o)
         return y + self.bias, (self._mapped_residual(r, b, c) if has_res else None)

@@ -792,6 +792,203 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   return {dx, dB, dcoef};
 }
 
+namespace lanes {
+// acc[q][l] += sum_p W[p o + q] xs[p][l] for q < O (one slot's kernel W (c x o) applied to its input row in lanes)
+template <int O>
+inline void kernel_apply(float* __restrict acc, const float* __restrict W, const float* __restrict xs, int64_t c,
+                         int64_t o, int64_t q0) {
+  float a[O][L];
+  for (int q = 0; q < O; ++q)
+    for (int l = 0; l < L; ++l) a[q][l] = acc[(q0 + q) * L + l];
+  for (int64_t p = 0; p < c; ++p) {
+    const float* xv = xs + p * L;
+    for (int q = 0; q < O; ++q) {
+      const float w = W[p * o + q0 + q];
+#pragma omp simd
+      for (int l = 0; l < L; ++l) a[q][l] += w * xv[l];
+    }
+  }
+  for (int q = 0; q < O; ++q)
+    for (int l = 0; l < L; ++l) acc[(q0 + q) * L + l] = a[q][l];
+}
+
+template <int O>
+struct KernelApply {
+  static void run(int64_t q0, float* acc, const float* W, const float* xs, int64_t c, int64_t o) {
+    kernel_apply<O>(acc, W, xs, c, o, q0);
+  }
+};
+
+template <template <int> class F, typename... Args>
+inline void by_blocks_of_8(int64_t w, Args... args) {
+  int64_t p0 = 0;
+  for (; p0 + 8 <= w; p0 += 8) F<8>::run(p0, args...);
+  switch (w - p0) {
+    case 7: F<7>::run(p0, args...); break;
+    case 6: F<6>::run(p0, args...); break;
+    case 5: F<5>::run(p0, args...); break;
+    case 4: F<4>::run(p0, args...); break;
+    case 3: F<3>::run(p0, args...); break;
+    case 2: F<2>::run(p0, args...); break;
+    case 1: F<1>::run(p0, args...); break;
+    default: break;
+  }
+}
+
+// x (n_in, b, c) in lanes: (n_in, G, c, L), zero past b
+inline torch::Tensor all_to_lanes(const torch::Tensor& x) {
+  const int64_t n = x.size(0), b = x.size(1), c = x.size(2), G = (b + L - 1) / L;
+  auto xL = torch::empty({n, G, c, L}, x.options());
+  const float* xp = x.data_ptr<float>();
+  float* xLp = xL.data_ptr<float>();
+  at::parallel_for(0, n, 64, [&](int64_t j0, int64_t j1) {
+    for (int64_t j = j0; j < j1; ++j)
+      for (int64_t g = 0; g < G; ++g) to_lanes(xLp + (j * G + g) * c * L, xp + j * b * c, b, c, g);
+  });
+  return xL;
+}
+}  // namespace lanes
+
+// kernel order in lanes, forward (kernel_forward's arguments, x as (n_in, b, c)): y_i = sum_s x_src[s] W_pos[s] and
+// r_i = sum_s w_pos[s] x_src[s] per output vertex, 16 batch entries a register. Returns y (n_out, b, o) (no bias) and
+// r (n_out, b, c) (empty (0,) without w).
+std::vector<torch::Tensor> kernel_lanes_forward(torch::Tensor x, torch::Tensor Wk, torch::Tensor w, torch::Tensor offs,
+                                                torch::Tensor src, torch::Tensor pos, int64_t o) {
+  using namespace lanes;
+  check(x, "x", at::kFloat, 3);
+  check(Wk, "Wk", at::kFloat, 2);
+  const int64_t n_in = x.size(0), b = x.size(1), c = x.size(2), n_out = offs.size(0) - 1;
+  TORCH_CHECK(o > 0 && Wk.size(1) == c * o, "Wk: expected c o = ", c * o, " columns");
+  check_csr(offs, src, n_out, n_in);
+  check_coef(Wk, w, pos, src.size(0));
+  const bool res = w.size(0) > 0;
+  const int64_t G = (b + L - 1) / L;
+  auto xL = all_to_lanes(x);
+  auto y = torch::empty({n_out, b, o}, x.options());
+  auto r = res ? torch::empty({n_out, b, c}, x.options()) : torch::empty({0}, x.options());
+  const float* xLp = xL.data_ptr<float>();
+  const float* Wp = Wk.data_ptr<float>();
+  const float* wp = res ? w.data_ptr<float>() : nullptr;
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* sp = src.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
+  float* yp = y.data_ptr<float>();
+  float* rp = res ? r.data_ptr<float>() : nullptr;
+  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+    std::vector<float> yL(o * L), rL(c * L);
+    for (int64_t i = i0; i < i1; ++i) {
+      const int64_t s0 = op[i], K = op[i + 1] - s0;
+      for (int64_t g = 0; g < G; ++g) {
+        std::fill(yL.begin(), yL.end(), 0.f);
+        if (res) std::fill(rL.begin(), rL.end(), 0.f);
+        for (int64_t k = 0; k < K; ++k) {
+          const float* xs = xLp + (sp[s0 + k] * G + g) * c * L;
+          by_blocks_of_8<KernelApply>(o, yL.data(), Wp + pp[s0 + k] * c * o, xs, c, o);
+          if (res) {
+            const float wk = wp[pp[s0 + k]];
+#pragma omp simd
+            for (int64_t t = 0; t < c * L; ++t) rL[t] += wk * xs[t];
+          }
+        }
+        from_lanes(yp + i * b * o, yL.data(), b, o, g);
+        if (res) from_lanes(rp + i * b * c, rL.data(), b, c, g);
+      }
+    }
+  });
+  return {y, r};
+}
+
+// its backward for x and w: dy (n_out, b, o), dr (n_out, b, c) or empty; returns dx (n_in, b, c) and dw (R) (zero at
+// the rows no slot reads; empty where not asked for). The kernels' gradient, a sum over the batch for each slot, is
+// kernel_backward's (one BLAS call per output vertex: faster than lanes there).
+std::vector<torch::Tensor> kernel_lanes_backward(torch::Tensor dy, torch::Tensor dr, torch::Tensor x, torch::Tensor Wk,
+                                                 torch::Tensor w, torch::Tensor offs, torch::Tensor src,
+                                                 torch::Tensor pos, bool need_x, bool need_w) {
+  using namespace lanes;
+  check(dy, "dy", at::kFloat, 3);
+  check(x, "x", at::kFloat, 3);
+  const int64_t n_in = x.size(0), b = x.size(1), c = x.size(2), o = dy.size(2), n_out = offs.size(0) - 1;
+  TORCH_CHECK(dy.size(0) == n_out && dy.size(1) == b, "dy: expected (n_out, b, o)");
+  TORCH_CHECK(Wk.size(1) == c * o, "Wk: expected c o = ", c * o, " columns");
+  const bool res = w.size(0) > 0;
+  if (res) check(dr, "dr", at::kFloat, 3);
+  need_w = need_w && res;
+  const int64_t G = (b + L - 1) / L;
+  const int nt = at::get_num_threads();
+  auto xL = all_to_lanes(x);
+  auto empty = torch::empty({0}, x.options());
+  auto acc = need_x ? torch::zeros({nt, n_in, G, c, L}, x.options()) : empty;
+  auto dw = need_w ? torch::zeros({w.size(0)}, x.options()) : empty;
+  const float* xLp = xL.data_ptr<float>();
+  const float* Wp = Wk.data_ptr<float>();
+  const float* wp = res ? w.data_ptr<float>() : nullptr;
+  const float* dyp = dy.data_ptr<float>();
+  const float* drp = res ? dr.data_ptr<float>() : nullptr;
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* sp = src.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
+  float* accp = need_x ? acc.data_ptr<float>() : nullptr;
+  float* dwp = need_w ? dw.data_ptr<float>() : nullptr;
+  // dx_src[p] += sum_q W[p o + q] dy[q]: kernel_apply with the slot's kernel transposed (o x c)
+  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+    float* mine = need_x ? accp + at::get_thread_num() * n_in * G * c * L : nullptr;
+    std::vector<float> dyL(o * L), drL(c * L), Wt(c * o);
+    for (int64_t i = i0; i < i1; ++i) {
+      const int64_t s0 = op[i], K = op[i + 1] - s0;
+      if (K == 0) continue;
+      const float* dyi = dyp + i * b * o;
+      for (int64_t g = 0; g < G; ++g) {
+        to_lanes(dyL.data(), dyi, b, o, g);
+        if (res) to_lanes(drL.data(), drp + i * b * c, b, c, g);
+        for (int64_t k = 0; k < K; ++k) {
+          const int64_t j = sp[s0 + k], row = pp[s0 + k];
+          if (need_x) {
+            float* dxs = mine + (j * G + g) * c * L;
+            const float* W = Wp + row * c * o;
+            for (int64_t p = 0; p < c; ++p)
+              for (int64_t q = 0; q < o; ++q) Wt[q * c + p] = W[p * o + q];
+            by_blocks_of_8<KernelApply>(c, dxs, Wt.data(), dyL.data(), o, c);
+            if (res) {
+              const float wk = wp[row];
+#pragma omp simd
+              for (int64_t t = 0; t < c * L; ++t) dxs[t] += wk * drL[t];
+            }
+          }
+          if (need_w) {
+            const float* xs = xLp + (j * G + g) * c * L;
+            float part[L] = {};
+            for (int64_t p = 0; p < c; ++p) {
+#pragma omp simd
+              for (int l = 0; l < L; ++l) part[l] += xs[p * L + l] * drL[p * L + l];
+            }
+            float s = 0.f;
+            for (int l = 0; l < L; ++l) s += part[l];
+            dwp[row] += s;
+          }
+        }
+      }
+    }
+  });
+  auto dx = empty;
+  if (need_x) {
+    dx = torch::empty({n_in, b, c}, x.options());
+    float* dxp = dx.data_ptr<float>();
+    at::parallel_for(0, n_in, 64, [&](int64_t j0, int64_t j1) {
+      std::vector<float> s(c * L);
+      for (int64_t j = j0; j < j1; ++j)
+        for (int64_t g = 0; g < G; ++g) {
+          std::fill(s.begin(), s.end(), 0.f);
+          for (int t = 0; t < nt; ++t) {
+            const float* a = accp + ((t * n_in + j) * G + g) * c * L;
+            for (int64_t u = 0; u < c * L; ++u) s[u] += a[u];
+          }
+          from_lanes(dxp + j * b * c, s.data(), b, c, g);
+        }
+    });
+  }
+  return {dx, dw};
+}
+
 
 #ifdef FWK_VCCONV_LANES
 #pragma GCC pop_options
@@ -811,6 +1008,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("lanes_supported", &lanes_supported);
   m.def("lanes_forward", &lanes_forward);
   m.def("lanes_backward", &lanes_backward);
+  m.def("kernel_lanes_forward", &kernel_lanes_forward);
+  m.def("kernel_lanes_backward", &kernel_lanes_backward);
   m.def("kernel_forward", &kernel_forward);
   m.def("kernel_backward", &kernel_backward);
   m.def("tall_forward", &tall_forward);

@@ -46,8 +46,11 @@ and every per-vertex product is a multiply-add of whole registers whatever the c
 loop in registers at 100-140). Its backward makes dZ_j in cache the same way, dx_j and dB from it,
 and dA with Z laid out kernels-innermost (the kernels as the vector, no horizontal sums). Those
 functions are compiled for AVX-512 only (``lanes``: False on other CPUs, where the tall product and
-``basis_product`` run). 1.13-1.33x the chapter 5 width's training step (``benchmarks/training.py``,
-"no lanes", four runs).
+``basis_product`` run). ``kernel_lanes`` (``fwk_vcconv::kernel_lanes``) is ``kernel_product`` alike:
+each slot's kernel applied to 16 batch entries a register, forward and the input's gradient (2x the
+BLAS kernel's there); the kernels' gradient stays with ``kernel_product``'s per-vertex BLAS call, which
+was faster than a batch sum in lanes. Together 1.13-1.33x the chapter 5 width's training step
+(``benchmarks/training.py``, "no lanes").
 
 The kernels are float32 and compiled on first use (``fwk.native``: a C++ compiler and ninja;
 about a minute, once per machine and torch version). ``available()`` is False when the build
@@ -283,6 +286,53 @@ def _lanes_backward(ctx, dy):
 basis_lanes.register_autograd(_lanes_backward, setup_context=_lanes_setup)
 
 
+@torch.library.custom_op("fwk_vcconv::kernel_lanes", mutates_args=())
+def kernel_lanes(x: torch.Tensor, Wk: torch.Tensor, w: torch.Tensor, offs: torch.Tensor, src: torch.Tensor,
+                 pos: torch.Tensor, o: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(y (n_out, b, o), r (n_out, b, c)): ``kernel_product`` with the batch as the vector (``native.cpp``,
+    "kernel order in lanes"): y_i = sum_s x_src[s] W_pos[s] and r_i = sum_s w_pos[s] x_src[s] (r empty, (0,),
+    when w is), each slot's kernel (a row of Wk, c x o) applied to 16 batch entries a register. x (n_in,
+    b, c). Its gradient for x and w is in lanes as well; for Wk it is ``kernel_product``'s."""
+    y, r = _load().kernel_lanes_forward(x.contiguous(), Wk.contiguous(), w.contiguous(), offs, src, pos, o)
+    return y, r
+
+
+@kernel_lanes.register_fake
+def _(x, Wk, w, offs, src, pos, o):
+    n_out, b, c = offs.shape[0] - 1, x.shape[1], x.shape[2]
+    return x.new_empty(n_out, b, o), x.new_empty(n_out, b, c) if w.shape[0] else x.new_empty(0)
+
+
+def _kernel_lanes_setup(ctx, inputs, output):
+    x, Wk, w, offs, src, pos, o = inputs
+    ctx.save_for_backward(x, Wk, w, offs, src, pos)
+    ctx.o = o
+
+
+def _kernel_lanes_backward(ctx, dy, dr):
+    x, Wk, w, offs, src, pos = ctx.saved_tensors
+    (n_in, b, c), o, n_out = x.shape, ctx.o, offs.shape[0] - 1
+    dy = x.new_zeros(n_out, b, o) if dy is None else dy.contiguous()
+    if w.shape[0]:
+        dr = x.new_zeros(n_out, b, c) if dr is None else dr.contiguous()
+    else:
+        dr = x.new_empty(0)
+    need = ctx.needs_input_grad
+    x = x.contiguous()
+    dx = dw = dWk = None
+    if need[0] or (need[2] and w.shape[0]):
+        dx, dw = _load().kernel_lanes_backward(dy, dr, x, Wk.contiguous(), w.contiguous(), offs, src, pos, need[0],
+                                               need[2] and w.shape[0] > 0)
+    if need[1]:  # the kernels' gradient: kernel_backward's per-vertex BLAS product, on the same layouts
+        dWk = _load().kernel_backward(dy, dr.reshape(n_out, b * c) if w.shape[0] else dr, x.reshape(n_in, b * c),
+                                      Wk.contiguous(), w.contiguous(), offs, src, pos, b, c, o, False, True,
+                                      False)[1]
+    return (dx if need[0] else None), dWk, (dw if need[2] and w.shape[0] else None), None, None, None, None
+
+
+kernel_lanes.register_autograd(_kernel_lanes_backward, setup_context=_kernel_lanes_setup)
+
+
 # ---- multiply-adds for torch.utils.flop_counter (2 flops each)
 def _register_flops():
     from torch.utils.flop_counter import register_flop_formula
@@ -311,6 +361,12 @@ def _register_flops():
                      **kwargs) -> int:
         (n_in, b, c), (M, _, o) = x_shape, basis_shape  # the basis product and the per-slot products, as in basis
         return 2 * n_in * b * c * M * o + 2 * dst_shape[0] * M * b * o
+
+    @register_flop_formula(torch.ops.fwk_vcconv.kernel_lanes)
+    def _kernel_lanes_flops(x_shape, Wk_shape, w_shape, offs_shape, src_shape, pos_shape, o, *args, out_shape=None,
+                            **kwargs) -> int:
+        _, b, c = x_shape  # as kernel_product
+        return 2 * src_shape[0] * b * c * (o + (1 if w_shape[0] else 0))
 
 
 _register_flops()
