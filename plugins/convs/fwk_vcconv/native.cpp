@@ -475,6 +475,41 @@ inline void from_lanes(float* __restrict x, const float* __restrict d, int64_t b
     for (int64_t p = 0; p < w; ++p) x[(g * L + l) * w + p] = d[p * L + l];
 }
 
+// the per-thread accumulators acc (nt, n, G, w, L) summed in thread order and taken out of lanes: (n, b, w)
+inline torch::Tensor sum_out_of_lanes(const torch::Tensor& acc, int64_t b) {
+  const int nt = acc.size(0);
+  const int64_t n = acc.size(1), G = acc.size(2), w = acc.size(3);
+  auto out = torch::empty({n, b, w}, acc.options());
+  const float* ap = acc.data_ptr<float>();
+  float* op = out.data_ptr<float>();
+  at::parallel_for(0, n, 64, [&](int64_t i0, int64_t i1) {
+    std::vector<float> s(w * L);
+    for (int64_t i = i0; i < i1; ++i)
+      for (int64_t g = 0; g < G; ++g) {
+        std::fill(s.begin(), s.end(), 0.f);
+        for (int t = 0; t < nt; ++t) {
+          const float* a = ap + ((t * n + i) * G + g) * w * L;
+          for (int64_t u = 0; u < w * L; ++u) s[u] += a[u];
+        }
+        from_lanes(op + i * b * w, s.data(), b, w, g);
+      }
+  });
+  return out;
+}
+
+// x (n, b, c) in lanes: (n, G, c, L), zero past b
+inline torch::Tensor all_to_lanes(const torch::Tensor& x) {
+  const int64_t n = x.size(0), b = x.size(1), c = x.size(2), G = (b + L - 1) / L;
+  auto xL = torch::empty({n, G, c, L}, x.options());
+  const float* xp = x.data_ptr<float>();
+  float* xLp = xL.data_ptr<float>();
+  at::parallel_for(0, n, 64, [&](int64_t j0, int64_t j1) {
+    for (int64_t j = j0; j < j1; ++j)
+      for (int64_t g = 0; g < G; ++g) to_lanes(xLp + (j * G + g) * c * L, xp + j * b * c, b, c, g);
+  });
+  return xL;
+}
+
 // Z[r][l] = sum_p W[r][p] xT[p][l] for RB rows from r0 (W (R, c) row-major)
 template <int RB>
 inline void rows_times_lanes(float* __restrict Z, const float* __restrict W, const float* __restrict xT, int64_t c,
@@ -691,21 +726,7 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
       }
     }
   });
-  auto y = torch::empty({n_out, b, o}, x.options());
-  float* yp = y.data_ptr<float>();
-  at::parallel_for(0, n_out, 64, [&](int64_t i0, int64_t i1) {
-    std::vector<float> s(o * L);
-    for (int64_t i = i0; i < i1; ++i)
-      for (int64_t g = 0; g < G; ++g) {
-        std::fill(s.begin(), s.end(), 0.f);
-        for (int t = 0; t < nt; ++t) {
-          const float* a = accp + ((t * n_out + i) * G + g) * o * L;
-          for (int64_t u = 0; u < o * L; ++u) s[u] += a[u];
-        }
-        from_lanes(yp + i * b * o, s.data(), b, o, g);
-      }
-  });
-  return y;
+  return sum_out_of_lanes(acc, b);
 }
 
 // its backward: dy (n_out, b, o); returns dx (n_in, b, c), dB (M, c, o) and dcoef (R, M) (zero at the rows no slot
@@ -720,13 +741,8 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   TORCH_CHECK(dy.size(1) == b && dy.size(2) == o, "dy: expected (n_out, b, o)");
   const int64_t G = (b + L - 1) / L, NV = (M + L - 1) / L, QL = o * L;
   const int nt = at::get_num_threads();
-  auto dyT = torch::empty({n_out, G, o, L}, x.options());  // dy in lanes, zero past b
-  const float* dyp = dy.data_ptr<float>();
-  float* dyTp = dyT.data_ptr<float>();
-  at::parallel_for(0, n_out, 64, [&](int64_t i0, int64_t i1) {
-    for (int64_t i = i0; i < i1; ++i)
-      for (int64_t g = 0; g < G; ++g) to_lanes(dyTp + (i * G + g) * o * L, dyp + i * b * o, b, o, g);
-  });
+  auto dyT = all_to_lanes(dy);  // (n_out, G, o, L)
+  const float* dyTp = dyT.data_ptr<float>();
   auto empty = torch::empty({0}, x.options());
   auto dx = need_x ? torch::empty({n_in, b, c}, x.options()) : empty;
   auto dcoef = need_coef ? torch::zeros({coef.size(0), M}, x.options()) : empty;
@@ -835,18 +851,6 @@ inline void by_blocks_of_8(int64_t w, Args... args) {
   }
 }
 
-// x (n_in, b, c) in lanes: (n_in, G, c, L), zero past b
-inline torch::Tensor all_to_lanes(const torch::Tensor& x) {
-  const int64_t n = x.size(0), b = x.size(1), c = x.size(2), G = (b + L - 1) / L;
-  auto xL = torch::empty({n, G, c, L}, x.options());
-  const float* xp = x.data_ptr<float>();
-  float* xLp = xL.data_ptr<float>();
-  at::parallel_for(0, n, 64, [&](int64_t j0, int64_t j1) {
-    for (int64_t j = j0; j < j1; ++j)
-      for (int64_t g = 0; g < G; ++g) to_lanes(xLp + (j * G + g) * c * L, xp + j * b * c, b, c, g);
-  });
-  return xL;
-}
 }  // namespace lanes
 
 // kernel order in lanes, forward (kernel_forward's arguments, x as (n_in, b, c)): y_i = sum_s x_src[s] W_pos[s] and
@@ -969,24 +973,7 @@ std::vector<torch::Tensor> kernel_lanes_backward(torch::Tensor dy, torch::Tensor
       }
     }
   });
-  auto dx = empty;
-  if (need_x) {
-    dx = torch::empty({n_in, b, c}, x.options());
-    float* dxp = dx.data_ptr<float>();
-    at::parallel_for(0, n_in, 64, [&](int64_t j0, int64_t j1) {
-      std::vector<float> s(c * L);
-      for (int64_t j = j0; j < j1; ++j)
-        for (int64_t g = 0; g < G; ++g) {
-          std::fill(s.begin(), s.end(), 0.f);
-          for (int t = 0; t < nt; ++t) {
-            const float* a = accp + ((t * n_in + j) * G + g) * c * L;
-            for (int64_t u = 0; u < c * L; ++u) s[u] += a[u];
-          }
-          from_lanes(dxp + j * b * c, s.data(), b, c, g);
-        }
-    });
-  }
-  return {dx, dw};
+  return {need_x ? sum_out_of_lanes(acc, b) : empty, dw};
 }
 
 
