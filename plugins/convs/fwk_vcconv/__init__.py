@@ -143,8 +143,8 @@ def _bucketed(rows: list[np.ndarray], cols: list[np.ndarray], n_rows: int):
 #: ``benchmarks/vcconv_orders.py``)
 LANES_MAX_OUT = 8
 #: the ``kernel`` order runs in lanes (``native.kernel_lanes``) for layers with at most this many input
-#: channels (the chapter 5 width's first layer, 3 -> 8: 1.7-2.4x its per-vertex products forward and
-#: 2x the input's gradient; the kernels' gradient stays with ``kernel_product``'s BLAS call)
+#: channels (the chapter 5 width's first layer, 3 -> 8: 2.0-2.2x its per-vertex products forward and
+#: 1.9-2.0x the input's gradient; the kernels' gradient stays with ``kernel_product``'s BLAS call)
 KERNEL_LANES_MAX_IN = 8
 
 
@@ -488,7 +488,7 @@ class VCConv(nn.Module):
         has_res = self.r is not None and self.res_w is not None
         w = self._res_weights() if has_res else self.coef.new_empty(0)
         Wk = _dense(self.coef.reshape(-1, M), self.basis.reshape(M, c * o))  # (n_out K, c o)
-        if c <= KERNEL_LANES_MAX_IN and native.lanes(M):  # each slot's kernel on 16 batch entries a register
+        if c <= KERNEL_LANES_MAX_IN and native.lanes():  # each slot's kernel on 16 batch entries a register
             y, r = native.kernel_lanes(xv, Wk, w, self._nat_out_offs, self._nat_out_src, self._nat_out_pos, o)
             return y + self.bias, (self._mapped_residual(r, b, c) if has_res else None)
         y, r = native.kernel_product(xv.reshape(self.n_in, b * c), Wk, w, self._nat_out_offs, self._nat_out_src,

@@ -244,9 +244,10 @@ tall_product.register_autograd(_tall_backward, setup_context=_tall_setup)
 
 
 # ---- the basis order in lanes
-def lanes(M: int) -> bool:
-    """Whether ``basis_lanes`` can take a layer with a basis of M kernels on this machine: the kernels
-    enabled and built, a CPU with AVX-512F, and M at most 64."""
+def lanes(M: int = 1) -> bool:
+    """Whether the lane kernels (``basis_lanes``, ``kernel_lanes``) run on this machine: the kernels
+    enabled and built, a CPU with AVX-512F; and whether ``basis_lanes`` takes a basis of M kernels (at
+    most 64)."""
     return 1 <= M <= 64 and available() and _cpu_runs_lanes()
 
 
