@@ -526,11 +526,34 @@ inline void rows_times_lanes(float* __restrict Z, const float* __restrict W, con
   std::memcpy(Z + r0 * L, acc, sizeof acc);
 }
 
+// F<B>::run(p0, args...) over [0, w) in blocks of 8, then one block of the 1-7 left (not 1-wide blocks: each row
+// or column of a block is its own chain of multiply-adds, and one chain alone waits on itself)
+template <template <int> class F, typename... Args>
+inline void by_blocks_of_8(int64_t w, Args... args) {
+  int64_t p0 = 0;
+  for (; p0 + 8 <= w; p0 += 8) F<8>::run(p0, args...);
+  switch (w - p0) {
+    case 7: F<7>::run(p0, args...); break;
+    case 6: F<6>::run(p0, args...); break;
+    case 5: F<5>::run(p0, args...); break;
+    case 4: F<4>::run(p0, args...); break;
+    case 3: F<3>::run(p0, args...); break;
+    case 2: F<2>::run(p0, args...); break;
+    case 1: F<1>::run(p0, args...); break;
+    default: break;
+  }
+}
+
+template <int RB>
+struct RowsTimesLanes {
+  static void run(int64_t r0, float* Z, const float* W, const float* xT, int64_t c) {
+    rows_times_lanes<RB>(Z, W, xT, c, r0);
+  }
+};
+
 // Z (R x L) = W (R x c) xT (c x L)
 inline void matrix_times_lanes(float* Z, const float* W, const float* xT, int64_t R, int64_t c) {
-  int64_t r0 = 0;
-  for (; r0 + 8 <= R; r0 += 8) rows_times_lanes<8>(Z, W, xT, c, r0);
-  for (; r0 < R; ++r0) rows_times_lanes<1>(Z, W, xT, c, r0);
+  by_blocks_of_8<RowsTimesLanes>(R, Z, W, xT, c);
 }
 
 // out[k][q][l] += sum_m A[k][m] Z[m o + q][l] for KB rows k, q in [q0, q0 + QB)
@@ -681,6 +704,13 @@ inline void dx_block(float* __restrict dxT, const float* __restrict W, const flo
   }
   std::memcpy(dxT + p0 * L, acc, sizeof acc);
 }
+
+template <int PB>
+struct DxBlock {
+  static void run(int64_t p0, float* dxT, const float* W, const float* dZ, int64_t R, int64_t c) {
+    dx_block<PB>(dxT, W, dZ, R, c, p0);
+  }
+};
 }  // namespace lanes
 
 // basis order in lanes, forward. x (n_in, b, c), B the basis (M, c, o), coef (R, M) read at pos (slots), offs
@@ -785,9 +815,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
         for (; m0 + 4 <= M; m0 += 4) dz_cols<4>(dZ.data(), A.data(), dY.data(), K, o, m0);
         for (; m0 < M; ++m0) dz_cols<1>(dZ.data(), A.data(), dY.data(), K, o, m0);
         if (need_x) {
-          int64_t p0 = 0;
-          for (; p0 + 8 <= c; p0 += 8) dx_block<8>(dxT.data(), Wp, dZ.data(), M * o, c, p0);
-          for (; p0 < c; ++p0) dx_block<1>(dxT.data(), Wp, dZ.data(), M * o, c, p0);
+          by_blocks_of_8<DxBlock>(c, dxT.data(), Wp, dZ.data(), M * o, c);
           from_lanes(dxp + j * b * c, dxT.data(), b, c, g);
         }
         if (need_B)
@@ -834,23 +862,6 @@ struct KernelApply {
     kernel_apply<O>(acc, W, xs, c, o, q0);
   }
 };
-
-template <template <int> class F, typename... Args>
-inline void by_blocks_of_8(int64_t w, Args... args) {
-  int64_t p0 = 0;
-  for (; p0 + 8 <= w; p0 += 8) F<8>::run(p0, args...);
-  switch (w - p0) {
-    case 7: F<7>::run(p0, args...); break;
-    case 6: F<6>::run(p0, args...); break;
-    case 5: F<5>::run(p0, args...); break;
-    case 4: F<4>::run(p0, args...); break;
-    case 3: F<3>::run(p0, args...); break;
-    case 2: F<2>::run(p0, args...); break;
-    case 1: F<1>::run(p0, args...); break;
-    default: break;
-  }
-}
-
 }  // namespace lanes
 
 // kernel order in lanes, forward (kernel_forward's arguments, x as (n_in, b, c)): y_i = sum_s x_src[s] W_pos[s] and
