@@ -417,32 +417,43 @@ def test_basis_lanes_refuses_malformed_arguments_and_is_counted():
     assert fc.get_total_flops() == 2 * 3 * 4 * 2 * 5 * 3 + 2 * 4 * 5 * 4 * 3  # as the tall product and basis_product
 
 
-@pytestmark_lanes
-@pytest.mark.parametrize("c_out,lanes", [(3, True), (8, True), (9, False)])
-def test_vcconv_runs_narrow_basis_layers_in_lanes(c_out, lanes, monkeypatch):
-    """The ``basis`` order of a layer with at most ``LANES_MAX_OUT`` output channels takes
-    ``basis_lanes``, a wider one the tall product and ``basis_product``; with lanes off
-    (``LANES_MAX_OUT = 0``) the same layer agrees in value and gradient."""
+def _lanes_against_off(monkeypatch, op, limit, c_in, c_out, mode, order, record):
+    """A small vcconv layer (levels 1 <-> 2 of the two-component mesh) in ``order``, run with the lane
+    limit ``limit`` of ``fwk_vcconv`` as it is and at 0: the calls of ``native.<op>`` the first run
+    made (``record`` of its arguments), after asserting that both runs agree in value and in the
+    gradients of the input and every parameter (the same sums in another order: equal to float32
+    rounding of the largest entry)."""
     import fwk_vcconv
     from fwk.plugins import get_registry
     from fwk.testing.sampler import two_components
 
     h = get_registry().get("sampler", "simple")(levels=3).build(two_components())
     torch.manual_seed(0)
-    conv = get_registry().get("conv", "vcconv")(6, c_out, h, 1, weight_num=5, mode="up", residual_rate=0.5,
-                                                order="basis")
+    conv = get_registry().get("conv", "vcconv")(c_in, c_out, h, 1, weight_num=5, mode=mode, residual_rate=0.5,
+                                                order=order)
     calls = []
-    real = native.basis_lanes
-    monkeypatch.setattr(native, "basis_lanes", lambda *a: calls.append(a[1].shape) or real(*a))
-    x = torch.randn(3, conv.n_in, 6, requires_grad=True)
+    real = getattr(native, op)
+    monkeypatch.setattr(native, op, lambda *a: calls.append(record(*a)) or real(*a))
+    x = torch.randn(3, conv.n_in, c_in, requires_grad=True)
     runs = []
-    for limit in (fwk_vcconv.LANES_MAX_OUT, 0):
-        monkeypatch.setattr(fwk_vcconv, "LANES_MAX_OUT", limit)
+    for value in (getattr(fwk_vcconv, limit), 0):
+        monkeypatch.setattr(fwk_vcconv, limit, value)
         y = conv(x)
-        runs.append((y, *torch.autograd.grad(y.square().sum(), [x, conv.basis, conv.coef])))
-    assert calls == ([(5, 6, c_out)] if lanes else [])
-    for a, e in zip(*runs):  # the same sums in another order: equal to float32 rounding of the largest entry
+        runs.append((y, *torch.autograd.grad(y.square().sum(), [x, *conv.parameters()])))
+    for a, e in zip(*runs):
         assert (a - e).abs().max() <= 1e-5 * (1 + e.abs().max())
+    return calls
+
+
+@pytestmark_lanes
+@pytest.mark.parametrize("c_out,lanes", [(3, True), (8, True), (9, False)])
+def test_vcconv_runs_narrow_basis_layers_in_lanes(c_out, lanes, monkeypatch):
+    """The ``basis`` order of a layer with at most ``LANES_MAX_OUT`` output channels takes
+    ``basis_lanes``, a wider one the tall product and ``basis_product``; with lanes off
+    (``LANES_MAX_OUT = 0``) the same layer agrees in value and gradient."""
+    calls = _lanes_against_off(monkeypatch, "basis_lanes", "LANES_MAX_OUT", 6, c_out, "up", "basis",
+                               lambda x, basis, *rest: basis.shape)
+    assert calls == ([(5, 6, c_out)] if lanes else [])
 
 
 def _naive_kernel_lanes(x, Wk, w, offs, src, pos, o):
@@ -507,23 +518,6 @@ def test_kernel_lanes_is_counted_as_kernel_product_and_refuses_malformed_argumen
 def test_vcconv_runs_narrow_kernel_layers_in_lanes(c_in, lanes, monkeypatch):
     """The ``kernel`` order of a layer with at most ``KERNEL_LANES_MAX_IN`` input channels takes
     ``kernel_lanes``, a wider one ``kernel_product``; with lanes off the same layer agrees."""
-    import fwk_vcconv
-    from fwk.plugins import get_registry
-    from fwk.testing.sampler import two_components
-
-    h = get_registry().get("sampler", "simple")(levels=3).build(two_components())
-    torch.manual_seed(0)
-    conv = get_registry().get("conv", "vcconv")(c_in, 8, h, 1, weight_num=5, mode="down", residual_rate=0.5,
-                                                order="kernel")
-    calls = []
-    real = native.kernel_lanes
-    monkeypatch.setattr(native, "kernel_lanes", lambda *a: calls.append(a[0].shape[2]) or real(*a))
-    x = torch.randn(3, conv.n_in, c_in, requires_grad=True)
-    runs = []
-    for limit in (fwk_vcconv.KERNEL_LANES_MAX_IN, 0):
-        monkeypatch.setattr(fwk_vcconv, "KERNEL_LANES_MAX_IN", limit)
-        y = conv(x)
-        runs.append((y, *torch.autograd.grad(y.square().sum(), [x, conv.basis, conv.coef, conv.res_w])))
+    calls = _lanes_against_off(monkeypatch, "kernel_lanes", "KERNEL_LANES_MAX_IN", c_in, 8, "down", "kernel",
+                               lambda x, *rest: x.shape[2])
     assert calls == ([c_in] if lanes else [])
-    for a, e in zip(*runs):  # the same sums in another order: equal to float32 rounding of the largest entry
-        assert (a - e).abs().max() <= 1e-5 * (1 + e.abs().max())
