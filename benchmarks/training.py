@@ -210,7 +210,7 @@ def add_variants(steps, enc, dec, x) -> None:
 
     steps["after_no_tall"] = patched(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x), vcconv_native, "TALL_MAX_B", 0)
     steps["after_no_lanes"] = patched(stepper(copy.deepcopy(enc), copy.deepcopy(dec), x), vcconv_native, "lanes",
-                                      lambda M: False)
+                                      lambda M=1: False)
 
 
 def variant_lines(r: dict, ts: dict) -> None:
