@@ -78,6 +78,27 @@ inline torch::Tensor reduce(const torch::Tensor& acc) {
   return acc.size(0) == 1 ? acc[0] : acc.sum(0);
 }
 
+// Asks the cache for rows that a kernel will read soon: base + idx[s] * stride, row_bytes each, for the slots
+// [s0, s1). The kernels gather rows scattered over megabytes (a vertex's neighbours' rows, its slots' coefficient
+// rows); the next vertex's rows, asked for while this vertex is computed, are in cache when it starts. Only a row's
+// first PREFETCH_ROW_BYTES are asked for: the hardware's own prefetcher follows a row once it is read, and whole
+// rows of the wide layers (8 KB a row, 75 rows a vertex) would push this vertex's data out of cache. RW: 1 where the
+// rows will be written. A hint only: no effect on any result.
+constexpr int64_t PREFETCH_ROW_BYTES = 256;
+
+template <int RW = 0>
+inline void prefetch_rows(const float* base, const int64_t* idx, int64_t s0, int64_t s1, int64_t stride,
+                          int64_t row_bytes) {
+#if defined(__GNUC__)
+  row_bytes = std::min(row_bytes, PREFETCH_ROW_BYTES);
+  for (int64_t s = s0; s < s1; ++s) {
+    const uintptr_t r = reinterpret_cast<uintptr_t>(base + idx[s] * stride);
+    for (uintptr_t at = r & ~uintptr_t(63); at < r + row_bytes; at += 64)
+      __builtin_prefetch(reinterpret_cast<const void*>(at), RW, 3);
+  }
+#endif
+}
+
 // Row-major products with a narrow result. BLAS vectorises along the first dimension of its
 // (column-major) result; a row-major C (r x N) handed over as its transpose puts N first, which for
 // N < 16 (an output of 3-9 channels) leaves most of each vector register empty. There, C is

@@ -116,6 +116,7 @@ std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torc
     std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), A(std::max<int64_t>(Kmax * Mx, 1));
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
+      if (i + 1 < i1) prefetch_rows(xp, sp, op[i + 1], op[i + 2], B, B * sizeof(float));  // the next vertex's x rows
       gather_rows(buf.data(), xp, sp, s0, K, B);
       gather_coef(A.data(), cp, wp, pp, s0, K, M, Mx);
       // T_i (B x M) = X_i^T (B x K) A_i (K x M)
@@ -161,6 +162,10 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
     std::vector<float> A(std::max<int64_t>(Kmax * Mx, 1)), dA(std::max<int64_t>(Kmax * Mx, 1));
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
+      if (i + 1 < i1) {  // the next vertex's x rows, and its rows of this thread's dx
+        prefetch_rows(xp, sp, op[i + 1], op[i + 2], B, B * sizeof(float));
+        if (need_dx) prefetch_rows<1>(mine, sp, op[i + 1], op[i + 2], B, B * sizeof(float));
+      }
       if (K == 0) continue;
       const float* dTi = dTp + i * B * M;
       if (need_dcoef || need_dw) {
@@ -289,6 +294,7 @@ std::vector<torch::Tensor> kernel_forward(torch::Tensor x, torch::Tensor Wk, tor
     std::vector<float> G(std::max<int64_t>(b * Kmax * c, 1)), Wi(std::max<int64_t>(Kmax * co, 1)), tmp;
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0, Kc = K * c;
+      if (i + 1 < i1) prefetch_rows(xp, sp, op[i + 1], op[i + 2], B, B * sizeof(float));  // the next vertex's x rows
       float* yi = yp + i * b * o;
       if (res) std::fill(rp + i * B, rp + (i + 1) * B, 0.f);
       if (K == 0) {
@@ -346,6 +352,10 @@ std::vector<torch::Tensor> kernel_backward(torch::Tensor dy, torch::Tensor dr, t
         T(std::max<int64_t>(Kmax * co, 1)), tmp;
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0, Kc = K * c;
+      if (i + 1 < i1) {  // the next vertex's x rows, and its rows of this thread's dx
+        prefetch_rows(xp, sp, op[i + 1], op[i + 2], B, B * sizeof(float));
+        if (need_x) prefetch_rows<1>(mine, sp, op[i + 1], op[i + 2], B, B * sizeof(float));
+      }
       if (K == 0) continue;
       const float* dyi = dyp + i * b * o;
       if (need_W) {
@@ -711,6 +721,39 @@ struct DxBlock {
     dx_block<PB>(dxT, W, dZ, R, c, p0);
   }
 };
+
+// the basis gradient's per-thread lanes dBv[r][p][l] (r = m o + q) take the products of DB_GROUP (vertex, batch group)
+// pairs at once: one read and one write of dBv's line per DB_GROUP multiply-adds (a pair at a time, dBv (53 KB to
+// 143 KB here) was read and written for each multiply-add)
+constexpr int DB_GROUP = 8;
+
+// dBv[r][p] += sum_v xTs[v][p] dZs[v][r] for PB columns p from p0: the group's x columns held while r runs
+template <int PB>
+inline void db_cols(float* __restrict dBv, const float* __restrict xTs, const float* __restrict dZs, int64_t R,
+                    int64_t c, int64_t p0) {
+  float xr[PB][DB_GROUP][L];
+  for (int p = 0; p < PB; ++p)
+    for (int v = 0; v < DB_GROUP; ++v) std::memcpy(xr[p][v], xTs + (v * c + p0 + p) * L, L * sizeof(float));
+  for (int64_t r = 0; r < R; ++r) {
+    float acc[PB][L];
+    for (int p = 0; p < PB; ++p) std::memcpy(acc[p], dBv + (r * c + p0 + p) * L, L * sizeof(float));
+    for (int v = 0; v < DB_GROUP; ++v) {
+      const float* z = dZs + (v * R + r) * L;
+      for (int p = 0; p < PB; ++p) {
+#pragma omp simd
+        for (int l = 0; l < L; ++l) acc[p][l] += xr[p][v][l] * z[l];
+      }
+    }
+    for (int p = 0; p < PB; ++p) std::memcpy(dBv + (r * c + p0 + p) * L, acc[p], L * sizeof(float));
+  }
+}
+
+// dBv[r][p] += sum_v xTs[v][p] dZs[v][r] over the group's DB_GROUP pairs (xTs (DB_GROUP, c, L), dZs (DB_GROUP, R, L))
+inline void db_group(float* dBv, const float* xTs, const float* dZs, int64_t R, int64_t c) {
+  int64_t p0 = 0;
+  for (; p0 + 2 <= c; p0 += 2) db_cols<2>(dBv, xTs, dZs, R, c, p0);
+  if (p0 < c) db_cols<1>(dBv, xTs, dZs, R, c, p0);
+}
 }  // namespace lanes
 
 // basis order in lanes, forward. x (n_in, b, c), B the basis (M, c, o), coef (R, M) read at pos (slots), offs
@@ -737,6 +780,10 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
     std::vector<float> xT(c * L), Z(o * M * L);
     for (int64_t j = j0; j < j1; ++j) {
       const int64_t s0 = op[j], K = op[j + 1] - s0;
+      if (j + 1 < j1) {  // the next vertex's coefficient rows and output rows
+        prefetch_rows<0>(cp, pp, op[j + 1], op[j + 2], M, M * sizeof(float));
+        prefetch_rows<1>(mine, dp, op[j + 1], op[j + 2], G * o * L, G * o * L * sizeof(float));
+      }
       if (K == 0) continue;
       for (int64_t g = 0; g < G; ++g) {
         to_lanes(xT.data(), xp + j * b * c, b, c, g);
@@ -793,11 +840,18 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   const int64_t Kmax = max_run(op, n_in);
   at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
     float* myB = need_B ? dBvp + at::get_thread_num() * M * o * c * L : nullptr;
-    std::vector<float> xT(c * L), Zm(QL * NV * L), dZ(o * M * L), dxT(c * L), dYt(QL * 8);
+    // xT and dZ of the pairs (vertex, batch group) since db_group last ran: the next pair's are at `held`
+    std::vector<float> xTs(DB_GROUP * c * L), Zm(QL * NV * L), dZs(DB_GROUP * o * M * L), dxT(c * L), dYt(QL * 8);
+    int held = 0;
     std::vector<const float*> A(Kmax), dY(Kmax);
     std::vector<float*> dA(Kmax);
     for (int64_t j = j0; j < j1; ++j) {
       const int64_t s0 = op[j], K = op[j + 1] - s0;
+      if (j + 1 < j1) {  // the next vertex's coefficient rows, their gradient's rows and its rows of dy
+        prefetch_rows<0>(cp, pp, op[j + 1], op[j + 2], M, M * sizeof(float));
+        if (need_coef) prefetch_rows<1>(dcp, pp, op[j + 1], op[j + 2], M, M * sizeof(float));
+        prefetch_rows<0>(dyTp, dp, op[j + 1], op[j + 2], G * o * L, G * o * L * sizeof(float));
+      }
       if (K == 0) {
         if (need_x) std::fill(dxp + j * b * c, dxp + (j + 1) * b * c, 0.f);
         continue;
@@ -807,28 +861,29 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
         if (need_coef) dA[k] = dcp + pp[s0 + k] * M;
       }
       for (int64_t g = 0; g < G; ++g) {
-        to_lanes(xT.data(), xp + j * b * c, b, c, g);
+        float* xT = xTs.data() + held * c * L;
+        float* dZ = dZs.data() + held * o * M * L;
+        to_lanes(xT, xp + j * b * c, b, c, g);
         for (int64_t k = 0; k < K; ++k) dY[k] = dyTp + (dp[s0 + k] * G + g) * o * L;
-        if (need_coef) zm_then_da(dA.data(), dY.data(), dYt.data(), Zm.data(), Bqp, xT.data(), c, o, K, M);
+        if (need_coef) zm_then_da(dA.data(), dY.data(), dYt.data(), Zm.data(), Bqp, xT, c, o, K, M);
         if (!need_x && !need_B) continue;
         int64_t m0 = 0;
-        for (; m0 + 4 <= M; m0 += 4) dz_cols<4>(dZ.data(), A.data(), dY.data(), K, o, m0);
-        for (; m0 < M; ++m0) dz_cols<1>(dZ.data(), A.data(), dY.data(), K, o, m0);
+        for (; m0 + 4 <= M; m0 += 4) dz_cols<4>(dZ, A.data(), dY.data(), K, o, m0);
+        for (; m0 < M; ++m0) dz_cols<1>(dZ, A.data(), dY.data(), K, o, m0);
         if (need_x) {
-          by_blocks_of_8<DxBlock>(c, dxT.data(), Wp, dZ.data(), M * o, c);
+          by_blocks_of_8<DxBlock>(c, dxT.data(), Wp, dZ, M * o, c);
           from_lanes(dxp + j * b * c, dxT.data(), b, c, g);
         }
-        if (need_B)
-          for (int64_t r = 0; r < M * o; ++r) {
-            const float* z = dZ.data() + r * L;
-            float* d = myB + r * c * L;
-            for (int64_t p = 0; p < c; ++p) {
-              const float* xv = xT.data() + p * L;
-#pragma omp simd
-              for (int l = 0; l < L; ++l) d[p * L + l] += xv[l] * z[l];
-            }
-          }
+        if (need_B && ++held == DB_GROUP) {
+          db_group(myB, xTs.data(), dZs.data(), M * o, c);
+          held = 0;
+        }
       }
+    }
+    if (need_B && held > 0) {  // the last pairs of this range, the group's other places zero
+      std::fill(xTs.begin() + held * c * L, xTs.end(), 0.f);
+      std::fill(dZs.begin() + held * o * M * L, dZs.end(), 0.f);
+      db_group(myB, xTs.data(), dZs.data(), M * o, c);
     }
   });
   // dB[m][p][q] = sum over threads and lanes of dBv[(m o + q)][p]
@@ -893,6 +948,7 @@ std::vector<torch::Tensor> kernel_lanes_forward(torch::Tensor x, torch::Tensor W
     std::vector<float> yL(o * L), rL(c * L);
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
+      if (i + 1 < i1) prefetch_rows(xLp, sp, op[i + 1], op[i + 2], G * c * L, G * c * L * sizeof(float));
       for (int64_t g = 0; g < G; ++g) {
         std::fill(yL.begin(), yL.end(), 0.f);
         if (res) std::fill(rL.begin(), rL.end(), 0.f);
@@ -950,6 +1006,10 @@ std::vector<torch::Tensor> kernel_lanes_backward(torch::Tensor dy, torch::Tensor
     std::vector<float> dyL(o * L), drL(c * L), Wt(c * o);
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
+      if (i + 1 < i1) {  // the next vertex's rows of x (in lanes) and of this thread's dx
+        prefetch_rows(xLp, sp, op[i + 1], op[i + 2], G * c * L, G * c * L * sizeof(float));
+        if (need_x) prefetch_rows<1>(mine, sp, op[i + 1], op[i + 2], G * c * L, G * c * L * sizeof(float));
+      }
       if (K == 0) continue;
       const float* dyi = dyp + i * b * o;
       for (int64_t g = 0; g < G; ++g) {
