@@ -662,8 +662,17 @@ inline void da_block(float* const* dA, const float* __restrict dYt, const float*
       }
     }
   }
-  for (int k = 0; k < KB; ++k)
-    for (int64_t m = 0; m < M; ++m) dA[k][m] += acc[k][m / L][m % L];
+  for (int k = 0; k < KB; ++k)  // L kernels at a time (one vector each), not one scalar each
+    for (int v = 0; v < NV; ++v) {
+      const int64_t m0 = v * L, mn = std::min<int64_t>(L, M - m0);
+      float* d = dA[k] + m0;
+      if (mn == L) {
+#pragma omp simd
+        for (int t = 0; t < L; ++t) d[t] += acc[k][v][t];
+      } else {
+        for (int64_t t = 0; t < mn; ++t) d[t] += acc[k][v][t];
+      }
+    }
 }
 
 template <int NV>
