@@ -181,6 +181,19 @@ class Conv(Protocol):
 
 
 @runtime_checkable
+class UpgradesSavedTensors(Protocol):
+    """Optional role of any module: its parameters' layout changed between versions, and it reads
+    the old one. ``upgrade(name, t)`` returns the saved tensor ``t`` of its own parameter ``name``
+    (the parameter itself, or an optimiser state of the parameter's shape) in today's layout, and
+    ``t`` unchanged when it already is. The module applies it to its ``load_state_dict``; fwk's
+    trainer applies it to the optimiser states of a checkpoint it resumes
+    (``fwk.engine.upgrade_optimizer_states``), so a training started with an earlier version
+    continues."""
+
+    def upgrade(self, name: str, t: "torch.Tensor") -> "torch.Tensor": ...
+
+
+@runtime_checkable
 class FusedPoolingConv(Protocol):
     """Optional conv role: the conv fuses a pooling that keeps a vertex subset, and an
     up-sampling, into itself (``fuses_pooling = True``), with the same maths and less work:

@@ -31,11 +31,12 @@ def evaluation(request, monkeypatch):
 
 def _naive_conv(conv, x, idx, mask):
     """y_i = b + sum_{j in N(i)} sum_m A_ijm B_m^T x_j, one output vertex at a time."""
+    A = conv.padded(conv.coef)  # (n_out, K, M), zero at the padding
     rows = []
     for i in range(idx.shape[0]):
         ks = [k for k in range(idx.shape[1]) if mask[i, k]]
         js = [int(idx[i, k]) for k in ks]
-        W = torch.einsum("km,mco->kco", conv.coef[i, ks], conv.basis)  # W_ij = sum_m A_ijm B_m
+        W = torch.einsum("km,mco->kco", A[i, ks], conv.basis)  # W_ij = sum_m A_ijm B_m
         rows.append(conv.bias + torch.einsum("bkc,kco->bo", x[:, js], W))
     return torch.stack(rows, 1)
 
@@ -48,7 +49,7 @@ def _naive_residual(conv, x, idx, mask):
         rows = []
         for i in range(idx.shape[0]):
             ks = [k for k in range(idx.shape[1]) if mask[i, k]]
-            w = conv.res_w[i, ks].abs()
+            w = conv.padded(conv.res_w)[i, ks].abs()
             rows.append(torch.einsum("k,bkc->bc", w / w.sum(), x[:, [int(idx[i, k]) for k in ks]]))
         res = torch.stack(rows, 1)
     return conv.res_lin(res) if conv.res_lin is not None else res

@@ -125,7 +125,7 @@ def test_vcconv_strided_and_transposed_shapes_and_naive_reference():
         acc = plain.bias.clone()
         for k in range(idx.shape[1]):
             if mask[i, k]:
-                W = sum(plain.coef[i, k, m] * plain.basis[m] for m in range(4))
+                W = sum(plain.padded(plain.coef)[i, k, m] * plain.basis[m] for m in range(4))
                 acc = acc + x[1, idx[i, k]] @ W
         assert torch.allclose(y[1, i], acc, atol=1e-5)
 
@@ -156,3 +156,37 @@ def test_the_device_check_passes_a_conv_and_catches_a_device_dependent_one():
 
     with pytest.raises(AssertionError, match="tensor 0"):
         assert_cuda_matches_cpu(Drifting(3, 4), lambda m: m, torch.randn(5, 3), device="cpu")
+
+
+@pytest.mark.parametrize("mode,residual", [("down", 0.5), ("up", 0.5), ("same", None), ("down", None)])
+def test_vcconv_reads_the_padded_coefficients_of_earlier_versions(mode, residual):
+    """Before 2026-12-07 ``coef`` was (n_out, K, M) and ``res_w`` (n_out, K), padded to the largest
+    support; today they hold the valid (i, k) pairs only. A state dict in the padded layout (the
+    padding filled with noise, which no order read) loads into today's conv, which then computes
+    what the conv it came from did; the initial draws are the padded layout's at the valid pairs."""
+    import torch
+
+    from fwk.testing.sampler import two_components
+
+    h = REG.get("sampler", "simple")(levels=3).build(two_components())
+    torch.manual_seed(0)
+    conv = REG.get("conv", "vcconv")(4, 5, h, 1, weight_num=6, mode=mode, residual_rate=residual)
+    M, mask = 6, conv.mask.bool()
+    assert conv.coef.shape == (int(mask.sum()), M) and conv.n_slots < conv.n_out * conv.K
+    torch.manual_seed(0)
+    torch.randn(conv.basis.shape)  # reset_parameters' draws: the basis, then every (i, k)'s coefficients
+    assert torch.equal(conv.padded(conv.coef), (torch.randn(conv.n_out, conv.K, M) / M ** 0.5) * mask[..., None])
+    old = {k: v.clone() for k, v in conv.state_dict().items()}
+    old["coef"] = conv.padded(conv.coef.detach()) + torch.randn(conv.n_out, conv.K, M) * ~mask[..., None]
+    if conv.res_w is not None:
+        with torch.no_grad():
+            conv.res_w.uniform_(0.1, 2.0)
+        old["res_w"] = conv.padded(conv.res_w.detach()) + 5 * ~mask
+    x = torch.randn(3, conv.n_in, 4)
+    expected = conv(x)
+    torch.manual_seed(1)
+    fresh = REG.get("conv", "vcconv")(4, 5, h, 1, weight_num=6, mode=mode, residual_rate=residual)
+    fresh.load_state_dict(old)
+    assert torch.equal(fresh.coef, conv.coef) and torch.allclose(fresh(x), expected, atol=1e-6)
+    assert torch.equal(fresh.upgrade("coef", old["coef"]), conv.coef.detach())
+    assert fresh.upgrade("basis", old["basis"]) is old["basis"]

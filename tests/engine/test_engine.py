@@ -211,3 +211,55 @@ def test_predict_batches():
     assert Y.shape == (23, 3) and Y.dtype == np.float32
     assert np.allclose(Y, (torch.as_tensor(X, dtype=torch.float32) @ W).numpy(), atol=1e-6)
     assert predict_batches(fn, X[:0], batch_size=4).shape[0] == 0
+
+
+class _Rows(torch.nn.Module):
+    """y = x W (6 -> 2). ``padded``: W kept as 12 rows, the odd ones never read (an earlier layout of
+    the same parameter); otherwise the 6 rows read. Plays ``UpgradesSavedTensors``: ``upgrade``
+    takes the padded layout to today's."""
+
+    def __init__(self, padded: bool):
+        super().__init__()
+        torch.manual_seed(0)
+        full = torch.randn(12, 2)
+        self.padded = padded
+        self.w = torch.nn.Parameter(full if padded else full[::2].clone())
+
+    def forward(self, x):
+        return x @ (self.w[::2] if self.padded else self.w)
+
+    def upgrade(self, name, t):
+        return t[::2] if name == "w" and t.shape == (12, 2) and not self.padded else t
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        if prefix + "w" in state_dict:
+            state_dict[prefix + "w"] = self.upgrade("w", state_dict[prefix + "w"])
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
+def _rows_module(padded: bool):
+    from fwk.engine import loss_module
+
+    def loss(module, batch, stage):
+        x, y = batch
+        value = torch.mean(torch.abs(module.net(x) - y))
+        module.log(f"{stage}_loss", value, on_epoch=True, on_step=False, batch_size=len(x))
+        return value
+
+    return loss_module({"net": _Rows(padded)}, loss)
+
+
+def test_resume_reads_a_checkpoint_of_an_earlier_parameter_layout(tmp_path):
+    """A training checkpointed with a parameter in an earlier layout (and Adam's states of that
+    shape) resumes with today's module: the weights by the module's load_state_dict, the optimiser
+    states by ``upgrade_optimizer_states``; it ends where a training with today's layout does."""
+    from fwk.protocols import UpgradesSavedTensors
+
+    assert isinstance(_Rows(False), UpgradesSavedTensors)
+    train, val = _data()
+    straight = fit(_rows_module(False), train, val, _ctx(tmp_path / "a", 4), "reg").net.w.detach().clone()
+    ctx = _ctx(tmp_path / "b", 2)
+    fit(_rows_module(True), train, val, ctx, "reg")
+    ctx.resume = True
+    resumed = fit(_rows_module(False), train, val, ctx, "reg", ctx.train.replace(epochs=4)).net.w.detach()
+    assert resumed.shape == (6, 2) and torch.allclose(resumed, straight, atol=1e-6), (resumed - straight).abs().max()

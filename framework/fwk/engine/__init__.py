@@ -57,13 +57,14 @@ if TYPE_CHECKING:  # what the lazy names below are, for type checkers and editor
     from .factories import autoencoder_module, loss_module
     from .loading import EpochSampler, fit_features, make_loader
     from .modules import AutoencoderModule, LossModule
-    from .trainer import fit, make_optimizer, predict_batches, seed_everything
+    from .trainer import fit, make_optimizer, predict_batches, seed_everything, upgrade_optimizer_states
     from .variational import kl_divergence, reparameterize
 
 #: exported name -> the module of this package that defines it (loaded on first access)
 _HOME = {
     "EpochSampler": "loading", "make_loader": "loading", "fit_features": "loading",
     "fit": "trainer", "make_optimizer": "trainer", "seed_everything": "trainer", "predict_batches": "trainer",
+    "upgrade_optimizer_states": "trainer",
     "RNGState": "callbacks", "ManualSchedulers": "callbacks", "ThreadShare": "callbacks", "TrainingCurves": "callbacks",
     "ProgressLines": "callbacks",
     "LossModule": "modules", "AutoencoderModule": "modules",
@@ -71,7 +72,7 @@ _HOME = {
     "kl_divergence": "variational", "reparameterize": "variational",
 }
 
-__all__ = ["TrainConfig", "fit", "fit_features", "make_optimizer", "seed_everything", "predict_batches", "make_loader", "EpochSampler",
+__all__ = ["TrainConfig", "fit", "fit_features", "make_optimizer", "upgrade_optimizer_states", "seed_everything", "predict_batches", "make_loader", "EpochSampler",
            "kl_divergence", "reparameterize", "autoencoder_module", "loss_module", "LossModule", "AutoencoderModule",
            "RNGState", "ManualSchedulers", "ThreadShare", "TrainingCurves", "ProgressLines", "EarlyStopping"]
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import lightning.pytorch as pl
 import torch
 
-from .trainer import make_optimizer
+from .trainer import make_optimizer, upgrade_optimizer_states
 from .variational import kl_divergence, reparameterize
 
 
@@ -40,7 +40,15 @@ class LossModule(pl.LightningModule):
     def configure_optimizers(self):
         """Adam with per-epoch decay over the parameters that require gradients
         (``make_optimizer``)."""
-        return make_optimizer([p for p in self.parameters() if p.requires_grad], self.train_config)
+        return make_optimizer(self._trained(), self.train_config)
+
+    def _trained(self):
+        return [p for p in self.parameters() if p.requires_grad]
+
+    def on_load_checkpoint(self, checkpoint):
+        """A resumed checkpoint's optimiser states in today's layout of their parameters
+        (``upgrade_optimizer_states``)."""
+        upgrade_optimizer_states(self, checkpoint, [self._trained()])
 
 
 def _encode(net, F):

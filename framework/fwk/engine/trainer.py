@@ -28,6 +28,30 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def upgrade_optimizer_states(module, checkpoint: dict, params: list) -> None:
+    """The optimiser states of a checkpoint in today's layout of their parameters: each state of a
+    parameter whose module plays ``fwk.protocols.UpgradesSavedTensors`` goes through its ``upgrade``
+    (in place; the parameters themselves go through the module's ``load_state_dict``). ``params``:
+    each optimiser's parameter list, in the order ``configure_optimizers`` gave them to
+    ``make_optimizer`` (a state's index is its parameter's place there)."""
+    from fwk.protocols import UpgradesSavedTensors
+
+    owner = {}
+    for mod in module.modules():
+        for name, p in mod.named_parameters(recurse=False):
+            owner.setdefault(id(p), (mod, name))
+    for opt, group in zip(checkpoint.get("optimizer_states") or [], params):
+        for idx, state in (opt.get("state") or {}).items():
+            if not isinstance(idx, int) or not 0 <= idx < len(group) or id(group[idx]) not in owner:
+                continue
+            p = group[idx]
+            mod, name = owner[id(p)]
+            if isinstance(mod, UpgradesSavedTensors):
+                for key, value in state.items():
+                    if torch.is_tensor(value) and value.shape != p.shape:  # contiguous: fused Adam reads memory
+                        state[key] = mod.upgrade(name, value).contiguous()
+
+
 def make_optimizer(params, config: TrainConfig):
     """Adam(lr, betas 0.9/0.999) with ExponentialLR(gamma = lr_decay) stepped once per epoch, as
     the dict ``configure_optimizers`` returns (a list of them for several optimisers). Adam runs

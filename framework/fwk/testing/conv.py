@@ -1,7 +1,8 @@
 """ConvContract: the conv role (``fwk.protocols.Conv``), shapes, gradients, batch independence,
 determinism, ``reset_parameters``, 3 and 9 channels, CUDA against the CPU (where a device is);
 the strided / transposed role when the class declares ``strided = True``; the fused pooling role
-(``FusedPoolingConv``) when it declares ``fuses_pooling = True``.
+(``FusedPoolingConv``) when it declares ``fuses_pooling = True``; ``upgrade`` keeping today's
+layout where the conv reads an earlier one (``UpgradesSavedTensors``).
 
 Subclass it in a test module::
 
@@ -22,7 +23,7 @@ import torch
 
 from fwk.plugins import get_registry
 from fwk.graph import sparse_apply, torch_sparse
-from fwk.protocols import CONV_BUILD_ARGS, STRIDED_BUILD_ARGS, Conv, FusedPoolingConv, plays
+from fwk.protocols import CONV_BUILD_ARGS, STRIDED_BUILD_ARGS, Conv, FusedPoolingConv, UpgradesSavedTensors, plays
 from fwk.testing.sampler import two_components
 
 
@@ -49,6 +50,18 @@ class ConvContract:
         assert tuple(c.build_args) == expect, f"the model supplies {expect}, not the recipe"
         assert (c.__doc__ or "").strip(), "the first docstring line is the `fwk list` summary"
         assert isinstance(self.make(3, 4), torch.nn.Module)
+
+    def test_upgrade_keeps_todays_layout(self):
+        """Where the conv reads saved tensors of an earlier layout (``UpgradesSavedTensors``): a
+        tensor already in today's layout comes back unchanged, and its own state dict loads as it is."""
+        conv = self.make(3, 4)
+        if not isinstance(conv, UpgradesSavedTensors):
+            pytest.skip(f"{self.component.name} reads no earlier layout (no upgrade)")
+        for name, p in conv.named_parameters(recurse=False):
+            assert torch.equal(conv.upgrade(name, p.detach()), p.detach()), name
+        fresh = self.make(3, 4, seed=1)
+        fresh.load_state_dict(conv.state_dict())
+        assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), conv.state_dict().values()))
 
     @pytest.mark.parametrize("c_in", [3, 9])
     def test_shape_and_gradients(self, c_in):

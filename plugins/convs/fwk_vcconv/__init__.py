@@ -193,6 +193,13 @@ class VCConv(nn.Module):
     ``reset_parameters()`` draws B_m ~ N(0, 2 / (c_in K)) and A_ijm ~ N(0, 1 / M) (K the padded
     support size), sets b = 0 and the residual weights w_ij = 1, and draws R as
     ``torch.nn.Linear`` does.
+
+    The coefficients A (``coef``, (pairs, M)) and the residual's weights (``res_w``, (pairs,)) hold
+    the supports' valid (i, j) pairs only, in (i, k) order: 60 % of the (n_out, K) padded layout in
+    the chapter 5 width's VAE (6.2 M parameters instead of 10.2 M; Adam and every gradient pass
+    over the coefficients read less). ``padded`` gives that layout, zero at the padding; the
+    checkpoints of earlier versions, which stored it, load (``upgrade``: the weights and, on resume,
+    Adam's states).
     """
 
     name = "vcconv"
@@ -218,14 +225,17 @@ class VCConv(nn.Module):
         K = idx.shape[1]
         self.K = K
         self.c_in = in_channels
-        # allocated here, drawn by reset_parameters() in the order they always were: basis, coef, res_lin
+        self.n_slots = int(np.asarray(mask, dtype=bool).sum())
+        # allocated here, drawn by reset_parameters() in the order they always were: basis, coef, res_lin.
+        # coef and res_w hold the supports' valid (i, j) pairs only, row-major in (i, k) (``padded`` gives the
+        # (n_out, K, ...) layout of earlier versions, zero at the padding, which no order ever read)
         self.basis = nn.Parameter(torch.empty(weight_num, in_channels, out_channels))
-        self.coef = nn.Parameter(torch.empty(self.n_out, K, weight_num))
+        self.coef = nn.Parameter(torch.empty(self.n_slots, weight_num))
         self.bias = nn.Parameter(torch.empty(out_channels))
         self.r = residual_rate
         self.res_w = self.res_lin = None
         if residual_rate is not None:
-            self.res_w = nn.Parameter(torch.empty(self.n_out, K)) if mode != "same" else None
+            self.res_w = nn.Parameter(torch.empty(self.n_slots)) if mode != "same" else None
             self.res_lin = skip_init(nn.Linear, in_channels, out_channels, bias=False) if in_channels != out_channels else None
         self._plan(np.asarray(idx, dtype=np.int64), np.asarray(mask, dtype=bool))
         self.reset_parameters()
@@ -233,7 +243,9 @@ class VCConv(nn.Module):
     def _plan(self, idx: np.ndarray, mask: np.ndarray) -> None:
         """The bucketed supports of both sides (non-persistent buffers, moved by ``.to``)."""
         n_out, K = idx.shape
-        flat = np.arange(n_out * K).reshape(n_out, K)
+        flat = np.zeros((n_out, K), np.int64)  # each valid (i, k)'s row of coef and res_w (none at the padding)
+        flat[mask] = np.arange(int(mask.sum()))
+        self.register_buffer("_row_out", torch.as_tensor(np.nonzero(mask)[0]), persistent=False)  # row -> i
         # output side (sum, kernel): each output vertex's valid neighbours and coefficient positions
         o_rows = [idx[i][mask[i]] for i in range(n_out)]
         o_cols = [flat[i][mask[i]] for i in range(n_out)]
@@ -277,7 +289,8 @@ class VCConv(nn.Module):
         M = self.basis.shape[0]
         with torch.no_grad():
             self.basis.copy_(torch.randn(self.basis.shape) * math.sqrt(2.0 / (self.c_in * self.K)))
-            self.coef.copy_(torch.randn(self.coef.shape) / math.sqrt(M))
+            # drawn for every (i, k) as before (the same draws, the same valid values), the padding's left out
+            self.coef.copy_((torch.randn(self.n_out, self.K, M) / math.sqrt(M))[self.mask.bool()])
             self.bias.zero_()
             if self.r is not None and self.res_w is not None:
                 self.res_w.fill_(1.0)
@@ -297,7 +310,7 @@ class VCConv(nn.Module):
         the native kernels, which skip the padded slots; there ``kernel`` makes every coefficient row's kernel)."""
         M, c, o = self.basis.shape
         P_out, P_in = self._slots(native_kernels)
-        R = self.coef.shape[0] * self.coef.shape[1]  # the native kernels make every coefficient row's kernel
+        R = self.coef.shape[0]  # the native kernels make every coefficient row's kernel
         return {"sum": P_out * M * b * c + self.n_out * b * M * c * o,
                 "basis": self.n_in * b * c * M * o + P_in * M * b * o,
                 "kernel": (R if native_kernels else self._out_slots) * M * c * o + P_out * b * c * o}
@@ -310,7 +323,7 @@ class VCConv(nn.Module):
         * ``basis``: Z (n_in M b o; not in lanes, ``native.basis_lanes``, where it is made in cache), the
           per-slot products and residual terms sent to the outputs (2 x slots b o; not on the native kernels);
         * ``kernel``: the explicit kernels (slots c o; on the native kernels, every coefficient
-          row's, n_out K c o), the gathered inputs, their copy laid out for the product and the
+          row's, rows c o), the gathered inputs, their copy laid out for the product and the
           residual's weighted copy (3 x slots b c; on the native kernels the one copy of each slot's
           input row into its vertex's block, slots b c);
 
@@ -321,7 +334,7 @@ class VCConv(nn.Module):
         gathered, sent = (0, 0) if native_kernels else (P_out * b * c, 2 * P_in * b * o)
         # the explicit kernels (every coefficient row's on the native kernels), and the gathered inputs: the
         # native kernels copy each slot's input row once, transposed into the vertex's (b, K c) block
-        kernel = (self.coef.shape[0] * self.coef.shape[1] * c * o + self._slots(True)[0] * b * c if native_kernels
+        kernel = (self.coef.shape[0] * c * o + self._slots(True)[0] * b * c if native_kernels
                   else P_out * c * o + 3 * P_out * b * c)
         Z = 0 if native_kernels and self._in_lanes(o, M) else self.n_in * M * b * o
         return {"sum": gathered + self.n_out * (M + 1) * b * c + y,
@@ -350,13 +363,37 @@ class VCConv(nn.Module):
         return o <= LANES_MAX_OUT and native.lanes(M)
 
     def _res_weights(self):
-        """sqrt(r) w~ (n_out * K,), w~_ij = |w_ij| / sum_j |w_ij| over the valid support (flat
-        coefficient positions); the residual's factor sqrt(r) rides on its weights."""
-        w = self.res_w.abs() * self.mask
-        return (w * (math.sqrt(self.r) / w.sum(1, keepdim=True).clamp_min(1e-12))).reshape(-1)
+        """sqrt(r) w~ (one per coefficient row), w~_ij = |w_ij| / sum_j |w_ij| over the support of
+        output vertex i; the residual's factor sqrt(r) rides on its weights."""
+        w = self.res_w.abs()
+        total = w.new_zeros(self.n_out).index_add_(0, self._row_out, w)
+        return w * (math.sqrt(self.r) / total.clamp_min(1e-12)).index_select(0, self._row_out)
+
+    def padded(self, t: torch.Tensor) -> torch.Tensor:
+        """coef (rows, M) or res_w (rows,) in the (n_out, K, ...) layout of the supports, zero at the
+        padding (the layout of the parameters before 2026-12-07)."""
+        out = t.new_zeros(self.n_out, self.K, *t.shape[1:])
+        out[self.mask.bool()] = t
+        return out
+
+    def upgrade(self, name: str, t: torch.Tensor) -> torch.Tensor:
+        """A saved tensor of ``name`` (``coef``, ``res_w``, or an optimiser state of theirs) in the
+        layout of its parameter: the padded (n_out, K, ...) layout of earlier versions loses its
+        padding; anything else is returned as it is (and load_state_dict reports a mismatch)."""
+        param = getattr(self, name, None)
+        if name in ("coef", "res_w") and param is not None and t.shape != param.shape \
+                and tuple(t.shape[:2]) == (self.n_out, self.K) and t.shape[2:] == param.shape[1:]:
+            return t[self.mask.to(t.device).bool()]
+        return t
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        for name in ("coef", "res_w"):  # a checkpoint of an earlier version: the padded layout
+            if prefix + name in state_dict:
+                state_dict[prefix + name] = self.upgrade(name, state_dict[prefix + name])
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def _gather_out(self, t):
-        """Rows of t (n_out * K, ...) at the output-side slots, zero at padding: (slots, ...)."""
+        """Rows of t (coefficient rows, ...) at the output-side slots, zero at padding: (slots, ...)."""
         g = t.index_select(0, self._out_pos)
         return g * self._out_valid.reshape(-1, *([1] * (g.dim() - 1)))
 
@@ -407,7 +444,7 @@ class VCConv(nn.Module):
         r_i per output vertex on its exact support (the coefficients and the residual's weights
         read in place), then the same dense product with the basis."""
         has_res = self.r is not None and self.res_w is not None
-        w = self._res_weights() if has_res else self.coef.new_empty(0)  # (n_out K,): read in place, as coef
+        w = self._res_weights() if has_res else self.coef.new_empty(0)  # (rows,): read in place, as coef
         x2 = xv.reshape(self.n_in, b * c)
         T, r = native.sum_product(x2, self.coef.reshape(-1, M), w, self._nat_out_offs, self._nat_out_src,
                                   self._nat_out_pos)  # (n_out, b c, M), (n_out, b c)
@@ -487,7 +524,7 @@ class VCConv(nn.Module):
         weighted average in the same pass."""
         has_res = self.r is not None and self.res_w is not None
         w = self._res_weights() if has_res else self.coef.new_empty(0)
-        Wk = _dense(self.coef.reshape(-1, M), self.basis.reshape(M, c * o))  # (n_out K, c o)
+        Wk = _dense(self.coef.reshape(-1, M), self.basis.reshape(M, c * o))  # (rows, c o)
         if c <= KERNEL_LANES_MAX_IN and native.lanes():  # each slot's kernel on 16 batch entries a register
             y, r = native.kernel_lanes(xv, Wk, w, self._nat_out_offs, self._nat_out_src, self._nat_out_pos, o)
             return y + self.bias, (self._mapped_residual(r, b, c) if has_res else None)

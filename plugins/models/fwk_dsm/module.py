@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import lightning.pytorch as pl
 
-from fwk.engine import make_optimizer
+from fwk.engine import make_optimizer, upgrade_optimizer_states
 
 from . import DSMNet, band_losses
 
@@ -60,6 +60,14 @@ class DSMModule(pl.LightningModule):
         losses, l1s = band_losses(self.net, list(batch), self.unscales, self.kl_weight)
         return self._log("val", losses, l1s, len(batch[0]))
 
+    def _bands(self):
+        """Each band's parameters, one optimiser each."""
+        return [list(self.net.encoders[b].parameters()) + list(self.net.decoders[b].parameters())
+                for b in range(self.net.n_bands)]
+
     def configure_optimizers(self):
-        return [make_optimizer(list(self.net.encoders[b].parameters()) + list(self.net.decoders[b].parameters()),
-                               self.train_config) for b in range(self.net.n_bands)]
+        return [make_optimizer(params, self.train_config) for params in self._bands()]
+
+    def on_load_checkpoint(self, checkpoint):
+        """A resumed checkpoint's optimiser states in today's layout of their parameters."""
+        upgrade_optimizer_states(self, checkpoint, self._bands())
