@@ -68,10 +68,17 @@ def _double(*ts):
 @pytestmark_native
 @pytest.mark.parametrize("residual", [False, True])
 @pytest.mark.parametrize("threads", [1, 2])
-def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, torch_threads):
+@pytest.mark.parametrize("B,M,lanes", [(12, 5, True), (12, 5, False), (37, 16, True), (128, 35, True), (20, 64, False)])
+def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, B, M, lanes, torch_threads,
+                                                             monkeypatch):
+    """T and r against the per-vertex loops in float64, on the per-vertex BLAS call and (``lanes``,
+    where the CPU runs them) ``sum_lanes_forward``: rows in blocks of 8 and the rest, kernels (and
+    the residual's column) in 1-3 vectors of 16."""
+    if not lanes:
+        monkeypatch.setattr(native, "lanes", lambda M=1: False)
     torch.set_num_threads(threads)
     g = torch.Generator().manual_seed(0)
-    n_in, n_out, B, M = 23, 9, 12, 5
+    n_in, n_out = 23, 9
     offs, src = _csr(n_out, n_in, 6, g)
     x = torch.randn(n_in, B, generator=g, requires_grad=True)
     coef, w, pos = _coefficients(len(src), M, g, residual)

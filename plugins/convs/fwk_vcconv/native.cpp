@@ -1056,6 +1056,88 @@ std::vector<torch::Tensor> kernel_lanes_backward(torch::Tensor dy, torch::Tensor
   return {need_x ? sum_out_of_lanes(acc, b) : empty, dw};
 }
 
+namespace lanes {
+// T rows [beta0, beta0 + BB) of one output vertex: T[beta][m] = sum_k X_k[beta] A_k[m] for its K slots, the kernels
+// (and the residual's weight, column M) as the vector: NV vectors of L kernels, A zero past Mx
+template <int BB, int NV>
+inline void t_rows(float* __restrict T, float* __restrict r, const float* const* X, const float* __restrict A,
+                   int64_t K, int64_t M, int64_t beta0) {
+  float acc[BB][NV][L] = {};
+  for (int64_t k = 0; k < K; ++k) {
+    const float* a = A + k * NV * L;
+    const float* xk = X[k] + beta0;
+    for (int t = 0; t < BB; ++t) {
+      const float xv = xk[t];
+      for (int v = 0; v < NV; ++v) {
+#pragma omp simd
+        for (int l = 0; l < L; ++l) acc[t][v][l] += xv * a[v * L + l];
+      }
+    }
+  }
+  for (int t = 0; t < BB; ++t) {
+    std::memcpy(T + (beta0 + t) * M, acc[t], M * sizeof(float));  // acc[t] is NV L contiguous floats
+    if (r) r[beta0 + t] = acc[t][M / L][M % L];
+  }
+}
+
+template <int BB>
+struct TRows {
+  template <int NV>
+  static void go(float* T, float* r, const float* const* X, const float* A, int64_t K, int64_t M, int64_t beta0) {
+    t_rows<BB, NV>(T, r, X, A, K, M, beta0);
+  }
+  static void run(int64_t beta0, float* T, float* r, const float* const* X, const float* A, int64_t K, int64_t M,
+                  int64_t NV) {
+    switch (NV) {
+      case 1: go<1>(T, r, X, A, K, M, beta0); break;
+      case 2: go<2>(T, r, X, A, K, M, beta0); break;
+      case 3: go<3>(T, r, X, A, K, M, beta0); break;
+      default: go<4>(T, r, X, A, K, M, beta0); break;
+    }
+  }
+};
+}  // namespace lanes
+
+// sum order in lanes, forward: sum_forward's arguments and results, each output vertex's T_i (B x M) made with the
+// kernels as the vector (rows of 8, NV = ceil((M + 1) / 16) vectors each) instead of a BLAS call per vertex
+std::vector<torch::Tensor> sum_lanes_forward(torch::Tensor x, torch::Tensor coef, torch::Tensor w, torch::Tensor offs,
+                                             torch::Tensor src, torch::Tensor pos) {
+  using namespace lanes;
+  check(x, "x", at::kFloat, 2);
+  const int64_t n_in = x.size(0), B = x.size(1), M = coef.size(1), n_out = offs.size(0) - 1;
+  check_csr(offs, src, n_out, n_in);
+  check_coef(coef, w, pos, src.size(0));
+  const bool res = w.size(0) > 0;
+  const int64_t Mx = M + (res ? 1 : 0), NV = (Mx + L - 1) / L;
+  TORCH_CHECK(Mx <= MAX_M, "coef: at most ", MAX_M - (res ? 1 : 0), " kernels");
+  auto T = torch::empty({n_out, B, M}, x.options());
+  auto r = res ? torch::empty({n_out, B}, x.options()) : torch::empty({0}, x.options());
+  const float* xp = x.data_ptr<float>();
+  const float* cp = coef.data_ptr<float>();
+  const float* wp = res ? w.data_ptr<float>() : nullptr;
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* sp = src.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
+  float* Tp = T.data_ptr<float>();
+  float* rp = res ? r.data_ptr<float>() : nullptr;
+  const int64_t Kmax = max_run(op, n_out);
+  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+    std::vector<float> A(std::max<int64_t>(Kmax * NV * L, 1));
+    std::vector<const float*> X(std::max<int64_t>(Kmax, 1));
+    for (int64_t i = i0; i < i1; ++i) {
+      const int64_t s0 = op[i], K = op[i + 1] - s0;
+      if (i + 1 < i1) prefetch_rows(xp, sp, op[i + 1], op[i + 2], B, B * sizeof(float));
+      std::fill(A.begin(), A.begin() + K * NV * L, 0.f);
+      for (int64_t k = 0; k < K; ++k) {
+        std::memcpy(A.data() + k * NV * L, cp + pp[s0 + k] * M, M * sizeof(float));
+        if (res) A[k * NV * L + M] = wp[pp[s0 + k]];
+        X[k] = xp + sp[s0 + k] * B;
+      }
+      by_blocks_of_8<TRows>(B, Tp + i * B * M, res ? rp + i * B : nullptr, X.data(), A.data(), K, M, NV);
+    }
+  });
+  return {T, r};
+}
 
 #ifdef FWK_VCCONV_LANES
 #pragma GCC pop_options
@@ -1074,6 +1156,7 @@ bool lanes_supported() {
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("lanes_supported", &lanes_supported);
   m.def("lanes_forward", &lanes_forward);
+  m.def("sum_lanes_forward", &sum_lanes_forward);
   m.def("lanes_backward", &lanes_backward);
   m.def("kernel_lanes_forward", &kernel_lanes_forward);
   m.def("kernel_lanes_backward", &kernel_lanes_backward);
