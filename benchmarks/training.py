@@ -16,7 +16,7 @@ rows, "no tall" times the native kernels with the products with the basis on tor
 instead of ``fwk_vcconv.native.tall_product``, and "no lanes" with the narrow ``basis`` and ``kernel``
 layers on the BLAS kernels (the tall product and ``basis_product``, ``kernel_product``) instead of
 ``fwk_vcconv.native.basis_lanes`` and ``kernel_lanes``, and the ``sum`` order's forward on its
-per-vertex BLAS call instead of ``sum_lanes_forward``.
+per-vertex BLAS call instead of lanes (``sum_vertex_lanes``).
 
 * ``vcconv VAE``: the fully convolutional VAE at the thesis's width (its Mesh Autoencoder and
   Deep Spectral Meshes' bands, issue 28's "thesis-width" network), channels [3, 32, 64, 128,
@@ -221,7 +221,7 @@ def variant_lines(r: dict, ts: dict) -> None:
     print(f"{'  no tall':<13} {'':>10} {r['no_tall_ms']:>9.0f}   (the basis products on torch's: tall_product is "
           f"{r['tall_speedup']:.2f}x faster)")
     print(f"{'  no lanes':<13} {'':>10} {r['no_lanes_ms']:>9.0f}   (the lane kernels off, BLAS per vertex: "
-          f"basis_lanes, kernel_lanes and sum_lanes_forward are {r['lanes_speedup']:.2f}x faster)")
+          f"basis_lanes, kernel_lanes and sum in lanes are {r['lanes_speedup']:.2f}x faster)")
 
 
 def load_average() -> float:

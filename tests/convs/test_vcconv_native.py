@@ -72,7 +72,7 @@ def _double(*ts):
 def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, B, M, lanes, torch_threads,
                                                              monkeypatch):
     """T and r against the per-vertex loops in float64, on the per-vertex BLAS call and (``lanes``,
-    where the CPU runs them) ``sum_lanes_forward``: rows in blocks of 8 and the rest, kernels (and
+    where the CPU runs them) its lane path (``sum_vertex_lanes``): rows in blocks of 8 and the rest, kernels (and
     the residual's column) in 1-3 vectors of 16."""
     if not lanes:
         monkeypatch.setattr(native, "lanes", lambda M=1: False)

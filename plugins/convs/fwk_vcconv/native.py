@@ -51,7 +51,7 @@ each slot's kernel applied to 16 batch entries a register, forward and the input
 BLAS kernel's there); the kernels' gradient stays with ``kernel_product``'s per-vertex BLAS call, which
 was faster than a batch sum in lanes. Together 1.13-1.42x the chapter 5 width's training step
 (``benchmarks/training.py``, "no lanes"). ``sum_product``'s forward runs in lanes too
-(``sum_lanes_forward``: each T_i with the kernels as the vector, 1.2-2.0x the per-vertex BLAS call);
+(``sum_forward`` with ``lanes``: each T_i with the kernels as the vector, 1.2-2.0x the per-vertex BLAS call);
 its backward stays with BLAS. The lane kernels ask for the next vertex's scattered rows while
 computing this one's (``fwk_native.h``'s ``prefetch_rows``).
 
@@ -92,10 +92,10 @@ def sum_product(x: torch.Tensor, coef: torch.Tensor, w: torch.Tensor, offs: torc
     coef[pos[s]] and a_i the weights w[pos[s]] of output i's slots s in [offs[i], offs[i + 1])
     (r empty, (0,), when w is). x (n_in, B), coef (R, M), w (R) or (0,), src and pos (slots).
     Where the lane kernels run (``lanes``, M + 1 <= 64 with w), T_i is made with the kernels as the
-    vector (``sum_lanes_forward``: 1.2-1.8x the per-vertex BLAS call on the chapter 5 width's
+    vector (``sum_forward`` with ``lanes``: 1.2-1.8x the per-vertex BLAS call on the chapter 5 width's
     encoder); the backward stays with BLAS (a lane version of its coefficient gradient was slower)."""
-    forward = _load().sum_lanes_forward if lanes(coef.shape[1] + (1 if w.shape[0] else 0)) else _load().sum_forward
-    T, r = forward(x.contiguous(), coef.contiguous(), w.contiguous(), offs, src, pos)
+    in_lanes = lanes(coef.shape[1] + (1 if w.shape[0] else 0))
+    T, r = _load().sum_forward(x.contiguous(), coef.contiguous(), w.contiguous(), offs, src, pos, in_lanes)
     return T, r
 
 
