@@ -528,3 +528,19 @@ def test_vcconv_runs_narrow_kernel_layers_in_lanes(c_in, lanes, monkeypatch):
     calls = _lanes_against_off(monkeypatch, "kernel_lanes", "KERNEL_LANES_MAX_IN", c_in, 8, "down", "kernel",
                                lambda x, *rest: x.shape[2])
     assert calls == ([c_in] if lanes else [])
+
+
+@pytestmark_lanes
+def test_sum_forward_in_lanes_refuses_more_than_64_columns():
+    """The lane path takes the kernels and the residual's weight in at most 4 vectors of 16; beyond
+    that ``sum_product`` keeps the BLAS call (``lanes(65)`` is False) and the kernel refuses."""
+    g = torch.Generator().manual_seed(3)
+    offs, src = _csr(4, 6, 3, g)
+    x = torch.randn(6, 8, generator=g)
+    coef, w, pos = _coefficients(len(src), 64, g, True)
+    with pytest.raises(RuntimeError, match="at most 63 kernels in lanes"):
+        native._load().sum_forward(x, coef.detach(), w.detach(), offs, src, pos, True)
+    assert not native.lanes(65)
+    T, r = native.sum_product(x, coef, w, offs, src, pos)  # on the BLAS call
+    Te, re = _naive_sum(*_double(x, coef, w), offs, src, pos)
+    assert torch.allclose(T.double(), Te, atol=1e-5) and torch.allclose(r.double(), re, atol=1e-5)

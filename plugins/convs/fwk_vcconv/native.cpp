@@ -94,10 +94,11 @@ void check_coef(const torch::Tensor& coef, const torch::Tensor& w, const torch::
 // (the lane kernels, compiled for AVX-512 below) T_i and r_i of one output vertex with the kernels as the vector
 void sum_vertex_lanes(float* Ti, float* ri, const float* const* X, const float* A, int64_t K, int64_t M, int64_t B,
                       int64_t NV);
+bool lanes_supported();
 
 // sum order, forward. x (n_in, B); coef (R, M) and w (R, or empty) are read at pos (slots); offs
 // (n_out + 1), src (slots). Returns T (n_out, B, M) and r (n_out, B) (empty (0,) without w). Each T_i by one BLAS
-// call on the gathered rows, or with ``lanes`` (the caller checked the CPU: lanes_supported) by sum_vertex_lanes.
+// call on the gathered rows, or with ``lanes`` (on CPUs that run them: lanes_supported) by sum_vertex_lanes.
 std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torch::Tensor w, torch::Tensor offs,
                                        torch::Tensor src, torch::Tensor pos, bool lanes) {
   check(x, "x", at::kFloat, 2);
@@ -107,6 +108,7 @@ std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torc
   const bool res = w.size(0) > 0;
   const int64_t Mx = M + (res ? 1 : 0), NV = (Mx + 15) / 16;  // NV vectors of 16 kernels (lanes)
   TORCH_CHECK(!lanes || Mx <= 64, "coef: at most ", 64 - (res ? 1 : 0), " kernels in lanes");
+  TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
   auto T = torch::empty({n_out, B, M}, x.options());
   auto r = res ? torch::empty({n_out, B}, x.options()) : torch::empty({0}, x.options());
   const float* xp = x.data_ptr<float>();
