@@ -49,11 +49,11 @@ functions are compiled for AVX-512 only (``lanes``: False on other CPUs, where t
 ``basis_product`` run). ``kernel_lanes`` (``fwk_vcconv::kernel_lanes``) is ``kernel_product`` alike:
 each slot's kernel applied to 16 batch entries a register, forward and the input's gradient (2x the
 BLAS kernel's there); the kernels' gradient stays with ``kernel_product``'s per-vertex BLAS call, which
-was faster than a batch sum in lanes. Together 1.13-1.42x the chapter 5 width's training step
-(``benchmarks/training.py``, "no lanes"). ``sum_product``'s forward runs in lanes too
-(``sum_forward`` with ``lanes``: each T_i with the kernels as the vector, 1.2-2.0x the per-vertex BLAS call);
-its backward stays with BLAS. The lane kernels ask for the next vertex's scattered rows while
-computing this one's (``fwk_native.h``'s ``prefetch_rows``).
+was faster than a batch sum in lanes. ``sum_product``'s forward runs in lanes too (``sum_forward``
+with ``lanes``: each T_i with the kernels as the vector, 1.2-2.0x the per-vertex BLAS call); its
+backward stays with BLAS. All three together: 1.10-1.46x the chapter 5 width's training step
+(``benchmarks/training.py``, "no lanes", 2026-12-07). The lane kernels ask for the next vertex's
+scattered rows while computing this one's (``fwk_native.h``'s ``prefetch_rows``).
 
 The kernels are float32 and compiled on first use (``fwk.native``: a C++ compiler and ninja;
 about a minute, once per machine and torch version). ``available()`` is False when the build
