@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import secrets
 import struct
 from pathlib import Path
 from typing import Any
@@ -262,12 +263,20 @@ def dumps_state(state, meta: dict | None = None) -> bytes:
 
     tensors: dict = {}
     structure = _encode(state, "", tensors, torch)
+    # the hash of the tensor bytes goes in the header before them: written once with a random
+    # placeholder of the hash's length, which is then overwritten in place (the header keeps its
+    # length, so every offset holds); the bytes are those of a second save with the hash in it
+    placeholder = secrets.token_hex(32)
     fields = {"format": FORMAT, "structure": json.dumps(structure, allow_nan=True),
-              "meta": json.dumps(meta or {}, allow_nan=True)}
-    first = save(tensors, metadata=fields)
-    start, _ = _split(first)  # the tensor bytes do not depend on the metadata: hash them, store again
-    fields["sha256"] = hashlib.sha256(first[start:]).hexdigest()
-    return save(tensors, metadata=fields)
+              "meta": json.dumps(meta or {}, allow_nan=True), "sha256": placeholder}
+    data = bytearray(save(tensors, metadata=fields))
+    start, _ = _split(bytes(data[:8 + struct.unpack("<Q", data[:8])[0]]))
+    at = data.find(placeholder.encode(), 8, start)
+    if at < 0 or data.find(placeholder.encode(), at + 1, start) >= 0:  # not once in the header: save again
+        fields["sha256"] = hashlib.sha256(memoryview(data)[start:]).hexdigest()
+        return save(tensors, metadata=fields)
+    data[at:at + len(placeholder)] = hashlib.sha256(memoryview(data)[start:]).hexdigest().encode()
+    return bytes(data)
 
 
 def loads_state(data: bytes, where: str = "the file") -> tuple[Any, dict]:
@@ -283,7 +292,7 @@ def loads_state(data: bytes, where: str = "the file") -> tuple[Any, dict]:
     fields = header.get("__metadata__") or {}
     if not isinstance(fields, dict) or fields.get("format") != FORMAT:
         raise DataError(f"{where}: not an fwk state file (no {FORMAT} format tag)")
-    if hashlib.sha256(data[start:]).hexdigest() != fields.get("sha256"):
+    if hashlib.sha256(memoryview(data)[start:]).hexdigest() != fields.get("sha256"):
         raise DataError(f"{where}: its tensor bytes do not match the SHA-256 recorded in it (changed or truncated)")
     from safetensors.torch import load  # deferred: imports torch
 

@@ -77,6 +77,44 @@ def test_changed_bytes_are_refused(tmp_path):
             loads_state(data[:cut], "f")
 
 
+def _second_save(state, meta=None) -> bytes:
+    """The naive reference of ``dumps_state``: saved once to hash the tensor bytes, then again with
+    the hash in the header (as fwk wrote states before 2026-12-07)."""
+    from safetensors.torch import save
+
+    from fwk.safeio import FORMAT, _encode, _split
+    tensors: dict = {}
+    structure = _encode(state, "", tensors, torch)
+    fields = {"format": FORMAT, "structure": json.dumps(structure), "meta": json.dumps(meta or {})}
+    first = save(tensors, metadata=fields)
+    start, _ = _split(first)
+    fields["sha256"] = __import__("hashlib").sha256(first[start:]).hexdigest()
+    return save(tensors, metadata=fields)
+
+
+def _parts(data: bytes):
+    start = _tensor_start(data)
+    return json.loads(data[8:start]), data[start:]
+
+
+@pytest.mark.parametrize("clash", [False, True])
+def test_the_hash_written_in_place_is_the_second_saves(monkeypatch, clash):
+    """One save, its placeholder overwritten by the hash: the same header (metadata, offsets) and tensor
+    bytes as saving twice; where the placeholder is not once in the header (here the meta holds it too),
+    the second save is made."""
+    import fwk.safeio as safeio
+    state = {"w": torch.randn(300, 7), "i": torch.arange(11), "n": np.linspace(0, 1, 5), "x": [1, "a"]}
+    meta = {"label": "0" * 64} if clash else {"label": "m"}
+    if clash:
+        monkeypatch.setattr(safeio.secrets, "token_hex", lambda n: "0" * (2 * n))
+    got, want = _parts(dumps_state(state, meta)), _parts(_second_save(state, meta))
+    assert got == want
+    assert got[0]["__metadata__"]["sha256"] == __import__("hashlib").sha256(got[1]).hexdigest()
+    back, m = loads_state(dumps_state(state, meta))
+    assert_same_state(state, back)
+    assert m == meta
+
+
 def _with_header(data: bytes, edit) -> bytes:
     start = _tensor_start(data)
     header = json.loads(data[8:start])
