@@ -35,6 +35,7 @@ import os
 import pickle
 import re
 import secrets
+import shutil
 import sys
 import tempfile
 import threading
@@ -143,6 +144,31 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         raise
     finally:
         if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def atomic_link(src: Path, path: Path) -> None:
+    """Make ``path`` the file ``src`` is, atomically: a hard link made under a temporary name and
+    renamed over ``path`` (readers see the old file or the new one). A hard link is a plain file,
+    not a symlink, so nothing reading ``path`` is sent elsewhere. Where the file system has no hard
+    links, a copy made the same way. Errors as ``atomic_write_bytes``."""
+    src, path = Path(src), Path(path)
+    tmp = path.parent / f".{path.name}.{secrets.token_hex(8)}.tmp"
+    try:
+        try:
+            os.link(src, tmp)
+        except OSError as exc:
+            if exc.errno not in (errno.EPERM, errno.EXDEV, errno.EMLINK, errno.ENOTSUP, errno.EOPNOTSUPP):
+                raise
+            shutil.copyfile(src, tmp)
+        os.replace(tmp, path)
+        tmp = None
+    except OSError as exc:
+        if exc.errno in _USER_ERRNOS and not isinstance(exc, WriteError):
+            raise WriteError(exc.errno, f"{path}: cannot write ({exc.strerror})") from None
+        raise
+    finally:
+        if tmp is not None and os.path.lexists(tmp):
             os.unlink(tmp)
 
 

@@ -69,3 +69,34 @@ def test_memo_each_builds_only_the_missing_keys_together_and_keeps_at_most_max_b
     memo_each("test.memo_each", keys, build, max_bytes=128)
     assert built[-2:] == [[0, 1, 2, 3, 4]] * 2
     forget("test.memo_each")
+
+
+def test_atomic_link_is_the_same_file_and_replaces_the_old_one(tmp_path, monkeypatch):
+    """``atomic_link``: ``path`` becomes ``src`` (one file, not a symlink) in place of what it was;
+    where hard links fail it is a copy; a missing ``src`` leaves ``path`` and no temporary file."""
+    import errno
+    import os
+
+    import pytest
+
+    from fwk import cache
+    src, path = tmp_path / "epoch003.ckpt", tmp_path / "last.ckpt"
+    src.write_bytes(b"new state")
+    path.write_bytes(b"old state")
+    cache.atomic_link(src, path)
+    assert path.samefile(src) and not path.is_symlink() and path.read_bytes() == b"new state"
+    src.unlink()  # a pruned epoch file: last.ckpt stays whole
+    assert path.read_bytes() == b"new state"
+
+    def no_links(a, b):
+        raise OSError(errno.EPERM, "Operation not permitted")
+
+    src.write_bytes(b"copied")
+    with monkeypatch.context() as m:
+        m.setattr(os, "link", no_links)
+        cache.atomic_link(src, path)
+    assert path.read_bytes() == b"copied" and not path.samefile(src)
+    with pytest.raises(FileNotFoundError):
+        cache.atomic_link(tmp_path / "absent", path)
+    assert path.read_bytes() == b"copied"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["epoch003.ckpt", "last.ckpt"]

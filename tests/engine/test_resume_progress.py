@@ -24,19 +24,25 @@ def _ckpts(ctx):
 
 
 def test_resume_from_an_epoch_file_says_so_and_leaves_one_epoch_checkpoint(tmp_path):
-    """last.ckpt cut short (killed while writing it): the run continues from epoch001.ckpt,
-    says so, and ends with last.ckpt and the newest epoch file only (the stale one removed)."""
+    """last.ckpt cut short (a copy of the run, which holds it as a file of its own, stopped while
+    writing it): the run continues from epoch001.ckpt, says so, and ends with last.ckpt and the
+    newest epoch file only (the stale one removed), again one file under two names."""
     train, val = _data()
     ctx = _ctx(tmp_path, 2)
     fit(_module(), train, val, ctx, "reg")
-    last = ctx.run_dir / "checkpoints" / "reg" / "last.ckpt"
-    last.write_bytes(last.read_bytes()[:100])
+    d = ctx.run_dir / "checkpoints" / "reg"
+    last = d / "last.ckpt"
+    assert last.samefile(d / "epoch001.ckpt") and not last.is_symlink()  # written once (LinkedLastCheckpoint)
+    cut = last.read_bytes()[:100]
+    last.unlink()
+    last.write_bytes(cut)
     ctx.resume = True
     m = fit(_module(), train, val, ctx, "reg", ctx.train.replace(epochs=4))
     assert m.steps == 2 * 4  # epochs 3 and 4
     log = ctx.log_file.read_text()
     assert "reg: resuming from epoch001.ckpt: 2 of 4 epochs done, continuing with epoch 3" in log
     assert _ckpts(ctx) == ["epoch003.ckpt", "last.ckpt"]
+    assert last.samefile(d / "epoch003.ckpt")
 
 
 def test_resume_of_a_finished_or_absent_training_says_so(tmp_path):

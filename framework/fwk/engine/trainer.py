@@ -175,10 +175,11 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     # deferred: Lightning costs ~2.2 s of import time on top of torch's ~1 s (measured with
     # python -X importtime); plugins import `fit` at their top and `fwk list` imports every plugin
     import lightning.pytorch as pl
-    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
+    from lightning.pytorch.callbacks import LearningRateMonitor
     from lightning.pytorch.loggers import TensorBoardLogger
 
-    from .callbacks import ManualSchedulers, ProgressLines, RNGState, SafeCheckpointIO, ThreadShare, TrainingCurves
+    from .callbacks import (LinkedLastCheckpoint, ManualSchedulers, ProgressLines, RNGState, SafeCheckpointIO,
+                            ThreadShare, TrainingCurves)
 
     _quiet_lightning()
     config = config or ctx.train
@@ -247,11 +248,11 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
             dist_env = DistEnv(world)
             ctx.log(f"{network}: DDP on {world} {'CPU processes' if on_cpu else 'devices'}, "
                     f"{config.batch_size} samples each per step (effective batch {world * config.batch_size})")
-    checkpoint = ModelCheckpoint(dirpath=ckdir, filename="epoch{epoch:03d}", auto_insert_metric_name=False,
-                                 save_last=True, save_top_k=max(1, config.keep_checkpoints), monitor="epoch",
-                                 mode="max", every_n_epochs=1,
-                                 # at the end of the epoch, after TrainingCurves' record and decision
-                                 save_on_train_epoch_end=True)
+    checkpoint = LinkedLastCheckpoint(dirpath=ckdir, filename="epoch{epoch:03d}", auto_insert_metric_name=False,
+                                      save_last="link", save_top_k=max(1, config.keep_checkpoints), monitor="epoch",
+                                      mode="max", every_n_epochs=1,
+                                      # at the end of the epoch, after TrainingCurves' record and decision
+                                      save_on_train_epoch_end=True)
     show_bar = not ctx.quiet and sys.stderr.isatty()
     callbacks = [checkpoint, LearningRateMonitor("epoch"), RNGState(ctx.seed), ManualSchedulers(),
                  ThreadShare(ctx.log, ctx.log_file), recorder]
