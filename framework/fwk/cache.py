@@ -121,9 +121,9 @@ def dir_mode() -> int:
 _USER_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM, errno.EROFS}
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename: readers see the old file or
-    the new one, never a part. The file gets the mode the umask gives new files (not the
+def atomic_write_bytes(path: Path, data) -> None:
+    """Write ``data`` (bytes, or a list of bytes-like parts written one after the other) to ``path``
+    through a temporary file and a rename: readers see the old file or the new one, never a part. The file gets the mode the umask gives new files (not the
     temporary file's 0600). A full disk, a quota, a file-size limit or a permission raises
     ``WriteError`` (an ``FwkError`` and an ``OSError``) naming ``path``; no temporary file stays."""
     path = Path(path)
@@ -133,7 +133,8 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
             os.fchmod(f.fileno(), file_mode())
-            f.write(data)
+            for part in (data if isinstance(data, list) else [data]):
+                f.write(part)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

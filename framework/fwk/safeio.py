@@ -152,7 +152,15 @@ def _encode(obj, path: str, tensors: dict, torch, seen: dict | None = None) -> A
             tensors[i], tensors[v] = c.indices().contiguous().clone(), c.values().contiguous().clone()
             return {"c": [i, v, list(c.shape)]}
         name = str(len(tensors))
-        tensors[name] = obj.detach().to("cpu").contiguous().clone()
+        t = obj.detach().to("cpu").contiguous()
+        # read where it lies, unless another tensor of the state lies in the same memory (safetensors
+        # refuses shared storage): a copy costs a checkpoint of 450 MB 0.13-0.16 s
+        ptr = ("storage", t.untyped_storage().data_ptr())
+        if ptr in seen:
+            t = t.clone()
+        elif ptr[1]:
+            seen[ptr] = name
+        tensors[name] = t
         return {"t": name}
     if isinstance(obj, dict):
         items = []
@@ -258,6 +266,11 @@ def dumps_state(state, meta: dict | None = None) -> bytes:
     """The bytes of ``state`` (see the module docstring) in the safe format; ``meta`` (JSON data)
     is stored beside it and returned by ``loads_state``. ``UnsafeStateError`` (a ``TypeError``) for a value that is not
     plain data, naming where it sits."""
+    return b"".join(_dump_parts(state, meta))
+
+
+def _dump_parts(state, meta: dict | None = None) -> list:
+    """``dumps_state``'s bytes in two parts, the header and a view of the tensor bytes (not copied)."""
     import torch  # deferred: ~1 s of import time that `fwk list` need not pay
     from safetensors.torch import save
 
@@ -269,14 +282,16 @@ def dumps_state(state, meta: dict | None = None) -> bytes:
     placeholder = secrets.token_hex(32)
     fields = {"format": FORMAT, "structure": json.dumps(structure, allow_nan=True),
               "meta": json.dumps(meta or {}, allow_nan=True), "sha256": placeholder}
-    data = bytearray(save(tensors, metadata=fields))
-    start, _ = _split(bytes(data[:8 + struct.unpack("<Q", data[:8])[0]]))
-    at = data.find(placeholder.encode(), 8, start)
-    if at < 0 or data.find(placeholder.encode(), at + 1, start) >= 0:  # not once in the header: save again
-        fields["sha256"] = hashlib.sha256(memoryview(data)[start:]).hexdigest()
-        return save(tensors, metadata=fields)
-    data[at:at + len(placeholder)] = hashlib.sha256(memoryview(data)[start:]).hexdigest().encode()
-    return bytes(data)
+    data = save(tensors, metadata=fields)
+    start, _ = _split(data)
+    digest = hashlib.sha256(memoryview(data)[start:]).hexdigest()
+    header = bytearray(data[:start])
+    at = header.find(placeholder.encode(), 8)
+    if at < 0 or header.find(placeholder.encode(), at + 1) >= 0:  # not once in the header: save again
+        fields["sha256"] = digest
+        return [save(tensors, metadata=fields)]
+    header[at:at + len(placeholder)] = digest.encode()
+    return [bytes(header), memoryview(data)[start:]]
 
 
 def loads_state(data: bytes, where: str = "the file") -> tuple[Any, dict]:
@@ -318,7 +333,7 @@ def save_state(path, state, meta: dict | None = None) -> Path:
     from .cache import atomic_write_bytes
 
     path = Path(path)
-    atomic_write_bytes(path, dumps_state(state, meta))
+    atomic_write_bytes(path, _dump_parts(state, meta))
     return path
 
 

@@ -232,3 +232,17 @@ def test_references_are_checked(structure, match):
     ok = _with_header(data, lambda h: h["__metadata__"].update(structure='{"l": [{"n": "0"}, {"r": "0"}]}'))
     # the sha256 covers the tensor bytes only: an edited structure with a valid reference loads
     assert [list(x) for x in loads_state(ok, "f")[0]] == [[0.0, 1.0, 2.0, 3.0]] * 2
+
+
+def test_tensors_in_one_memory_are_saved_apart_and_the_rest_read_in_place(tmp_path):
+    """Parameters are read where they lie (not copied first); tensors that share memory (views of
+    one buffer, as a tied weight gives) are still saved, each with its own values."""
+    base = torch.arange(24.0)
+    state = {"whole": base, "view": base[4:10], "tied": base.view(4, 6), "other": torch.ones(3),
+             "empty": torch.zeros(0), "empty2": torch.zeros(0, 2)}
+    p = save_state(tmp_path / "s.safetensors", state)
+    back = load_state(p)
+    assert_same_state(state, back)
+    back["whole"][0] = -1.0
+    assert back["view"][0] == 4.0 and back["tied"][0, 0] == 0.0 and base[0] == 0.0
+    assert_same_state(loads_state(dumps_state(state))[0], back | {"whole": state["whole"]})
