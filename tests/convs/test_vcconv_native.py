@@ -477,7 +477,8 @@ def _naive_kernel_lanes(x, Wk, w, offs, src, pos, o):
 
 @pytestmark_lanes
 @pytest.mark.parametrize("threads", [1, 2])
-@pytest.mark.parametrize("b,c,o,residual", [(16, 3, 8, True), (5, 8, 16, False), (20, 4, 5, True), (33, 2, 11, True)])
+@pytest.mark.parametrize("b,c,o,residual", [(16, 3, 8, True), (5, 8, 16, False), (20, 4, 5, True), (33, 2, 11, True),
+                                            (16, 9, 8, True), (17, 64, 32, True), (3, 40, 27, False)])
 def test_kernel_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, o, residual, torch_threads):
     """``kernel_lanes`` (the kernel order, 16 batch entries a register; the kernels' gradient by
     ``kernel_product``'s backward) against the slot loop in float64: y, the residual's average, and the
@@ -521,11 +522,13 @@ def test_kernel_lanes_is_counted_as_kernel_product_and_refuses_malformed_argumen
 
 
 @pytestmark_lanes
-@pytest.mark.parametrize("c_in,lanes", [(3, True), (8, True), (9, False)])
-def test_vcconv_runs_narrow_kernel_layers_in_lanes(c_in, lanes, monkeypatch):
-    """The ``kernel`` order of a layer with at most ``KERNEL_LANES_MAX_IN`` input channels takes
-    ``kernel_lanes``, a wider one ``kernel_product``; with lanes off the same layer agrees."""
-    calls = _lanes_against_off(monkeypatch, "kernel_lanes", "KERNEL_LANES_MAX_IN", c_in, 8, "down", "kernel",
+@pytest.mark.parametrize("c_in,c_out,lanes", [(3, 8, True), (9, 8, True), (64, 8, True), (9, 32, True), (65, 8, False),
+                                              (9, 33, False)])
+def test_vcconv_runs_narrow_kernel_layers_in_lanes(c_in, c_out, lanes, monkeypatch):
+    """The ``kernel`` order of a layer with at most ``KERNEL_LANES_MAX_IN`` input and ``KERNEL_LANES_MAX_OUT``
+    output channels takes ``kernel_lanes``, a wider one ``kernel_product``; with lanes off the same layer
+    agrees."""
+    calls = _lanes_against_off(monkeypatch, "kernel_lanes", "KERNEL_LANES_MAX_IN", c_in, c_out, "down", "kernel",
                                lambda x, *rest: x.shape[2])
     assert calls == ([c_in] if lanes else [])
 

@@ -54,7 +54,7 @@ with the basis, where tall and narrow (``native.tall``: the outer layers' (n b) 
 in ``native.tall_product`` (1.1-1.2x the chapter 5 width's step); the ``basis`` order of layers with
 at most ``LANES_MAX_OUT`` output channels runs in one pass with the batch as the vector
 (``native.basis_lanes``: the basis product made in cache), and so does the ``kernel`` order of layers
-with at most ``KERNEL_LANES_MAX_IN`` input channels (``native.kernel_lanes``), and the ``sum`` order's
+with at most ``KERNEL_LANES_MAX_IN`` input and ``KERNEL_LANES_MAX_OUT`` output channels (``native.kernel_lanes``), and the ``sum`` order's
 forward (``native.sum_product``, the kernels as the vector): together 1.10-1.46x the chapter 5 width's
 step (``benchmarks/training.py``, "no lanes", 2026-12-07), on CPUs with AVX-512; elsewhere (bf16 autocast,
 float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. ``auto`` prices the
@@ -144,9 +144,14 @@ def _bucketed(rows: list[np.ndarray], cols: list[np.ndarray], n_rows: int):
 #: ``benchmarks/vcconv_orders.py``)
 LANES_MAX_OUT = 8
 #: the ``kernel`` order runs in lanes (``native.kernel_lanes``) for layers with at most this many input
-#: channels (the chapter 5 width's first layer, 3 -> 8: 2.0-2.2x its per-vertex products forward and
-#: 1.9-2.0x the input's gradient; the kernels' gradient stays with ``kernel_product``'s BLAS call)
-KERNEL_LANES_MAX_IN = 8
+#: channels and at most ``KERNEL_LANES_MAX_OUT`` output channels (the chapter 5 width's first layer, 3 -> 8:
+#: 2.0-2.2x its per-vertex products forward and 1.9-2.0x the input's gradient; the kernels' gradient stays
+#: with ``kernel_product``'s BLAS call). Measured 2026-12-07 on the first layer (11,248 -> 3,089 vertices,
+#: forward and backward, 2 threads, batch 16) against ``kernel_product``: 1.10-1.20x for 9 -> 8 (the DR
+#: representation's 9 features), 1.14-1.19x for 12, 16, 24, 32 and 64 -> 8, 1.03-1.07x for 9 -> 32 and
+#: 32 -> 32, 0.97-0.98x for 64 -> 64 (until then 8 -> any)
+KERNEL_LANES_MAX_IN = 64
+KERNEL_LANES_MAX_OUT = 32
 
 
 def _dense(A: torch.Tensor, B: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
@@ -526,7 +531,7 @@ class VCConv(nn.Module):
         has_res = self.r is not None and self.res_w is not None
         w = self._res_weights() if has_res else self.coef.new_empty(0)
         Wk = _dense(self.coef.reshape(-1, M), self.basis.reshape(M, c * o))  # (rows, c o)
-        if c <= KERNEL_LANES_MAX_IN and native.lanes():  # each slot's kernel on 16 batch entries a register
+        if c <= KERNEL_LANES_MAX_IN and o <= KERNEL_LANES_MAX_OUT and native.lanes():  # 16 batch entries a register
             y, r = native.kernel_lanes(xv, Wk, w, self._nat_out_offs, self._nat_out_src, self._nat_out_pos, o)
             return y + self.bias, (self._mapped_residual(r, b, c) if has_res else None)
         y, r = native.kernel_product(xv.reshape(self.n_in, b * c), Wk, w, self._nat_out_offs, self._nat_out_src,
