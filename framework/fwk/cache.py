@@ -121,47 +121,17 @@ def dir_mode() -> int:
 _USER_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM, errno.EROFS}
 
 
-def atomic_write_bytes(path: Path, data) -> None:
-    """Write ``data`` (bytes, or a list of bytes-like parts written one after the other) to ``path``
-    through a temporary file and a rename: readers see the old file or the new one, never a part. The file gets the mode the umask gives new files (not the
-    temporary file's 0600). A full disk, a quota, a file-size limit or a permission raises
-    ``WriteError`` (an ``FwkError`` and an ``OSError``) naming ``path``; no temporary file stays."""
+def _atomically(path: Path, make) -> None:
+    """``make(tmp)`` creates the new file at a temporary name beside ``path`` (``.<name>.<random>.tmp``),
+    which is then renamed over ``path``: readers see the old file or the new one, never a part. A full
+    disk, a quota, a file-size limit or a permission raises ``WriteError`` (an ``FwkError`` and an
+    ``OSError``) naming ``path``; no temporary file stays."""
     path = Path(path)
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), file_mode())
-            for part in (data if isinstance(data, list) else [data]):
-                f.write(part)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-        tmp = None
-    except OSError as exc:
-        if exc.errno in _USER_ERRNOS and not isinstance(exc, WriteError):
-            raise WriteError(exc.errno, f"{path}: cannot write ({exc.strerror})") from None
-        raise
-    finally:
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)
-
-
-def atomic_link(src: Path, path: Path) -> None:
-    """Make ``path`` the file ``src`` is, atomically: a hard link made under a temporary name and
-    renamed over ``path`` (readers see the old file or the new one). A hard link is a plain file,
-    not a symlink, so nothing reading ``path`` is sent elsewhere. Where the file system has no hard
-    links, a copy made the same way. Errors as ``atomic_write_bytes``."""
-    src, path = Path(src), Path(path)
-    tmp = path.parent / f".{path.name}.{secrets.token_hex(8)}.tmp"
-    try:
-        try:
-            os.link(src, tmp)
-        except OSError as exc:
-            if exc.errno not in (errno.EPERM, errno.EXDEV, errno.EMLINK, errno.ENOTSUP, errno.EOPNOTSUPP):
-                raise
-            shutil.copyfile(src, tmp)
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(8)}.tmp"
+        make(tmp)
         os.replace(tmp, path)
         tmp = None
     except OSError as exc:
@@ -171,6 +141,39 @@ def atomic_link(src: Path, path: Path) -> None:
     finally:
         if tmp is not None and os.path.lexists(tmp):
             os.unlink(tmp)
+
+
+def atomic_write_bytes(path: Path, data) -> None:
+    """Write ``data`` (bytes, or a list of bytes-like parts written one after the other) to ``path``
+    through a temporary file, flushed to disk, and a rename (``_atomically``: errors as there). The
+    file gets the mode the umask gives new files (not the temporary file's 0600)."""
+
+    def write(tmp):
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), file_mode())
+            for part in (data if isinstance(data, list) else [data]):
+                f.write(part)
+            f.flush()
+            os.fsync(f.fileno())
+
+    _atomically(path, write)
+
+
+def atomic_link(src: Path, path: Path) -> None:
+    """Make ``path`` the file ``src`` is, atomically (``_atomically``): a hard link made under a
+    temporary name and renamed over ``path``. A hard link is a plain file, not a symlink, so nothing
+    reading ``path`` is sent elsewhere. Where the file system has no hard links, a copy."""
+
+    def link(tmp):
+        try:
+            os.link(src, tmp)
+        except OSError as exc:
+            if exc.errno not in (errno.EPERM, errno.EXDEV, errno.EMLINK, errno.ENOTSUP, errno.EOPNOTSUPP):
+                raise
+            shutil.copyfile(src, tmp)
+
+    _atomically(path, link)
 
 
 def warn(message: str) -> None:
