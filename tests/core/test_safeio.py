@@ -102,7 +102,7 @@ def test_the_hash_written_in_place_is_the_second_saves(monkeypatch, clash):
     """One save, its placeholder overwritten by the hash: the same header (metadata, offsets) and tensor
     bytes as saving twice; where the placeholder is not once in the header (here the meta holds it too),
     the second save is made."""
-    import fwk.safeio as safeio
+    from fwk import safeio
     state = {"w": torch.randn(300, 7), "i": torch.arange(11), "n": np.linspace(0, 1, 5), "x": [1, "a"]}
     meta = {"label": "0" * 64} if clash else {"label": "m"}
     if clash:

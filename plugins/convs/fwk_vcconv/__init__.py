@@ -54,9 +54,10 @@ with the basis, where tall and narrow (``native.tall``: the outer layers' (n b) 
 in ``native.tall_product`` (1.1-1.2x the chapter 5 width's step); the ``basis`` order of layers with
 at most ``LANES_MAX_OUT`` output channels runs in one pass with the batch as the vector
 (``native.basis_lanes``: the basis product made in cache), and so does the ``kernel`` order of layers
-with at most ``KERNEL_LANES_MAX_IN`` input and ``KERNEL_LANES_MAX_OUT`` output channels (``native.kernel_lanes``), and the ``sum`` order's
-forward (``native.sum_product``, the kernels as the vector): together 1.10-1.46x the chapter 5 width's
-step (``benchmarks/training.py``, "no lanes", 2026-12-07), on CPUs with AVX-512; elsewhere (bf16 autocast,
+with at most ``KERNEL_LANES_MAX_IN`` input and ``KERNEL_LANES_MAX_OUT`` output channels
+(``native.kernel_lanes``), and the ``sum`` order's forward (``native.sum_product``, the kernels as the
+vector): together 1.10-1.46x the chapter 5 width's step (``benchmarks/training.py``, "no lanes",
+2026-12-07), on CPUs with AVX-512; elsewhere (bf16 autocast,
 float64, CUDA, no compiler, ``FWK_VCCONV_NATIVE=0``) the torch code below. ``auto`` prices the
 orders for the code that runs (the native kernels skip the padding and the slot-sized
 intermediates, but ``kernel`` still copies each slot's input row into its vertex's block), which
