@@ -6,7 +6,9 @@ POINT is where the process dies, on the N-th time it gets there (nothing in fwk 
 this: the points are installed here by wrapping fwk's and Lightning's own functions):
 
     cache-hash   a cache entry of the synthetic dataset written, its SHA-256 not yet (data loading)
-    train        just after the N-th training checkpoint is saved (training)
+    train        just after the N-th training checkpoint is saved and on disk (training)
+    train-queued just after the N-th training checkpoint is queued, before it is written (fwk writes
+                 checkpoints on a thread of their own: SafeCheckpointIO)
     evaluate     at the N-th evaluation of a model on a split (evaluation)
     term         like evaluate, but the signal is SIGTERM (a scheduler's time limit)
     train-term   like train, but the signal is SIGTERM
@@ -49,13 +51,15 @@ def install(point: str, n: int) -> None:
             return write(path, data)
 
         cache.atomic_write_bytes = atomic_write_bytes
-    elif point in ("train", "train-term"):
+    elif point in ("train", "train-term", "train-queued"):
         from lightning.pytorch import Trainer
 
         save = Trainer.save_checkpoint
 
         def save_checkpoint(self, *a, **k):
             out = save(self, *a, **k)
+            if point != "train-queued":  # the checkpoint on disk (or the point would be train-queued)
+                self.strategy.checkpoint_io.wait()
             hit()
             return out
 

@@ -14,6 +14,7 @@ from fwk.cli import main
 from fwk.errors import FwkError
 from fwk.lifecycle import open_run
 from fwk.runs import RunLock, run_state
+from fwk.safeio import load_state
 from tests.faults.common import (HARNESS, PCA_RECIPE, TRAIN_RECIPE, assert_complete, assert_no_temporary_files,
                                  fwk_run, killed_at, models, recipe, resume, run_dirs)
 
@@ -121,6 +122,22 @@ def test_killed_during_training_then_resumed(tmp_path, env, capsys, baseline):
     (curve,) = (d / "curves" / "mlp").glob("*.json")
     curves = json.loads(curve.read_text())
     assert curves["finished"] and curves["epochs_run"] == 3
+
+
+@pytest.mark.slow
+def test_killed_with_a_checkpoint_queued_then_resumed(tmp_path, env, capsys, baseline):
+    """Killed while the network's first checkpoint waits for its write (or is being written, on the
+    checkpoints' thread): no epoch file, or no whole one, is there to resume from, yet nothing half
+    written is taken for one; resume trains the network again and every metric equals an undisturbed
+    run's."""
+    d = killed_at("train-queued", 1, recipe(tmp_path, TRAIN_RECIPE), tmp_path / "runs", env)
+    assert not (d / "models" / "mlp.safetensors").exists()
+    for p in (d / "checkpoints").rglob("*.ckpt"):  # whatever reached its name reads whole
+        assert "state_dict" in load_state(p)
+    _refused_while_incomplete(d, capsys, "killed")
+    assert resume(d) == 0
+    assert_complete(d)
+    assert models(d) == baseline(TRAIN_RECIPE)
 
 
 # ------------------------------------------------------------------ side by side

@@ -21,21 +21,103 @@ from ..safeio import load_state, save_state
 from .threads import apply_threads, report_threads
 
 
+def _snapshot(obj):
+    """A copy of a checkpoint that training cannot change any more: every tensor copied to the CPU,
+    every array copied, every dict, list and tuple rebuilt (Lightning's checkpoint holds the live
+    parameters, the optimiser's states and callbacks' own containers)."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().to("cpu", copy=True)
+    if isinstance(obj, np.ndarray):
+        return obj.copy()
+    if isinstance(obj, dict):
+        return {k: _snapshot(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_snapshot(v) for v in obj]
+    if isinstance(obj, tuple):
+        return tuple(_snapshot(v) for v in obj)
+    return obj
+
+
 class SafeCheckpointIO(CheckpointIO):
     """How Lightning writes and reads every checkpoint of ``fit`` (``last.ckpt``, the epoch files,
     a resume): ``fwk.safeio``'s format, tensors and plain data only, never a pickle; written
     atomically. A pickled checkpoint of an earlier fwk is refused (``fwk convert RUN --trust``),
-    a damaged one raises ``DataError`` naming it."""
+    a damaged one raises ``DataError`` naming it.
+
+    With ``background`` (the default) the files are written by one thread of their own while
+    training goes on: a save takes a snapshot of the checkpoint (``_snapshot``, on the caller's
+    thread) and queues its write; the removal of an older epoch file and ``last.ckpt``'s link
+    (``LinkedLastCheckpoint``) queue behind it, so the folder changes in the order Lightning asked.
+    A save first waits for the writes queued before it (one checkpoint in memory at a time); a
+    load, ``wait`` and the end of ``fit`` (Lightning's ``teardown``) wait for all of them. A write
+    that failed raises its error there, and nothing queued after it is done. Measured on the chapter
+    5 width (20 training steps, 2 threads, beside a 450 MB save): 2.9-3.4 s against 4.0-4.2 s one
+    after the other; the chapter 5 study's PBS alone, epochs 1.03-1.08x faster (2026-12-07)."""
+
+    def __init__(self, background: bool = True):
+        super().__init__()
+        self.background = background
+        self._pool = None
+        self._last = None
+        self._error: BaseException | None = None
+
+    def _run(self, fn, *args) -> None:
+        if self._error is not None:  # a write failed: the ones after it would leave the folder out of order
+            return
+        try:
+            fn(*args)
+        except BaseException as exc:  # raised on the training's thread, by the next save or wait
+            self._error = exc
+
+    def _queue(self, fn, *args) -> None:
+        self._raise()
+        if not self.background:
+            fn(*args)
+            return
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fwk-checkpoint")
+        self._last = self._pool.submit(self._run, fn, *args)
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            exc, self._error = self._error, None
+            raise exc
+
+    def wait(self) -> None:
+        """Return when every queued write is done; raise the first error one of them met."""
+        if self._last is not None:
+            self._last.result()
+            self._last = None
+        self._raise()
 
     def save_checkpoint(self, checkpoint, path, storage_options=None) -> None:
-        save_state(Path(path), checkpoint)
+        if not self.background:
+            save_state(Path(path), checkpoint)
+            return
+        self.wait()
+        self._queue(save_state, Path(path), _snapshot(checkpoint))
+
+    def link(self, path, linkpath) -> None:
+        """``linkpath`` made the file ``path`` is (``fwk.cache.atomic_link``), after the writes queued."""
+        self._queue(atomic_link, Path(path), Path(linkpath))
 
     def load_checkpoint(self, path, map_location=None, weights_only=None) -> dict:
+        self.wait()
         # tensors come back on the CPU; Lightning moves the module's and the optimisers' states
         return load_state(Path(path))
 
     def remove_checkpoint(self, path) -> None:
-        Path(path).unlink(missing_ok=True)
+        self._queue(lambda p: p.unlink(missing_ok=True), Path(path))
+
+    def teardown(self) -> None:
+        try:
+            self.wait()
+        finally:
+            if self._pool is not None:
+                self._pool.shutdown(wait=True)
+                self._pool = None
 
 
 class LinkedLastCheckpoint(pl.callbacks.ModelCheckpoint):
@@ -52,7 +134,11 @@ class LinkedLastCheckpoint(pl.callbacks.ModelCheckpoint):
     @staticmethod
     def _link_checkpoint(trainer, filepath: str, linkpath: str) -> None:
         if trainer.is_global_zero and Path(filepath).resolve() != Path(linkpath).resolve():
-            atomic_link(Path(filepath), Path(linkpath))
+            io = trainer.strategy.checkpoint_io
+            if isinstance(io, SafeCheckpointIO):  # behind the epoch file's write, on its thread
+                io.link(filepath, linkpath)
+            else:
+                atomic_link(Path(filepath), Path(linkpath))
         trainer.strategy.barrier()
 
 
