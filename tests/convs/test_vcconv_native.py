@@ -65,15 +65,25 @@ def _double(*ts):
     return [t.detach().double().requires_grad_(t.requires_grad) for t in ts]
 
 
+def _offer_nan(*ts):
+    """Freed memory of each tensor's shape, full of NaN, for the backward to be given: with every
+    coefficient row named by a slot (``spare`` 0) the kernels write each row's gradient into an
+    unfilled buffer, and a row left unwritten would show."""
+    for t in ts:
+        for _ in range(3):
+            torch.full(t.shape, float("nan"))
+
+
 @pytestmark_native
 @pytest.mark.parametrize("residual", [False, True])
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("B,M,lanes", [(12, 5, True), (12, 5, False), (37, 16, True), (128, 35, True), (20, 64, False)])
-def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, B, M, lanes, torch_threads,
+@pytest.mark.parametrize("spare", [7, 0])
+def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, B, M, lanes, spare, torch_threads,
                                                              monkeypatch):
     """T and r against the per-vertex loops in float64, on the per-vertex BLAS call and (``lanes``,
     where the CPU runs them) its lane path (``sum_vertex_lanes``): rows in blocks of 8 and the rest, kernels (and
-    the residual's column) in 1-3 vectors of 16."""
+    the residual's column) in 1-3 vectors of 16; coefficient rows no slot reads (``spare``) or none."""
     if not lanes:
         monkeypatch.setattr(native, "lanes", lambda M=1: False)
     torch.set_num_threads(threads)
@@ -81,8 +91,9 @@ def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, 
     n_in, n_out = 23, 9
     offs, src = _csr(n_out, n_in, 6, g)
     x = torch.randn(n_in, B, generator=g, requires_grad=True)
-    coef, w, pos = _coefficients(len(src), M, g, residual)
+    coef, w, pos = _coefficients(len(src), M, g, residual, spare=spare)
     T, r = native.sum_product(x, coef, w, offs, src, pos)
+    _offer_nan(coef, w)
     xd, cd, wd = _double(x, coef, w)
     Te, re = _naive_sum(xd, cd, wd, offs, src, pos)
     assert torch.allclose(T.double(), Te, atol=1e-5)
@@ -120,14 +131,16 @@ def _naive_kernel(x, Wk, w, offs, src, pos, b, c, o):
 @pytest.mark.parametrize("residual", [False, True])
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("b,c,o", [(4, 3, 8), (3, 5, 17), (2, 16, 3)])  # narrow and wide results
-def test_kernel_product_matches_the_loops_in_value_and_gradient(residual, threads, b, c, o, torch_threads):
+@pytest.mark.parametrize("spare", [7, 0])
+def test_kernel_product_matches_the_loops_in_value_and_gradient(residual, threads, b, c, o, spare, torch_threads):
     torch.set_num_threads(threads)
     g = torch.Generator().manual_seed(b + c + o)
     n_in, n_out = 23, 9
     offs, src = _csr(n_out, n_in, 6, g)
     x = torch.randn(n_in, b * c, generator=g, requires_grad=True)
-    Wk, w, pos = _coefficients(len(src), c * o, g, residual)
+    Wk, w, pos = _coefficients(len(src), c * o, g, residual, spare=spare)
     y, r = native.kernel_product(x, Wk, w, offs, src, pos, b, c, o)
+    _offer_nan(Wk, w)
     xd, Wd, wd = _double(x, Wk, w)
     ye, re = _naive_kernel(xd, Wd, wd, offs, src, pos, b, c, o)
     assert y.shape == (n_out, b, o) and torch.allclose(y.double(), ye, atol=1e-5)
@@ -168,14 +181,16 @@ def test_kernel_product_refuses_malformed_arguments_and_is_counted():
 
 @pytestmark_native
 @pytest.mark.parametrize("threads", [1, 2])
-def test_basis_product_matches_the_loops_in_value_and_gradient(threads, torch_threads):
+@pytest.mark.parametrize("spare", [7, 0])
+def test_basis_product_matches_the_loops_in_value_and_gradient(threads, spare, torch_threads):
     torch.set_num_threads(threads)
     g = torch.Generator().manual_seed(1)
     n_in, n_out, B, M = 11, 30, 10, 4
     offs, dst = _csr(n_in, n_out, 7, g, empty=(2, 5))
     Z = torch.randn(n_in, B, M, generator=g, requires_grad=True)
-    coef, _, pos = _coefficients(len(dst), M, g, False)
+    coef, _, pos = _coefficients(len(dst), M, g, False, spare=spare)
     y = native.basis_product(Z, coef, offs, dst, pos, n_out)
+    _offer_nan(coef)
     Zd, cd = _double(Z, coef)
     ye = _naive_basis(Zd, cd, offs, dst, pos, n_out)
     assert torch.allclose(y.double(), ye, atol=1e-5)
@@ -359,23 +374,26 @@ def _naive_basis_lanes(x, basis, coef, offs, dst, pos, n_out):
 @pytestmark_lanes
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("b,c,o,M", [(16, 8, 3, 35), (5, 3, 8, 7), (20, 4, 5, 16), (33, 2, 1, 64), (1, 6, 7, 17)])
-def test_basis_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, o, M, torch_threads):
-    """Batches of 16 and not (the lanes past b are zero), kernel counts in 1-4 chunks of 16 (the dA
-    and Zm paths), supports of 0 to 9 slots: value and gradients of x, the basis and the
-    coefficients against the slot loop in float64; coefficient rows no slot reads get zero."""
+@pytest.mark.parametrize("spare", [7, 0])
+def test_basis_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, o, M, spare, torch_threads):
+    """Batches of 16 and not (the lanes past b are zero; past 16, the first group writes a coefficient
+    row's gradient and the others add to it), kernel counts in 1-4 chunks of 16 (the dA and Zm paths),
+    supports of 0 to 9 slots: value and gradients of x, the basis and the coefficients against the slot
+    loop in float64; coefficient rows no slot reads get zero (``spare``), or there are none (``_offer_nan``)."""
     torch.set_num_threads(threads)
     g = torch.Generator().manual_seed(11)
     n_in, n_out = 13, 40
     offs, dst = _csr(n_in, n_out, 9, g, empty=(2, 7))
     x = torch.randn(n_in, b, c, generator=g, requires_grad=True)
     basis = torch.randn(M, c, o, generator=g, requires_grad=True)
-    coef, _, pos = _coefficients(len(dst), M, g, False)
+    coef, _, pos = _coefficients(len(dst), M, g, False, spare=spare)
     y = native.basis_lanes(x, basis, coef, offs, dst, pos, n_out)
     xd, bd, cd = _double(x, basis, coef)
     ye = _naive_basis_lanes(xd, bd, cd, offs, dst, pos, n_out)
     assert y.shape == (n_out, b, o)
     assert torch.allclose(y.double(), ye, rtol=1e-5, atol=1e-4)
     gy = torch.randn(y.shape, generator=g)
+    _offer_nan(coef)
     got, exp = _grads(y, (x, basis, coef), gy), _grads(ye, (xd, bd, cd), gy.double())
     for a, e in zip(got, exp):
         assert torch.allclose(a.double(), e, rtol=1e-5, atol=1e-3), (a.double() - e).abs().max()

@@ -89,6 +89,15 @@ void check_coef(const torch::Tensor& coef, const torch::Tensor& w, const torch::
   }
 }
 
+// the gradient (rows, cols) of per-row parameters (coefficients, kernels, residual weights) that a backward writes
+// row by row at the rows its slots name (check_coef: each at most once): zero-filled first only where some row is
+// named by no slot (8 MB a step in the chapter 5 width's last layer otherwise)
+inline torch::Tensor row_grad(bool need, int64_t rows, int64_t cols, int64_t slots, const at::TensorOptions& opt) {
+  if (!need) return torch::empty({0}, opt);
+  const auto size = cols > 0 ? std::vector<int64_t>{rows, cols} : std::vector<int64_t>{rows};
+  return slots == rows ? torch::empty(size, opt) : torch::zeros(size, opt);
+}
+
 }  // namespace
 
 // (the lane kernels, compiled for AVX-512 below) T_i and r_i of one output vertex with the kernels as the vector
@@ -162,8 +171,8 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
   const int nt = at::get_num_threads();
   auto empty = torch::empty({0}, x.options());
   auto acc = need_dx ? torch::zeros({nt, n_in, B}, x.options()) : empty;
-  auto dcoef = need_dcoef ? torch::zeros({coef.size(0), M}, x.options()) : empty;
-  auto dw = need_dw ? torch::zeros({w.size(0)}, x.options()) : empty;
+  auto dcoef = row_grad(need_dcoef, coef.size(0), M, src.size(0), x.options());
+  auto dw = row_grad(need_dw, w.size(0), 0, src.size(0), x.options());
   const float* xp = x.data_ptr<float>();
   const float* cp = coef.data_ptr<float>();
   const float* wp = res ? w.data_ptr<float>() : nullptr;
@@ -249,7 +258,7 @@ std::vector<torch::Tensor> basis_backward(torch::Tensor dy, torch::Tensor Z, tor
   const int64_t n_in = Z.size(0), B = Z.size(1), M = Z.size(2);
   auto empty = torch::empty({0}, Z.options());
   auto dZ = need_dZ ? torch::empty({n_in, B, M}, Z.options()) : empty;
-  auto dcoef = need_dcoef ? torch::zeros({coef.size(0), M}, Z.options()) : empty;
+  auto dcoef = row_grad(need_dcoef, coef.size(0), M, dst.size(0), Z.options());
   const float* Zp = Z.data_ptr<float>();
   const float* cp = coef.data_ptr<float>();
   const float* dyp = dy.data_ptr<float>();
@@ -352,8 +361,8 @@ std::vector<torch::Tensor> kernel_backward(torch::Tensor dy, torch::Tensor dr, t
   const int nt = at::get_num_threads();
   auto empty = torch::empty({0}, x.options());
   auto acc = need_x ? torch::zeros({nt, n_in, B}, x.options()) : empty;
-  auto dWk = need_W ? torch::zeros({Wk.size(0), co}, x.options()) : empty;
-  auto dw = need_w ? torch::zeros({w.size(0)}, x.options()) : empty;
+  auto dWk = row_grad(need_W, Wk.size(0), co, src.size(0), x.options());
+  auto dw = row_grad(need_w, w.size(0), 0, src.size(0), x.options());
   const float* xp = x.data_ptr<float>();
   const float* Wp = Wk.data_ptr<float>();
   const float* wp = res ? w.data_ptr<float>() : nullptr;
@@ -668,9 +677,11 @@ inline void zm_block(float* __restrict Zm, const float* __restrict Bq, const flo
   std::memcpy(Zm + ql0 * NV * L, acc, sizeof acc);
 }
 
-// dA[k][m] += sum_ql dYt[ql][k] Zm[ql][m] for KB rows (dYt: the rows' dY transposed, ld 8)
+// dA[k][m] += sum_ql dYt[ql][k] Zm[ql][m] for KB rows (dYt: the rows' dY transposed, ld 8); with `assign`, dA[k][m] =
+// that sum (the row's first write: no zero-fill of dA before, no read of it here)
 template <int KB, int NV>
-inline void da_block(float* const* dA, const float* __restrict dYt, const float* __restrict Zm, int64_t QL, int64_t M) {
+inline void da_block(float* const* dA, const float* __restrict dYt, const float* __restrict Zm, int64_t QL, int64_t M,
+                     bool assign) {
   float acc[KB][NV][L] = {};
   for (int64_t ql = 0; ql < QL; ++ql) {
     const float* z = Zm + ql * NV * L;
@@ -686,7 +697,9 @@ inline void da_block(float* const* dA, const float* __restrict dYt, const float*
     for (int v = 0; v < NV; ++v) {
       const int64_t m0 = v * L, mn = std::min<int64_t>(L, M - m0);
       float* d = dA[k] + m0;
-      if (mn == L) {
+      if (assign) {
+        std::memcpy(d, acc[k][v], mn * sizeof(float));
+      } else if (mn == L) {
 #pragma omp simd
         for (int t = 0; t < L; ++t) d[t] += acc[k][v][t];
       } else {
@@ -696,16 +709,17 @@ inline void da_block(float* const* dA, const float* __restrict dYt, const float*
 }
 
 template <int NV>
-void da_all(float* const* dA, const float* const* dY, float* dYt, const float* Zm, int64_t K, int64_t QL, int64_t M) {
+void da_all(float* const* dA, const float* const* dY, float* dYt, const float* Zm, int64_t K, int64_t QL, int64_t M,
+            bool assign) {
   for (int64_t k0 = 0; k0 < K; k0 += 8) {
     const int64_t kb = std::min<int64_t>(8, K - k0);
     for (int64_t k = 0; k < kb; ++k)
       for (int64_t ql = 0; ql < QL; ++ql) dYt[ql * 8 + k] = dY[k0 + k][ql];
-    if (kb == 8) da_block<8, NV>(dA + k0, dYt, Zm, QL, M);
+    if (kb == 8) da_block<8, NV>(dA + k0, dYt, Zm, QL, M, assign);
     else
       for (int64_t k = 0; k < kb; ++k) {
         for (int64_t ql = 0; ql < QL; ++ql) dYt[ql * 8] = dY[k0 + k][ql];
-        da_block<1, NV>(dA + k0 + k, dYt, Zm, QL, M);
+        da_block<1, NV>(dA + k0 + k, dYt, Zm, QL, M, assign);
       }
   }
 }
@@ -716,15 +730,15 @@ void zm_all(float* Zm, const float* Bq, const float* xT, int64_t c, int64_t o) {
 }
 
 // Zm = zm_all(Bq, X) (X: contract x L, Zm's rows (q, l) for q < width) and then dA[k] += sum_ql rows[k][ql] Zm[ql]
-// (da_all), for NV = ceil(M / L) chunks of kernels
+// (da_all; = with `assign`), for NV = ceil(M / L) chunks of kernels
 inline void zm_then_da(float* const* dA, const float* const* rows, float* dYt, float* Zm, const float* Bq,
-                       const float* X, int64_t contract, int64_t width, int64_t K, int64_t M) {
+                       const float* X, int64_t contract, int64_t width, int64_t K, int64_t M, bool assign) {
   const int64_t QL = width * L;
   switch ((M + L - 1) / L) {
-    case 1: zm_all<1>(Zm, Bq, X, contract, width); da_all<1>(dA, rows, dYt, Zm, K, QL, M); break;
-    case 2: zm_all<2>(Zm, Bq, X, contract, width); da_all<2>(dA, rows, dYt, Zm, K, QL, M); break;
-    case 3: zm_all<3>(Zm, Bq, X, contract, width); da_all<3>(dA, rows, dYt, Zm, K, QL, M); break;
-    default: zm_all<4>(Zm, Bq, X, contract, width); da_all<4>(dA, rows, dYt, Zm, K, QL, M); break;
+    case 1: zm_all<1>(Zm, Bq, X, contract, width); da_all<1>(dA, rows, dYt, Zm, K, QL, M, assign); break;
+    case 2: zm_all<2>(Zm, Bq, X, contract, width); da_all<2>(dA, rows, dYt, Zm, K, QL, M, assign); break;
+    case 3: zm_all<3>(Zm, Bq, X, contract, width); da_all<3>(dA, rows, dYt, Zm, K, QL, M, assign); break;
+    default: zm_all<4>(Zm, Bq, X, contract, width); da_all<4>(dA, rows, dYt, Zm, K, QL, M, assign); break;
   }
 }
 
@@ -851,7 +865,9 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   const float* dyTp = dyT.data_ptr<float>();
   auto empty = torch::empty({0}, x.options());
   auto dx = need_x ? torch::empty({n_in, b, c}, x.options()) : empty;
-  auto dcoef = need_coef ? torch::zeros({coef.size(0), M}, x.options()) : empty;
+  // every coefficient row named by a slot: the first batch group writes each row's gradient, the others add to it
+  const bool every_row = dst.size(0) == coef.size(0);
+  auto dcoef = row_grad(need_coef, coef.size(0), M, dst.size(0), x.options());
   auto dBv = need_B ? torch::zeros({nt, M * o, c, L}, x.options()) : empty;
   auto W = B.permute({0, 2, 1}).contiguous();  // (M, o, c)
   auto Bq = torch::zeros({c, o, NV * L}, x.options());  // (p, q, m), zero past M
@@ -894,7 +910,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
         float* dZ = dZs.data() + held * o * M * L;
         to_lanes(xT, xp + j * b * c, b, c, g);
         for (int64_t k = 0; k < K; ++k) dY[k] = dyTp + (dp[s0 + k] * G + g) * o * L;
-        if (need_coef) zm_then_da(dA.data(), dY.data(), dYt.data(), Zm.data(), Bqp, xT, c, o, K, M);
+        if (need_coef) zm_then_da(dA.data(), dY.data(), dYt.data(), Zm.data(), Bqp, xT, c, o, K, M, every_row && g == 0);
         if (!need_x && !need_B) continue;
         int64_t m0 = 0;
         for (; m0 + 4 <= M; m0 += 4) dz_cols<4>(dZ, A.data(), dY.data(), K, o, m0);
