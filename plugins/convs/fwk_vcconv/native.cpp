@@ -677,19 +677,22 @@ inline void zm_block(float* __restrict Zm, const float* __restrict Bq, const flo
   std::memcpy(Zm + ql0 * NV * L, acc, sizeof acc);
 }
 
-// dA[k][m] += sum_ql dYt[ql][k] Zm[ql][m] for KB rows (dYt: the rows' dY transposed, ld 8); with `assign`, dA[k][m] =
-// that sum (the row's first write: no zero-fill of dA before, no read of it here)
+// dA[k][m] += sum_ql dY[k][ql] Zm[ql][m] for KB rows, each slot's dY row read where it lies (one broadcast a
+// multiply-add row, no packed copy); with `assign`, dA[k][m] = that sum (the row's first write: no zero-fill of dA
+// before, no read of it here)
 template <int KB, int NV>
-inline void da_block(float* const* dA, const float* __restrict dYt, const float* __restrict Zm, int64_t QL, int64_t M,
+inline void da_block(float* const* dA, const float* const* dY, const float* __restrict Zm, int64_t QL, int64_t M,
                      bool assign) {
   float acc[KB][NV][L] = {};
+  const float* y[KB];
+  for (int k = 0; k < KB; ++k) y[k] = dY[k];
   for (int64_t ql = 0; ql < QL; ++ql) {
     const float* z = Zm + ql * NV * L;
     for (int k = 0; k < KB; ++k) {
-      const float y = dYt[ql * 8 + k];
+      const float yk = y[k][ql];
       for (int v = 0; v < NV; ++v) {
 #pragma omp simd
-        for (int t = 0; t < L; ++t) acc[k][v][t] += y * z[v * L + t];
+        for (int t = 0; t < L; ++t) acc[k][v][t] += yk * z[v * L + t];
       }
     }
   }
@@ -708,19 +711,22 @@ inline void da_block(float* const* dA, const float* __restrict dYt, const float*
     }
 }
 
+// da_block over K rows: 8 at a time, the rest (1-7) in one block of their own size
 template <int NV>
-void da_all(float* const* dA, const float* const* dY, float* dYt, const float* Zm, int64_t K, int64_t QL, int64_t M,
-            bool assign) {
-  for (int64_t k0 = 0; k0 < K; k0 += 8) {
-    const int64_t kb = std::min<int64_t>(8, K - k0);
-    for (int64_t k = 0; k < kb; ++k)
-      for (int64_t ql = 0; ql < QL; ++ql) dYt[ql * 8 + k] = dY[k0 + k][ql];
-    if (kb == 8) da_block<8, NV>(dA + k0, dYt, Zm, QL, M, assign);
-    else
-      for (int64_t k = 0; k < kb; ++k) {
-        for (int64_t ql = 0; ql < QL; ++ql) dYt[ql * 8] = dY[k0 + k][ql];
-        da_block<1, NV>(dA + k0 + k, dYt, Zm, QL, M, assign);
-      }
+void da_all(float* const* dA, const float* const* dY, const float* Zm, int64_t K, int64_t QL, int64_t M, bool assign) {
+  int64_t k0 = 0;
+  for (; k0 + 8 <= K; k0 += 8) da_block<8, NV>(dA + k0, dY + k0, Zm, QL, M, assign);
+  float* const* a = dA + k0;
+  const float* const* y = dY + k0;
+  switch (K - k0) {
+    case 7: da_block<7, NV>(a, y, Zm, QL, M, assign); break;
+    case 6: da_block<6, NV>(a, y, Zm, QL, M, assign); break;
+    case 5: da_block<5, NV>(a, y, Zm, QL, M, assign); break;
+    case 4: da_block<4, NV>(a, y, Zm, QL, M, assign); break;
+    case 3: da_block<3, NV>(a, y, Zm, QL, M, assign); break;
+    case 2: da_block<2, NV>(a, y, Zm, QL, M, assign); break;
+    case 1: da_block<1, NV>(a, y, Zm, QL, M, assign); break;
+    default: break;
   }
 }
 
@@ -731,14 +737,14 @@ void zm_all(float* Zm, const float* Bq, const float* xT, int64_t c, int64_t o) {
 
 // Zm = zm_all(Bq, X) (X: contract x L, Zm's rows (q, l) for q < width) and then dA[k] += sum_ql rows[k][ql] Zm[ql]
 // (da_all; = with `assign`), for NV = ceil(M / L) chunks of kernels
-inline void zm_then_da(float* const* dA, const float* const* rows, float* dYt, float* Zm, const float* Bq,
+inline void zm_then_da(float* const* dA, const float* const* rows, float* Zm, const float* Bq,
                        const float* X, int64_t contract, int64_t width, int64_t K, int64_t M, bool assign) {
   const int64_t QL = width * L;
   switch ((M + L - 1) / L) {
-    case 1: zm_all<1>(Zm, Bq, X, contract, width); da_all<1>(dA, rows, dYt, Zm, K, QL, M, assign); break;
-    case 2: zm_all<2>(Zm, Bq, X, contract, width); da_all<2>(dA, rows, dYt, Zm, K, QL, M, assign); break;
-    case 3: zm_all<3>(Zm, Bq, X, contract, width); da_all<3>(dA, rows, dYt, Zm, K, QL, M, assign); break;
-    default: zm_all<4>(Zm, Bq, X, contract, width); da_all<4>(dA, rows, dYt, Zm, K, QL, M, assign); break;
+    case 1: zm_all<1>(Zm, Bq, X, contract, width); da_all<1>(dA, rows, Zm, K, QL, M, assign); break;
+    case 2: zm_all<2>(Zm, Bq, X, contract, width); da_all<2>(dA, rows, Zm, K, QL, M, assign); break;
+    case 3: zm_all<3>(Zm, Bq, X, contract, width); da_all<3>(dA, rows, Zm, K, QL, M, assign); break;
+    default: zm_all<4>(Zm, Bq, X, contract, width); da_all<4>(dA, rows, Zm, K, QL, M, assign); break;
   }
 }
 
@@ -886,7 +892,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
     float* myB = need_B ? dBvp + at::get_thread_num() * M * o * c * L : nullptr;
     // xT and dZ of the pairs (vertex, batch group) since db_group last ran: the next pair's are at `held`
-    std::vector<float> xTs(DB_GROUP * c * L), Zm(QL * NV * L), dZs(DB_GROUP * o * M * L), dxT(c * L), dYt(QL * 8);
+    std::vector<float> xTs(DB_GROUP * c * L), Zm(QL * NV * L), dZs(DB_GROUP * o * M * L), dxT(c * L);
     int held = 0;
     std::vector<const float*> A(Kmax), dY(Kmax);
     std::vector<float*> dA(Kmax);
@@ -910,7 +916,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
         float* dZ = dZs.data() + held * o * M * L;
         to_lanes(xT, xp + j * b * c, b, c, g);
         for (int64_t k = 0; k < K; ++k) dY[k] = dyTp + (dp[s0 + k] * G + g) * o * L;
-        if (need_coef) zm_then_da(dA.data(), dY.data(), dYt.data(), Zm.data(), Bqp, xT, c, o, K, M, every_row && g == 0);
+        if (need_coef) zm_then_da(dA.data(), dY.data(), Zm.data(), Bqp, xT, c, o, K, M, every_row && g == 0);
         if (!need_x && !need_B) continue;
         int64_t m0 = 0;
         for (; m0 + 4 <= M; m0 += 4) dz_cols<4>(dZ, A.data(), dY.data(), K, o, m0);
