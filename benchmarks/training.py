@@ -34,7 +34,10 @@ the frozen code's with torch's per-parameter Adam, as it trained). The versions 
 one warm-up step each; the table gives the median step time of each, their ratio, the GFLOP per
 step (3x the dense products of one forward pass, counted by ``torch.utils.flop_counter``;
 sparse products left out, see ``gflop``) and the achieved rate against an fp32 matmul (2048^3)
-measured in the same process with the same threads. Like ``fwk.engine.trainer``, the script keeps
+with the same threads, timed as one more member of the row's alternation (its median; the last
+column): on this shared machine a matmul timed once at the start moved 131-186 GFLOP/s between
+runs minutes apart, and a row's fraction with it (the chapter 5 width 26 % and 37 % in two runs,
+2026-12-07); timed beside the steps it sees the load they see. Like ``fwk.engine.trainer``, the script keeps
 freed memory in the heap (``fwk.engine.memory``) unless ``--default-malloc``: that is a process-wide
 setting, so the two are compared in two runs.
 
@@ -144,11 +147,21 @@ def gflop(enc, dec, x) -> float:
     return 3 * fwd / 1e9
 
 
+MATMUL_N = 2048
+MATMUL_GFLOP = 2 * MATMUL_N ** 3 / 1e9
+
+
+def matmul_step():
+    """One fp32 MATMUL_N^3 matmul as a closure: a member of each row's alternation, so that the row's
+    fraction of the matmul rate takes the rate measured beside its steps, under the same load."""
+    a, b = torch.randn(MATMUL_N, MATMUL_N), torch.randn(MATMUL_N, MATMUL_N)
+    return lambda: a @ b
+
+
 def matmul_rate(repeat: int = 7, cpu: bool = False) -> float:
     """fp32 GFLOP/s of a 2048 x 2048 x 2048 matmul (median), with torch's current threads; ``cpu``:
     per CPU second (as ``--cpu-time`` times the steps)."""
-    a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
-    return 2 * 2048 ** 3 / alternate({"mm": lambda: a @ b}, repeat, cpu)["mm"] / 1e9
+    return MATMUL_GFLOP / alternate({"mm": matmul_step()}, repeat, cpu)["mm"]
 
 
 def loss_deviation(enc, dec, x, n: int = 8) -> list[float]:
@@ -228,7 +241,7 @@ def load_average() -> float:
     return os.getloadavg()[0]
 
 
-def feast_row(t, x, n, rate, cpu: bool = False) -> dict:
+def feast_row(t, x, n, cpu: bool = False) -> dict:
     """The FeaStNet AE, FeaStConv's per-edge forward (``order: edges``) against today's reordered
     sums, from the same seeded initialisation, alternating; prints its table row and returns it."""
     torch.manual_seed(0)
@@ -238,13 +251,14 @@ def feast_row(t, x, n, rate, cpu: bool = False) -> dict:
     with torch.no_grad():
         l_new, l_old = ((d(e(x)[0]) - x).abs().mean().item() for e, d in ((enc, dec), (oenc, odec)))
     g_new, g_old = gflop(enc, dec, x), gflop(oenc, odec, x)
-    ts = alternate({"before": stepper(oenc, odec, x), "after": stepper(enc, dec, x)}, n, cpu)
+    ts = alternate({"before": stepper(oenc, odec, x), "after": stepper(enc, dec, x), "matmul": matmul_step()}, n, cpu)
+    rate = MATMUL_GFLOP / ts["matmul"]
     r = {"before_ms": 1e3 * ts["before"], "after_ms": 1e3 * ts["after"], "ratio": ts["before"] / ts["after"],
          "gflop_before": g_old, "gflop_after": g_new, "gflops_before": g_old / ts["before"],
-         "gflops_after": g_new / ts["after"], "of_matmul": g_new / ts["after"] / rate,
+         "gflops_after": g_new / ts["after"], "matmul_gflops": rate, "of_matmul": g_new / ts["after"] / rate,
          "first_loss_before": l_old, "first_loss_after": l_new}
     print(f"{'feast AE':<13} {r['before_ms']:>10.0f} {r['after_ms']:>9.0f} {r['ratio']:>6.2f} {g_old:>13.1f} "
-          f"{g_new:>12.1f} {r['gflops_after']:>14.1f} {100 * r['of_matmul']:>9.0f}%")
+          f"{g_new:>12.1f} {r['gflops_after']:>14.1f} {100 * r['of_matmul']:>9.0f}% {rate:>7.0f}")
     print(f"{'':<13} before = torch_geometric FeaStConv.forward; first loss before / after: {l_old:.6f} / {l_new:.6f}")
     return r
 
@@ -300,13 +314,14 @@ def main():
     load0 = load_average()
     rate = matmul_rate(cpu=a.cpu_time)
     print(f"template: {src}, {t.n_vertices} vertices; batch {BATCH}; torch {torch.__version__}, {threads} threads; "
-          f"fp32 matmul 2048^3: {rate:.0f} GFLOP/s; load average {load0:.2f}; freed memory kept "
+          f"fp32 matmul 2048^3 at the start: {rate:.0f} GFLOP/s (each row's fraction takes the matmul timed in its own "
+          f"alternation: its last column); load average {load0:.2f}; freed memory kept "
           f"(fwk.engine.memory): {malloc}"
           + ("; step times in CPU seconds (--cpu-time)" if a.cpu_time else ""))
     result = {"template": src, "n_vertices": t.n_vertices, "batch": BATCH, "threads": threads, "cpu_time": a.cpu_time,
               "matmul_gflops": rate, "torch": torch.__version__, "malloc": malloc}
     print(f"{'network':<13} {'before ms':>10} {'after ms':>9} {'ratio':>6} {'GFLOP before':>13} {'GFLOP after':>12} "
-          f"{'GFLOP/s after':>14} {'of matmul':>10}")
+          f"{'GFLOP/s after':>14} {'of matmul':>10} {'matmul':>7}")
     for label, key, spec in (("vcconv VAE", "vcconv_vae", VCCONV_VAE), ("spiral++ AE", "spiralpp_ae", SPIRALPP_AE)):
         torch.manual_seed(0)
         enc, dec, h = networks(spec, t)
@@ -322,12 +337,14 @@ def main():
         if a.bf16:
             e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
             steps["after_bf16"] = stepper(e16, d16, x, bf16=True)
+        steps["matmul"] = matmul_step()
         ts = alternate(steps, a.steps, a.cpu_time)
+        rate = MATMUL_GFLOP / ts["matmul"]
         r = {"before_ms": 1e3 * ts["before"], "after_ms": 1e3 * ts["after"], "ratio": ts["before"] / ts["after"],
              "gflop_before": g_old, "gflop_after": g_new, "gflops_before": g_old / ts["before"],
-             "gflops_after": g_new / ts["after"], "of_matmul": g_new / ts["after"] / rate}
+             "gflops_after": g_new / ts["after"], "matmul_gflops": rate, "of_matmul": g_new / ts["after"] / rate}
         print(f"{label:<13} {r['before_ms']:>10.0f} {r['after_ms']:>9.0f} {r['ratio']:>6.2f} {g_old:>13.1f} "
-              f"{g_new:>12.1f} {r['gflops_after']:>14.1f} {100 * r['of_matmul']:>9.0f}%")
+              f"{g_new:>12.1f} {r['gflops_after']:>14.1f} {100 * r['of_matmul']:>9.0f}% {rate:>7.0f}")
         native_line(r, ts, g_torch, rate)
         if key == "vcconv_vae":
             variant_lines(r, ts)
@@ -353,11 +370,13 @@ def main():
             add_variants(steps, enc, dec, x)
         if a.bf16:
             steps["after_bf16"] = stepper(copy.deepcopy(enc), copy.deepcopy(dec), x, bf16=True)
+        steps["matmul"] = matmul_step()
         ts = alternate(steps, a.steps, a.cpu_time)
-        r = {"after_ms": 1e3 * ts["after"], "gflop_after": g, "gflops_after": g / ts["after"],
+        rate = MATMUL_GFLOP / ts["matmul"]
+        r = {"after_ms": 1e3 * ts["after"], "gflop_after": g, "gflops_after": g / ts["after"], "matmul_gflops": rate,
              "of_matmul": g / ts["after"] / rate}
         print(f"{label:<13} {'':>10} {r['after_ms']:>9.0f} {'':>6} {'':>13} {g:>12.1f} {r['gflops_after']:>14.1f} "
-              f"{100 * r['of_matmul']:>9.0f}%   ({what})")
+              f"{100 * r['of_matmul']:>9.0f}% {rate:>7.0f}   ({what})")
         native_line(r, ts, g_torch, rate)
         if key == "vcconv_vae_ch5":
             variant_lines(r, ts)
@@ -366,7 +385,7 @@ def main():
             print(f"{'  bf16':<13} {'':>10} {r['after_bf16_ms']:>9.0f} {r['bf16_speedup']:>6.2f}x over fp32")
         result[key] = r
     if a.feast:
-        result["feast_ae"] = feast_row(t, x, a.steps, rate, a.cpu_time)
+        result["feast_ae"] = feast_row(t, x, a.steps, a.cpu_time)
     if a.all:
         result["others"] = {}
         for name, conv in OTHER_CONVS.items():
