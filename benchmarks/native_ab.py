@@ -6,9 +6,10 @@ a git revision against the working tree's, the same network, input, threads and 
 Why one process: pairs of processes (one per version, one after the other) on this shared machine
 moved a step by 10-30 % between runs, and a change of a few percent came out as 1.07x in 16 pairs
 and as 1.01-1.04x when the same two builds alternated step by step here (session 24). Both builds
-of ``plugins/convs/fwk_vcconv/native.cpp`` are compiled under names of their own (once per source,
-kept under ``TORCH_EXTENSIONS_DIR`` or torch's default root) and ``fwk_vcconv.native._load`` is
-pointed at one or the other before each step; everything else (the Python side, the network, Adam,
+of ``plugins/convs/fwk_vcconv/native.cpp``, each with the shared header ``fwk_native.h`` of its own
+revision, are compiled under names of their own (once per pair of texts, kept under
+``TORCH_EXTENSIONS_DIR`` or torch's default root) and ``fwk_vcconv.native._load`` is pointed at one
+or the other before each step; everything else (the Python side, the network, Adam,
 ``fwk.engine.memory``'s heap) is the working tree's and shared. The order within a round swaps
 every round. Prints each build's median step, their ratio and in how many rounds the working tree's
 was faster; the two builds' gradients are compared first (they must agree to 1e-4).
@@ -38,18 +39,31 @@ from training import BATCH, VCCONV_VAE, VCCONV_VAE_CH5, networks, stepper  # noq
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE = "plugins/convs/fwk_vcconv/native.cpp"
+HEADER = "fwk_native.h"
+HEADER_PATH = "framework/fwk/native"
 
 
-def build(text: str):
-    """The module compiled from one native.cpp's text, named after its hash."""
+def build(text: str, header: str):
+    """The module compiled from one native.cpp's text with one ``fwk_native.h``'s (the shared header
+    of fwk.native, put beside it), named after the hash of both."""
     from torch.utils.cpp_extension import _get_build_directory, load
 
-    name = "fwk_vcconv_ab_" + hashlib.sha256(text.encode()).hexdigest()[:12]
-    src = Path(tempfile.mkdtemp(prefix="fwk-ab-")) / f"{name}.cpp"
+    name = "fwk_vcconv_ab_" + hashlib.sha256((text + "\0" + header).encode()).hexdigest()[:12]
+    folder = Path(tempfile.mkdtemp(prefix="fwk-ab-"))
+    src = folder / f"{name}.cpp"
     src.write_text(text)
+    (folder / HEADER).write_text(header)
     return load(name=name, sources=[str(src)], build_directory=_get_build_directory(name, False),
-                extra_include_paths=[str(HEADER_DIR)], extra_cflags=["-O3", "-fopenmp", "-DFWK_NATIVE_H=ab"],
+                extra_include_paths=[str(folder)], extra_cflags=["-O3", "-fopenmp", "-DFWK_NATIVE_H=ab"],
                 extra_ldflags=["-fopenmp"], verbose=False)
+
+
+def at_rev(rev: str, path: str) -> str:
+    try:
+        return subprocess.run(["git", "show", f"{rev}:{path}"], cwd=ROOT, check=True, capture_output=True,
+                              text=True).stdout
+    except subprocess.CalledProcessError as e:
+        raise SystemExit(f"git show {rev}:{path}: {e.stderr.strip()}") from None
 
 
 def main():
@@ -58,17 +72,14 @@ def main():
     ap.add_argument("--rounds", type=int, default=40)
     ap.add_argument("--network", choices=("ch5", "thesis"), default="ch5")
     a = ap.parse_args()
-    try:
-        before = subprocess.run(["git", "show", f"{a.rev}:{SOURCE}"], cwd=ROOT, check=True, capture_output=True,
-                                text=True).stdout
-    except subprocess.CalledProcessError as e:
-        raise SystemExit(f"git show {a.rev}:{SOURCE}: {e.stderr.strip()}") from None
+    before, before_h = at_rev(a.rev, SOURCE), at_rev(a.rev, f"{HEADER_PATH}/{HEADER}")
     import fwk_vcconv.native as native
 
     if not native.available():
         raise SystemExit(f"vcconv's native kernels are not built here: {native.failed()}")
     retain_freed_memory()
-    libs = {"before": build(before), "after": build((ROOT / SOURCE).read_text())}
+    libs = {"before": build(before, before_h),
+            "after": build((ROOT / SOURCE).read_text(), (HEADER_DIR / HEADER).read_text())}
     torch.manual_seed(0)
     col, src = face_head(1)
     x = torch.randn(BATCH, col.template.n_vertices, 3)

@@ -565,3 +565,39 @@ def test_sum_forward_in_lanes_refuses_more_than_64_columns():
     T, r = native.sum_product(x, coef, w, offs, src, pos)  # on the BLAS call
     Te, re = _naive_sum(*_double(x, coef, w), offs, src, pos)
     assert torch.allclose(T.double(), Te, atol=1e-5) and torch.allclose(r.double(), re, atol=1e-5)
+
+
+def _mkl_max_threads():
+    """MKL's thread count for the calling thread (its local setting where one is made), or None where
+    libtorch has no MKL."""
+    import ctypes
+    from pathlib import Path
+
+    lib = Path(torch.__file__).parent / "lib" / "libtorch_cpu.so"
+    try:
+        get = ctypes.CDLL(str(lib)).MKL_Get_Max_Threads
+    except (OSError, AttributeError):
+        return None
+    get.restype = ctypes.c_int
+    return get()
+
+
+@pytestmark_native
+def test_the_kernels_leave_mkls_thread_count_as_they_found_it(torch_threads):
+    """Each native parallel loop gives its threads one BLAS thread (fwk_native.h, ``OneBlasThread``) and
+    puts the caller's setting back: the calling thread is one of the loop's, so a setting left behind
+    would run torch's own products on it with one thread from then on."""
+    if _mkl_max_threads() is None:
+        pytest.skip("libtorch without MKL: the guard sets nothing")
+    torch.set_num_threads(2)
+    assert _mkl_max_threads() == 2
+    g = torch.Generator().manual_seed(3)
+    offs, src = _csr(40, 60, 6, g)
+    x = torch.randn(60, 16 * 3, generator=g, requires_grad=True)
+    Wk, w, pos = _coefficients(len(src), 3 * 8, g, True)
+    y, r = native.kernel_product(x, Wk, w, offs, src, pos, 16, 3, 8)  # a BLAS product per output vertex
+    (y.sum() + r.sum()).backward()
+    assert _mkl_max_threads() == 2
+    torch.set_num_threads(1)
+    native.kernel_product(x, Wk, w, offs, src, pos, 16, 3, 8)
+    assert _mkl_max_threads() == 1

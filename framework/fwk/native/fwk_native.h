@@ -19,8 +19,44 @@
 extern "C" void sgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k,
                        const float* alpha, const float* a, const int* lda, const float* b, const int* ldb,
                        const float* beta, float* c, const int* ldc);
+// MKL's C interface (by value; the lower-case name is its Fortran one, by pointer). Weak: a libtorch
+// built with another BLAS does not have it, and then nothing is set.
+extern "C" int MKL_Set_Num_Threads_Local(int nt) __attribute__((weak));
 
 namespace fwk_native {
+
+// One BLAS thread for the calling thread while it lives (MKL's thread-local setting; the previous one
+// back after, 0 being "the global one"). Without it, MKL called from the threads of an at::parallel_for
+// region runs each small product with torch's thread count: libgomp allows nested teams here (its
+// max-active-levels is unlimited), so every per-vertex product forked a team of its own. Measured
+// 2026-12-07 (3,089 products of 57 x 16 by 16 x 8, the first vcconv layer's kernel gradients, in one
+// region): 1.2-1.7 ms on 1 thread, 3.8-4.4 ms on 2 threads, 1.0 ms on 2 with this guard; with nesting off
+// (OMP_MAX_ACTIVE_LEVELS=1) still 2.6 ms on 2 threads.
+struct OneBlasThread {
+  int prev = 0;
+  bool set = false;
+  OneBlasThread() {
+    if (MKL_Set_Num_Threads_Local) {
+      prev = MKL_Set_Num_Threads_Local(1);
+      set = true;
+    }
+  }
+  ~OneBlasThread() {
+    if (set) MKL_Set_Num_Threads_Local(prev);
+  }
+  OneBlasThread(const OneBlasThread&) = delete;
+  OneBlasThread& operator=(const OneBlasThread&) = delete;
+};
+
+// at::parallel_for with one BLAS thread in each of its threads (``OneBlasThread``): every native kernel's
+// parallel loop, whether or not its body calls BLAS today.
+template <class F>
+inline void parallel_for(int64_t begin, int64_t end, int64_t grain, const F& f) {
+  at::parallel_for(begin, end, grain, [&](int64_t a, int64_t b) {
+    OneBlasThread one;
+    f(a, b);
+  });
+}
 
 // column-major C (m x n) = alpha op(A) op(B) + beta C (MKL's sgemm_, which libtorch exports)
 inline void gemm(char ta, char tb, int64_t m, int64_t n, int64_t k, float alpha, const float* a, int64_t lda,
@@ -137,7 +173,7 @@ inline void tall_mm(const float* a, const float* b, bool bt, const float* bias, 
                     int64_t N, bool accumulate = false) {
   TORCH_CHECK(!(bias && accumulate), "tall_mm: a bias or accumulate, not both");
   const int64_t rb = tall_block_rows(K, N);
-  at::parallel_for(0, (R + rb - 1) / rb, 1, [&](int64_t q0, int64_t q1) {
+  parallel_for(0, (R + rb - 1) / rb, 1, [&](int64_t q0, int64_t q1) {
     std::vector<float> tmp;
     for (int64_t q = q0; q < q1; ++q) {
       const int64_t r0 = q * rb, r = std::min(rb, R - r0);
@@ -157,7 +193,7 @@ inline torch::Tensor tall_tn(const float* a, const float* c, int64_t R, int64_t 
   const int64_t rb = tall_block_rows(K, N);
   auto acc = torch::zeros({nt, K, N}, options);  // K x N, or N x K when N < K (below)
   float* accp = acc.data_ptr<float>();
-  at::parallel_for(0, (R + rb - 1) / rb, 1, [&](int64_t q0, int64_t q1) {
+  parallel_for(0, (R + rb - 1) / rb, 1, [&](int64_t q0, int64_t q1) {
     float* mine = thread_accumulator(accp, nt, K * N);
     for (int64_t q = q0; q < q1; ++q) {
       const int64_t r0 = q * rb, r = std::min(rb, R - r0);

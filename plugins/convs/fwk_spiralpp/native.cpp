@@ -77,7 +77,7 @@ torch::Tensor gather_linear_forward(torch::Tensor x, torch::Tensor W, torch::Ten
   const int64_t* ip = index.data_ptr<int64_t>();
   float* yp = y.data_ptr<float>();
   const int64_t Lc = L * c, rows = block_rows(b, Lc);
-  at::parallel_for(0, n_out, 1, [&](int64_t a0, int64_t a1) {
+  fwk_native::parallel_for(0, n_out, 1, [&](int64_t a0, int64_t a1) {
     std::vector<float> G(std::max<int64_t>(1, std::min(rows, a1 - a0) * b * Lc)), tmp;
     for (int64_t i0 = a0; i0 < a1; i0 += rows) {
       const int64_t k = std::min(rows, a1 - i0);
@@ -113,7 +113,7 @@ std::vector<torch::Tensor> gather_linear_backward(torch::Tensor gy, torch::Tenso
   const int64_t* ip = index.data_ptr<int64_t>();
   float* dxp = need_x ? dxa.data_ptr<float>() : nullptr;
   float* dWp = need_w ? dWa.data_ptr<float>() : nullptr;
-  at::parallel_for(0, n_out, 1, [&](int64_t a0, int64_t a1) {
+  fwk_native::parallel_for(0, n_out, 1, [&](int64_t a0, int64_t a1) {
     float* dx = need_x ? thread_accumulator(dxp, nt, n_in * b * c) : nullptr;
     float* dW = need_w ? thread_accumulator(dWp, nt, o * Lc) : nullptr;
     std::vector<float> G(std::max<int64_t>(1, std::min(rows, a1 - a0) * b * Lc));
@@ -163,7 +163,7 @@ inline void axpy(float* __restrict y, const float* __restrict x, float a, int64_
 // out (rows, w) = M z for CSR M (rows x *) and row-major z (*, w); out's rows start from init (w floats) or 0
 void csr_rows(const int64_t* rp, const int64_t* cp, const float* vp, const float* z, int64_t rows, int64_t w,
               const float* init, float* out) {
-  at::parallel_for(0, rows, 1, [&](int64_t r0, int64_t r1) {
+  fwk_native::parallel_for(0, rows, 1, [&](int64_t r0, int64_t r1) {
     for (int64_t r = r0; r < r1; ++r) {
       float* yr = out + r * w;
       if (init)

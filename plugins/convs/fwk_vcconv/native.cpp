@@ -129,7 +129,7 @@ std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torc
   float* Tp = T.data_ptr<float>();
   float* rp = res ? r.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_out);
-  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+  fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
     std::vector<float> buf(lanes ? 1 : std::max<int64_t>(Kmax * B, 1));
     std::vector<float> A(std::max<int64_t>(Kmax * (lanes ? NV * 16 : Mx), 1));
     std::vector<const float*> X(std::max<int64_t>(Kmax, 1));
@@ -185,7 +185,7 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
   float* dcp = need_dcoef ? dcoef.data_ptr<float>() : nullptr;
   float* dwp = need_dw ? dw.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_out);
-  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+  fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
     float* mine = need_dx ? thread_accumulator(accp, nt, n_in * B) : nullptr;
     std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), dbuf(std::max<int64_t>(Kmax * B, 1));
     std::vector<float> A(std::max<int64_t>(Kmax * Mx, 1)), dA(std::max<int64_t>(Kmax * Mx, 1));
@@ -235,7 +235,7 @@ torch::Tensor basis_forward(torch::Tensor Z, torch::Tensor coef, torch::Tensor o
   const int64_t* pp = pos.data_ptr<int64_t>();
   float* accp = acc.data_ptr<float>();
   const int64_t Kmax = max_run(op, n_in);
-  at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
+  fwk_native::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
     float* mine = thread_accumulator(accp, nt, n_out * B);
     std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), A(std::max<int64_t>(Kmax * M, 1));
     for (int64_t j = j0; j < j1; ++j) {
@@ -268,7 +268,7 @@ std::vector<torch::Tensor> basis_backward(torch::Tensor dy, torch::Tensor Z, tor
   float* dZp = need_dZ ? dZ.data_ptr<float>() : nullptr;
   float* dcp = need_dcoef ? dcoef.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_in);
-  at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
+  fwk_native::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
     std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), A(std::max<int64_t>(Kmax * M, 1));
     for (int64_t j = j0; j < j1; ++j) {
       const int64_t s0 = op[j], K = op[j + 1] - s0;
@@ -319,7 +319,7 @@ std::vector<torch::Tensor> kernel_forward(torch::Tensor x, torch::Tensor Wk, tor
   float* yp = y.data_ptr<float>();
   float* rp = res ? r.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_out);
-  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+  fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
     std::vector<float> G(std::max<int64_t>(b * Kmax * c, 1)), Wi(std::max<int64_t>(Kmax * co, 1)), tmp;
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0, Kc = K * c;
@@ -375,7 +375,7 @@ std::vector<torch::Tensor> kernel_backward(torch::Tensor dy, torch::Tensor dr, t
   float* dWp = need_W ? dWk.data_ptr<float>() : nullptr;
   float* dwp = need_w ? dw.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_out);
-  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+  fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
     float* mine = need_x ? thread_accumulator(accp, nt, n_in * B) : nullptr;
     std::vector<float> G(std::max<int64_t>(b * Kmax * c, 1)), Wi(std::max<int64_t>(Kmax * co, 1)),
         T(std::max<int64_t>(Kmax * co, 1)), tmp;
@@ -521,7 +521,7 @@ inline torch::Tensor sum_out_of_lanes(const torch::Tensor& acc, int64_t b) {
   auto out = torch::empty({n, b, w}, acc.options());
   const float* ap = acc.data_ptr<float>();
   float* op = out.data_ptr<float>();
-  at::parallel_for(0, n, 64, [&](int64_t i0, int64_t i1) {
+  fwk_native::parallel_for(0, n, 64, [&](int64_t i0, int64_t i1) {
     std::vector<float> s(w * L);
     for (int64_t i = i0; i < i1; ++i)
       for (int64_t g = 0; g < G; ++g) {
@@ -542,7 +542,7 @@ inline torch::Tensor all_to_lanes(const torch::Tensor& x) {
   auto xL = torch::empty({n, G, c, L}, x.options());
   const float* xp = x.data_ptr<float>();
   float* xLp = xL.data_ptr<float>();
-  at::parallel_for(0, n, 64, [&](int64_t j0, int64_t j1) {
+  fwk_native::parallel_for(0, n, 64, [&](int64_t j0, int64_t j1) {
     for (int64_t j = j0; j < j1; ++j)
       for (int64_t g = 0; g < G; ++g) to_lanes(xLp + (j * G + g) * c * L, xp + j * b * c, b, c, g);
   });
@@ -824,7 +824,7 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
   const int64_t* dp = dst.data_ptr<int64_t>();
   const int64_t* pp = pos.data_ptr<int64_t>();
   float* accp = acc.data_ptr<float>();
-  at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
+  fwk_native::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
     float* mine = accp + at::get_thread_num() * n_out * G * o * L;
     std::vector<float> xT(c * L), Z(o * M * L);
     for (int64_t j = j0; j < j1; ++j) {
@@ -889,7 +889,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   float* dcp = need_coef ? dcoef.data_ptr<float>() : nullptr;
   float* dBvp = need_B ? dBv.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_in);
-  at::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
+  fwk_native::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
     float* myB = need_B ? dBvp + at::get_thread_num() * M * o * c * L : nullptr;
     // xT and dZ of the pairs (vertex, batch group) since db_group last ran: the next pair's are at `held`
     std::vector<float> xTs(DB_GROUP * c * L), Zm(QL * NV * L), dZs(DB_GROUP * o * M * L), dxT(c * L);
@@ -995,7 +995,7 @@ std::vector<torch::Tensor> kernel_lanes_forward(torch::Tensor x, torch::Tensor W
   const int64_t* pp = pos.data_ptr<int64_t>();
   float* yp = y.data_ptr<float>();
   float* rp = res ? r.data_ptr<float>() : nullptr;
-  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+  fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
     std::vector<float> yL(o * L), rL(c * L);
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
@@ -1052,7 +1052,7 @@ std::vector<torch::Tensor> kernel_lanes_backward(torch::Tensor dy, torch::Tensor
   float* accp = need_x ? acc.data_ptr<float>() : nullptr;
   float* dwp = need_w ? dw.data_ptr<float>() : nullptr;
   // dx_src[p] += sum_q W[p o + q] dy[q]: kernel_apply with the slot's kernel transposed (o x c)
-  at::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+  fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
     float* mine = need_x ? accp + at::get_thread_num() * n_in * G * c * L : nullptr;
     std::vector<float> dyL(o * L), drL(c * L), Wt(c * o);
     for (int64_t i = i0; i < i1; ++i) {
