@@ -40,7 +40,6 @@ from training import BATCH, VCCONV_VAE, VCCONV_VAE_CH5, networks, stepper  # noq
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE = "plugins/convs/fwk_vcconv/native.cpp"
 HEADER = "fwk_native.h"
-HEADER_PATH = "framework/fwk/native"
 
 
 def build(text: str, header: str):
@@ -72,7 +71,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=40)
     ap.add_argument("--network", choices=("ch5", "thesis"), default="ch5")
     a = ap.parse_args()
-    before, before_h = at_rev(a.rev, SOURCE), at_rev(a.rev, f"{HEADER_PATH}/{HEADER}")
+    before, before_h = at_rev(a.rev, SOURCE), at_rev(a.rev, (HEADER_DIR / HEADER).relative_to(ROOT).as_posix())
     import fwk_vcconv.native as native
 
     if not native.available():

@@ -158,10 +158,17 @@ def matmul_step():
     return lambda: a @ b
 
 
+def alternate_with_matmul(steps: dict, n: int, cpu: bool = False) -> tuple[dict, float]:
+    """``alternate`` over the steps and one more member, a matmul (``matmul_step``): the median seconds
+    of each step, and the fp32 GFLOP/s of the matmul timed among them."""
+    ts = alternate({**steps, "matmul": matmul_step()}, n, cpu)
+    return ts, MATMUL_GFLOP / ts["matmul"]
+
+
 def matmul_rate(repeat: int = 7, cpu: bool = False) -> float:
     """fp32 GFLOP/s of a 2048 x 2048 x 2048 matmul (median), with torch's current threads; ``cpu``:
     per CPU second (as ``--cpu-time`` times the steps)."""
-    return MATMUL_GFLOP / alternate({"mm": matmul_step()}, repeat, cpu)["mm"]
+    return alternate_with_matmul({}, repeat, cpu)[1]
 
 
 def loss_deviation(enc, dec, x, n: int = 8) -> list[float]:
@@ -251,8 +258,7 @@ def feast_row(t, x, n, cpu: bool = False) -> dict:
     with torch.no_grad():
         l_new, l_old = ((d(e(x)[0]) - x).abs().mean().item() for e, d in ((enc, dec), (oenc, odec)))
     g_new, g_old = gflop(enc, dec, x), gflop(oenc, odec, x)
-    ts = alternate({"before": stepper(oenc, odec, x), "after": stepper(enc, dec, x), "matmul": matmul_step()}, n, cpu)
-    rate = MATMUL_GFLOP / ts["matmul"]
+    ts, rate = alternate_with_matmul({"before": stepper(oenc, odec, x), "after": stepper(enc, dec, x)}, n, cpu)
     r = {"before_ms": 1e3 * ts["before"], "after_ms": 1e3 * ts["after"], "ratio": ts["before"] / ts["after"],
          "gflop_before": g_old, "gflop_after": g_new, "gflops_before": g_old / ts["before"],
          "gflops_after": g_new / ts["after"], "matmul_gflops": rate, "of_matmul": g_new / ts["after"] / rate,
@@ -337,9 +343,7 @@ def main():
         if a.bf16:
             e16, d16 = copy.deepcopy(enc), copy.deepcopy(dec)
             steps["after_bf16"] = stepper(e16, d16, x, bf16=True)
-        steps["matmul"] = matmul_step()
-        ts = alternate(steps, a.steps, a.cpu_time)
-        rate = MATMUL_GFLOP / ts["matmul"]
+        ts, rate = alternate_with_matmul(steps, a.steps, a.cpu_time)
         r = {"before_ms": 1e3 * ts["before"], "after_ms": 1e3 * ts["after"], "ratio": ts["before"] / ts["after"],
              "gflop_before": g_old, "gflop_after": g_new, "gflops_before": g_old / ts["before"],
              "gflops_after": g_new / ts["after"], "matmul_gflops": rate, "of_matmul": g_new / ts["after"] / rate}
@@ -370,9 +374,7 @@ def main():
             add_variants(steps, enc, dec, x)
         if a.bf16:
             steps["after_bf16"] = stepper(copy.deepcopy(enc), copy.deepcopy(dec), x, bf16=True)
-        steps["matmul"] = matmul_step()
-        ts = alternate(steps, a.steps, a.cpu_time)
-        rate = MATMUL_GFLOP / ts["matmul"]
+        ts, rate = alternate_with_matmul(steps, a.steps, a.cpu_time)
         r = {"after_ms": 1e3 * ts["after"], "gflop_after": g, "gflops_after": g / ts["after"], "matmul_gflops": rate,
              "of_matmul": g / ts["after"] / rate}
         print(f"{label:<13} {'':>10} {r['after_ms']:>9.0f} {'':>6} {'':>13} {g:>12.1f} {r['gflops_after']:>14.1f} "
