@@ -30,7 +30,7 @@ namespace fwk_native {
 // region runs each small product with torch's thread count: libgomp allows nested teams here (its
 // max-active-levels is unlimited), so every per-vertex product forked a team of its own. Measured
 // 2026-12-07 (3,089 products of 57 x 16 by 16 x 8, the first vcconv layer's kernel gradients, in one
-// region): 1.2-1.7 ms on 1 thread, 3.8-4.4 ms on 2 threads, 1.0 ms on 2 with this guard; with nesting off
+// region): 1.2-1.9 ms on 1 thread, 3.8-4.4 ms on 2 threads, 1.0 ms on 2 with this guard; with nesting off
 // (OMP_MAX_ACTIVE_LEVELS=1) still 2.6 ms on 2 threads.
 struct OneBlasThread {
   int prev = 0;
