@@ -253,6 +253,107 @@ def test_the_flop_counter_counts_the_kernels_multiply_adds():
     assert fc.get_total_flops() == 2 * len(idx) * 6 * 4 * 2
 
 
+def _in_side(offs, src, n_in):
+    """The same slots listed by input vertex: (in_offs, in_dst, slot index per entry)."""
+    n_out = len(offs) - 1
+    rows = torch.repeat_interleave(torch.arange(n_out), offs[1:] - offs[:-1])
+    order = torch.sort(src, stable=True).indices
+    in_offs = torch.cat([torch.zeros(1, dtype=torch.long), torch.bincount(src, minlength=n_in).cumsum(0)])
+    return in_offs, rows[order], order
+
+
+@pytestmark_native
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("spare", [7, 0])
+@pytest.mark.parametrize("B", [1, 48, 37])
+def test_weighted_rows_matches_the_loops_in_value_and_gradient(threads, spare, B, torch_threads):
+    """r_i = sum_s w[pos[s]] x[src[s]] against the loop in float64, value and gradients, with an output of no
+    slots (a zero row), an input no slot reads (no gradient) and weight rows no slot names (zero gradient)."""
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(21)
+    n_in, n_out = 17, 30
+    offs, src = _csr(n_out, n_in, 6, g, empty=(1, 4))
+    src[src == 3] = 5  # input 3 in no support (duplicates within a support are allowed: slots, not neighbours)
+    x = torch.randn(n_in, B, generator=g, requires_grad=True)
+    _, w, pos = _coefficients(len(src), 1, g, True, spare=spare)
+    in_offs, in_dst, order = _in_side(offs, src, n_in)
+    r = native.weighted_rows(x, w, offs, src, pos, in_offs, in_dst, pos[order])
+    xd, wd = _double(x, w)
+    re = torch.stack([sum((wd[pos[s]] * xd[src[s]] for s in range(int(offs[i]), int(offs[i + 1]))),
+                          xd.new_zeros(B)) for i in range(n_out)])
+    assert torch.allclose(r.double(), re, atol=1e-5)
+    assert (r[1] == 0).all() and (r[4] == 0).all()
+    gr = torch.randn(r.shape, generator=g)
+    _offer_nan(w)
+    got, exp = _grads(r, (x, w), gr), _grads(re, (xd, wd), gr.double())
+    for a, e in zip(got, exp):
+        assert torch.allclose(a.double(), e, atol=1e-4)
+    assert (got[0][3] == 0).all(), "an input no slot reads gets no gradient"
+    read = torch.zeros(w.shape[0], dtype=torch.bool)
+    read[pos] = True
+    assert (got[1][~read] == 0).all()
+
+
+@pytestmark_native
+@pytest.mark.parametrize("threads", [1, 2])
+def test_residual_weights_match_torchs_normalisation_in_value_and_gradient(threads, torch_threads):
+    """wn = scale |w| / max(sum |w| over the output's slots, 1e-12) as vcconv's torch code computes it, value and
+    gradient, with a zero weight (abs' gradient 0 there), an output whose weights are all zero (clamped: no
+    gradient through the sum) and rows no slot names."""
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(22)
+    n_out, R = 40, 200
+    offs, _ = _csr(n_out, 1000, 8, g, empty=(3,))
+    slots = int(offs[-1])
+    pos = torch.randperm(R, generator=g)[:slots]
+    w = torch.randn(R, generator=g)
+    w[pos[int(offs[5])]] = 0.0
+    w[pos[int(offs[7]):int(offs[8])]] = 0.0
+    w.requires_grad_()
+    scale = 0.5 ** 0.5
+    wn = native.residual_weights(w, offs, pos, scale)
+    wd = w.detach().double().requires_grad_()
+    rows = torch.repeat_interleave(torch.arange(n_out), offs[1:] - offs[:-1])
+    a = wd.abs()[pos]
+    total = a.new_zeros(n_out).index_add_(0, rows, a)
+    we = wd.new_zeros(R).index_put((pos,), a * (scale / total.clamp_min(1e-12))[rows])
+    assert torch.allclose(wn.double(), we, atol=1e-6)
+    gw = torch.randn(R, generator=g)
+    (got,), (exp,) = _grads(wn, (w,), gw), _grads(we, (wd,), gw.double())
+    assert torch.allclose(got.double(), exp, atol=1e-5)
+    named = torch.zeros(R, dtype=torch.bool)
+    named[pos] = True
+    assert (wn[~named] == 0).all() and (got[~named] == 0).all()
+
+
+@pytestmark_native
+def test_a_passed_check_is_done_again_after_the_index_changes():
+    """The kernels remember which index tensors passed their checks (fwk_native.h's PassedChecks); an in-place
+    write to one, or another tensor in its place, is checked again: an out-of-range entry is refused, not read."""
+    x, w = torch.randn(5, 4), torch.rand(3)
+    offs, src, pos = torch.tensor([0, 2, 3]), torch.tensor([0, 4, 2]), torch.tensor([2, 0, 1])
+    in_offs, in_dst, order = _in_side(offs, src, 5)
+    args = (offs, src, pos, in_offs, in_dst, pos[order])
+    native.weighted_rows(x, w, *args)  # passes, remembered
+    native.weighted_rows(x, w, *args)
+    src[1] = 9  # in place: its version counter moves
+    with pytest.raises(RuntimeError, match="out of range"):
+        native.weighted_rows(x, w, *args)
+    src[1] = 4
+    native.weighted_rows(x, w, *args)
+    pos[0] = 0  # now named twice
+    with pytest.raises(RuntimeError, match="named twice"):
+        native.weighted_rows(x, w, *args)
+    pos[0] = 2
+    native.weighted_rows(x, w, *args)
+    del src  # a fresh tensor, maybe at the freed one's address, with a bad entry
+    bad = torch.tensor([0, 4, 7])
+    with pytest.raises(RuntimeError, match="out of range"):
+        native.weighted_rows(x, w, offs, bad, pos, in_offs, in_dst, pos[order])
+    with pytest.raises(RuntimeError, match="out of range"):
+        native.sum_product(x, torch.randn(3, 2), w, offs, bad, pos)
+
+
 def test_the_torch_code_runs_when_the_kernels_are_off_or_do_not_apply(monkeypatch):
     """``FWK_VCCONV_NATIVE=0``, bf16 autocast and float64 take VCConv's torch evaluation."""
     x = torch.randn(3, 4)

@@ -369,9 +369,12 @@ class VCConv(nn.Module):
         native path (``native.basis_lanes``; ``LANES_MAX_OUT``)."""
         return o <= LANES_MAX_OUT and native.lanes(M)
 
-    def _res_weights(self):
+    def _res_weights(self, nat: bool = False):
         """sqrt(r) w~ (one per coefficient row), w~_ij = |w_ij| / sum_j |w_ij| over the support of
-        output vertex i; the residual's factor sqrt(r) rides on its weights."""
+        output vertex i; the residual's factor sqrt(r) rides on its weights. ``nat``: by the native
+        kernels' ``residual_weights`` (one pass per output vertex instead of six torch ops)."""
+        if nat:
+            return native.residual_weights(self.res_w, self._nat_out_offs, self._nat_out_pos, math.sqrt(self.r))
         w = self.res_w.abs()
         total = w.new_zeros(self.n_out).index_add_(0, self._row_out, w)
         return w * (math.sqrt(self.r) / total.clamp_min(1e-12)).index_select(0, self._row_out)
@@ -451,7 +454,7 @@ class VCConv(nn.Module):
         r_i per output vertex on its exact support (the coefficients and the residual's weights
         read in place), then the same dense product with the basis."""
         has_res = self.r is not None and self.res_w is not None
-        w = self._res_weights() if has_res else self.coef.new_empty(0)  # (rows,): read in place, as coef
+        w = self._res_weights(True) if has_res else self.coef.new_empty(0)  # (rows,): read in place, as coef
         x2 = xv.reshape(self.n_in, b * c)
         T, r = native.sum_product(x2, self.coef.reshape(-1, M), w, self._nat_out_offs, self._nat_out_src,
                                   self._nat_out_pos)  # (n_out, b c, M), (n_out, b c)
@@ -462,7 +465,7 @@ class VCConv(nn.Module):
     def _basis_native(self, xv, b, c, o, M):
         """``basis`` with the native kernel (``native.basis_product``): Z_j from one dense product,
         then each input vertex's (K' x M) @ (M x b o) product accumulated at its outputs; the
-        residual's weighted average is the same kernel with one coefficient a slot."""
+        residual's weighted average by ``native.weighted_rows``, on the output side."""
         has_res = self.r is not None and self.res_w is not None
         res_first = has_res and self._residual_map_first(c, o)
         d = o if res_first else c
@@ -478,12 +481,12 @@ class VCConv(nn.Module):
         y = (y.reshape(self.n_out, b, o) + self.bias)
         res = None
         if has_res:
-            src = x2.reshape(self.n_in * b, c) @ self.res_lin.weight.t() if res_first else x2  # R x_j
-            res = native.basis_product(src.reshape(self.n_in, b * d, 1), self._res_weights()[:, None],
-                                       self._nat_in_offs, self._nat_in_dst, self._nat_in_pos,
-                                       self.n_out).reshape(self.n_out, b, d)
+            src = _dense(x2.reshape(self.n_in * b, c), self.res_lin.weight.t()) if res_first else x2  # R x_j
+            res = native.weighted_rows(src.reshape(self.n_in, b * d), self._res_weights(True), self._nat_out_offs,
+                                       self._nat_out_src, self._nat_out_pos, self._nat_in_offs, self._nat_in_dst,
+                                       self._nat_in_pos).reshape(self.n_out, b, d)
             if not res_first and self.res_lin is not None:
-                res = res @ self.res_lin.weight.t()
+                res = self._mapped_residual(res, b, c)
         return y, res
 
     def _basis(self, xv, b, c, o, M):
@@ -530,7 +533,7 @@ class VCConv(nn.Module):
         (``native.kernel_product``: the rows gathered in cache, one BLAS call), the residual's
         weighted average in the same pass."""
         has_res = self.r is not None and self.res_w is not None
-        w = self._res_weights() if has_res else self.coef.new_empty(0)
+        w = self._res_weights(True) if has_res else self.coef.new_empty(0)
         Wk = _dense(self.coef.reshape(-1, M), self.basis.reshape(M, c * o))  # (rows, c o)
         if c <= KERNEL_LANES_MAX_IN and o <= KERNEL_LANES_MAX_OUT and native.lanes():  # 16 batch entries a register
             y, r = native.kernel_lanes(xv, Wk, w, self._nat_out_offs, self._nat_out_src, self._nat_out_pos, o)
@@ -541,8 +544,9 @@ class VCConv(nn.Module):
 
     def _mapped_residual(self, r, b, c):
         """The native kernels' residual average r (n_out, b c) as (n_out, b, c_out): R applied when c != c_out."""
-        res = r.reshape(self.n_out, b, c)
-        return res if self.res_lin is None else res @ self.res_lin.weight.t()
+        if self.res_lin is None:
+            return r.reshape(self.n_out, b, c)
+        return _dense(r.reshape(self.n_out * b, c), self.res_lin.weight.t()).reshape(self.n_out, b, -1)
 
     def _kernel(self, xv, b, c, o, M):
         """Explicit kernels W_ij = sum_m A_ijm B_m, then y_i = sum_j W_ij^T x_j per output vertex."""

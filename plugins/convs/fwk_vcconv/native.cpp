@@ -79,14 +79,9 @@ void check_coef(const torch::Tensor& coef, const torch::Tensor& w, const torch::
   check(coef, "coef", at::kFloat, 2);
   check(w, "w", at::kFloat, 1);
   TORCH_CHECK(w.size(0) == 0 || w.size(0) == coef.size(0), "w: one weight per coefficient row, or none");
-  check_csr(torch::tensor({int64_t(0), slots}), pos, 1, coef.size(0));
+  TORCH_CHECK(pos.dim() == 1 && pos.size(0) == slots, "pos: expected one entry a slot (", slots, ")");
   // the backward writes each slot's coefficient row in place: positions must be distinct
-  std::vector<char> seen(coef.size(0), 0);
-  const int64_t* p = pos.data_ptr<int64_t>();
-  for (int64_t t = 0; t < slots; ++t) {
-    TORCH_CHECK(!seen[p[t]], "pos: a coefficient row is named twice");
-    seen[p[t]] = 1;
-  }
+  check_distinct(pos, "pos", coef.size(0));
 }
 
 // the gradient (rows, cols) of per-row parameters (coefficients, kernels, residual weights) that a backward writes
@@ -461,6 +456,174 @@ std::vector<torch::Tensor> tall_backward(torch::Tensor dC, torch::Tensor A, torc
   }
   if (need_B) dB = tall_tn(A.data_ptr<float>(), dC.data_ptr<float>(), R, K, N, A.options());
   return {dA, dB};
+}
+
+// ---- the residual's weighted average on the output side (``weighted_rows``)
+//
+// r_i = sum_s w[pos[s]] x[src[s]] over output i's slots s in [offs[i], offs[i+1]) (rows of B floats), made row by
+// row from the rows read in place: no scatter, so no per-thread accumulators to fill and sum. Its backward reads
+// the same slots from the input side (ioffs, idst, ipos: input j's slots, their outputs and rows), again without a
+// scatter:
+//     dx_j = sum_s w[ipos[s]] dr[idst[s]]  (s in [ioffs[j], ioffs[j+1])),   dw[pos[s]] = <dr_i, x[src[s]]>
+// The ``basis`` order's residual was ``basis_forward`` with one coefficient a slot: a scatter through per-thread
+// accumulators and a BLAS call per vertex for products of one column.
+
+namespace {
+
+// dst (B floats) = a src (first) or += a src
+inline void axpy_row(float* __restrict dst, const float* __restrict src, float a, int64_t B, bool first) {
+  if (first) {
+#pragma omp simd
+    for (int64_t t = 0; t < B; ++t) dst[t] = a * src[t];
+  } else {
+#pragma omp simd
+    for (int64_t t = 0; t < B; ++t) dst[t] += a * src[t];
+  }
+}
+
+inline float dot_row(const float* __restrict a, const float* __restrict b, int64_t B) {
+  float acc = 0.f;
+#pragma omp simd reduction(+ : acc)
+  for (int64_t t = 0; t < B; ++t) acc += a[t] * b[t];
+  return acc;
+}
+
+// rows[i] (B floats) = sum_s w[pos[s]] base[idx[s]] for rows [0, n): offs (n + 1), idx and pos (slots)
+void weighted_gather(float* rows, const float* base, const float* w, const int64_t* offs, const int64_t* idx,
+                     const int64_t* pos, int64_t n, int64_t B) {
+  fwk_native::parallel_for(0, n, 1, [&](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i) {
+      const int64_t s0 = offs[i], s1 = offs[i + 1];
+      if (i + 1 < i1) prefetch_rows(base, idx, offs[i + 1], offs[i + 2], B, B * sizeof(float));
+      float* ri = rows + i * B;
+      if (s0 == s1) std::fill(ri, ri + B, 0.f);
+      for (int64_t s = s0; s < s1; ++s) axpy_row(ri, base + idx[s] * B, w[pos[s]], B, s == s0);
+    }
+  });
+}
+
+void check_weighted(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& offs,
+                    const torch::Tensor& src, const torch::Tensor& pos, int64_t n_out) {
+  check(x, "x", at::kFloat, 2);
+  check(w, "w", at::kFloat, 1);
+  check_csr(offs, src, n_out, x.size(0), "offs", "src");
+  check_coef(w.view({-1, 1}), w, pos, src.size(0));  // each slot's weight row, each named once
+}
+
+}  // namespace
+
+// forward: x (n_in, B), w (R), offs (n_out + 1), src and pos (slots); returns r (n_out, B)
+torch::Tensor weighted_forward(torch::Tensor x, torch::Tensor w, torch::Tensor offs, torch::Tensor src,
+                               torch::Tensor pos) {
+  const int64_t n_out = offs.size(0) - 1;
+  check_weighted(x, w, offs, src, pos, n_out);
+  auto r = torch::empty({n_out, x.size(1)}, x.options());
+  weighted_gather(r.data_ptr<float>(), x.data_ptr<float>(), w.data_ptr<float>(), offs.data_ptr<int64_t>(),
+                  src.data_ptr<int64_t>(), pos.data_ptr<int64_t>(), n_out, x.size(1));
+  return r;
+}
+
+// backward: dr (n_out, B); the input side's CSR (ioffs (n_in + 1), idst and ipos: the same slots as offs, src and
+// pos, listed by input vertex). Returns dx (n_in, B) and dw (R; zero at the rows no slot reads), empty (0,) where
+// not asked for.
+std::vector<torch::Tensor> weighted_backward(torch::Tensor dr, torch::Tensor x, torch::Tensor w, torch::Tensor offs,
+                                             torch::Tensor src, torch::Tensor pos, torch::Tensor ioffs,
+                                             torch::Tensor idst, torch::Tensor ipos, bool need_x, bool need_w) {
+  const int64_t n_in = x.size(0), B = x.size(1), n_out = offs.size(0) - 1, slots = src.size(0);
+  check_weighted(x, w, offs, src, pos, n_out);
+  check(dr, "dr", at::kFloat, 2);
+  TORCH_CHECK(dr.size(0) == n_out && dr.size(1) == B, "dr: expected (", n_out, ", ", B, ")");
+  auto empty = torch::empty({0}, x.options());
+  torch::Tensor dx = empty;
+  if (need_x) {
+    check_csr(ioffs, idst, n_in, n_out, "ioffs", "idst");
+    check(ipos, "ipos", at::kLong, 1);
+    TORCH_CHECK(idst.size(0) == slots && ipos.size(0) == slots, "idst, ipos: expected the ", slots, " slots of src");
+    check_range(ipos, "ipos", w.size(0));
+    dx = torch::empty({n_in, B}, x.options());
+    weighted_gather(dx.data_ptr<float>(), dr.data_ptr<float>(), w.data_ptr<float>(), ioffs.data_ptr<int64_t>(),
+                    idst.data_ptr<int64_t>(), ipos.data_ptr<int64_t>(), n_in, B);
+  }
+  torch::Tensor dw = row_grad(need_w, w.size(0), 0, slots, x.options());
+  if (need_w) {
+    const float* xp = x.data_ptr<float>();
+    const float* drp = dr.data_ptr<float>();
+    const int64_t* op = offs.data_ptr<int64_t>();
+    const int64_t* sp = src.data_ptr<int64_t>();
+    const int64_t* pp = pos.data_ptr<int64_t>();
+    float* dwp = dw.data_ptr<float>();
+    fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) {
+        if (i + 1 < i1) prefetch_rows(xp, sp, op[i + 1], op[i + 2], B, B * sizeof(float));
+        for (int64_t s = op[i]; s < op[i + 1]; ++s) dwp[pp[s]] = dot_row(drp + i * B, xp + sp[s] * B, B);
+      }
+    });
+  }
+  return {dx, dw};
+}
+
+// ---- the residual's normalised weights (``residual_weights``)
+//
+// wn[pos[s]] = scale |w[pos[s]]| / max(S_i, eps), S_i = sum_s |w[pos[s]]| over output i's slots s in
+// [offs[i], offs[i+1]): one pass per output instead of torch's abs, index_add, clamp, division, index_select and
+// product (and as many again backward). Backward, with g = dwn and a = |w|:
+//     dw[pos[s]] = sgn(w[pos[s]]) (scale g_s / max(S_i, eps) - [S_i >= eps] scale (sum_t a_t g_t) / S_i^2)
+// (torch's: abs' gradient 0 at 0, clamp_min's none below eps). Rows no slot names get 0.
+constexpr float RESIDUAL_EPS = 1e-12f;
+
+torch::Tensor norm_weights_forward(torch::Tensor w, torch::Tensor offs, torch::Tensor pos, double scale) {
+  check(w, "w", at::kFloat, 1);
+  const int64_t n_out = offs.size(0) - 1, R = w.size(0), slots = pos.size(0);
+  check_csr(offs, pos, n_out, R, "offs", "pos");
+  check_coef(w.view({-1, 1}), w, pos, slots);
+  auto wn = slots == R ? torch::empty({R}, w.options()) : torch::zeros({R}, w.options());
+  const float* wp = w.data_ptr<float>();
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
+  float* np_ = wn.data_ptr<float>();
+  const float sc = (float)scale;
+  fwk_native::parallel_for(0, n_out, 1024, [&](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i) {
+      float S = 0.f;
+      for (int64_t s = op[i]; s < op[i + 1]; ++s) S += std::abs(wp[pp[s]]);
+      const float f = sc / std::max(S, RESIDUAL_EPS);
+      for (int64_t s = op[i]; s < op[i + 1]; ++s) np_[pp[s]] = std::abs(wp[pp[s]]) * f;
+    }
+  });
+  return wn;
+}
+
+torch::Tensor norm_weights_backward(torch::Tensor dwn, torch::Tensor w, torch::Tensor offs, torch::Tensor pos,
+                                    double scale) {
+  check(w, "w", at::kFloat, 1);
+  check(dwn, "dwn", at::kFloat, 1);
+  const int64_t n_out = offs.size(0) - 1, R = w.size(0), slots = pos.size(0);
+  TORCH_CHECK(dwn.size(0) == R, "dwn: expected ", R, " entries");
+  check_csr(offs, pos, n_out, R, "offs", "pos");
+  check_coef(w.view({-1, 1}), w, pos, slots);
+  auto dw = slots == R ? torch::empty({R}, w.options()) : torch::zeros({R}, w.options());
+  const float* wp = w.data_ptr<float>();
+  const float* gp = dwn.data_ptr<float>();
+  const int64_t* op = offs.data_ptr<int64_t>();
+  const int64_t* pp = pos.data_ptr<int64_t>();
+  float* dp = dw.data_ptr<float>();
+  const float sc = (float)scale;
+  fwk_native::parallel_for(0, n_out, 1024, [&](int64_t i0, int64_t i1) {
+    for (int64_t i = i0; i < i1; ++i) {
+      float S = 0.f, ag = 0.f;
+      for (int64_t s = op[i]; s < op[i + 1]; ++s) {
+        const float a = std::abs(wp[pp[s]]);
+        S += a;
+        ag += a * gp[pp[s]];
+      }
+      const float f = sc / std::max(S, RESIDUAL_EPS), t = S >= RESIDUAL_EPS ? sc * ag / (S * S) : 0.f;
+      for (int64_t s = op[i]; s < op[i + 1]; ++s) {
+        const float v = wp[pp[s]], sg = v > 0.f ? 1.f : (v < 0.f ? -1.f : 0.f);
+        dp[pp[s]] = sg * (f * gp[pp[s]] - t);
+      }
+    }
+  });
+  return dw;
 }
 
 // ---- the basis order in lanes (``lanes_forward`` / ``lanes_backward``)
@@ -1175,4 +1338,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("sum_backward", &sum_backward);
   m.def("basis_forward", &basis_forward);
   m.def("basis_backward", &basis_backward);
+  m.def("weighted_forward", &weighted_forward);
+  m.def("norm_weights_forward", &norm_weights_forward);
+  m.def("norm_weights_backward", &norm_weights_backward);
+  m.def("weighted_backward", &weighted_backward);
 }

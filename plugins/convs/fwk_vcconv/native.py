@@ -55,6 +55,13 @@ backward stays with BLAS. All three together: 1.10-1.46x the chapter 5 width's t
 (``benchmarks/training.py``, "no lanes", 2026-12-07). The lane kernels ask for the next vertex's
 scattered rows while computing this one's (``fwk_native.h``'s ``prefetch_rows``).
 
+Two small operators serve the residual's weighted average, r_i = sum_j w~_ij R x_j (w~ the weights
+normalised over output i's support, sqrt(r) folded in): ``residual_weights`` (``fwk_vcconv::residual_weights``)
+makes w~ in one pass per output vertex, forward and backward, instead of six torch ops each way, and
+``weighted_rows`` (``fwk_vcconv::weighted_rows``) the ``basis`` order's average from the output side, each row
+made from rows read in place (the backward's dx from the input side): no scatter, where ``basis_product`` with
+one coefficient a slot needed per-thread accumulators and a BLAS call per vertex for products one column wide.
+
 The kernels are float32 and compiled on first use (``fwk.native``: a C++ compiler and ninja;
 about a minute, once per machine and torch version). ``available()`` is False when the build
 fails (the reason is printed once, ``failed()``) or ``FWK_VCCONV_NATIVE=0``; ``usable()`` is
@@ -162,6 +169,65 @@ def _basis_backward(ctx, dy):
 
 
 basis_product.register_autograd(_basis_backward, setup_context=_basis_setup)
+
+
+# ---- the residual's weighted average
+@torch.library.custom_op("fwk_vcconv::weighted_rows", mutates_args=())
+def weighted_rows(x: torch.Tensor, w: torch.Tensor, offs: torch.Tensor, src: torch.Tensor, pos: torch.Tensor,
+                  in_offs: torch.Tensor, in_dst: torch.Tensor, in_pos: torch.Tensor) -> torch.Tensor:
+    """r (n_out, B): r_i = sum_s w[pos[s]] x[src[s]] over output i's slots s in [offs[i], offs[i + 1])
+    (the ``basis`` order's residual average), each row made from the rows read in place, no scatter.
+    x (n_in, B), w (R), src and pos (slots). The same slots listed by input vertex (in_offs (n_in + 1),
+    in_dst, in_pos) give the backward's dx_j = sum_s w[in_pos[s]] dr[in_dst[s]] without a scatter, and
+    dw[pos[s]] = <dr_i, x[src[s]]>."""
+    return _load().weighted_forward(x.contiguous(), w.contiguous(), offs, src, pos)
+
+
+@weighted_rows.register_fake
+def _(x, w, offs, src, pos, in_offs, in_dst, in_pos):
+    return x.new_empty(offs.shape[0] - 1, x.shape[1])
+
+
+def _weighted_setup(ctx, inputs, output):
+    ctx.save_for_backward(*inputs)
+
+
+def _weighted_backward(ctx, dr):
+    x, w, offs, src, pos, in_offs, in_dst, in_pos = ctx.saved_tensors
+    need_x, need_w = ctx.needs_input_grad[:2]
+    dx, dw = _load().weighted_backward(dr.contiguous(), x.contiguous(), w.contiguous(), offs, src, pos, in_offs,
+                                       in_dst, in_pos, need_x, need_w)
+    return (dx if need_x else None), (dw if need_w else None), None, None, None, None, None, None
+
+
+weighted_rows.register_autograd(_weighted_backward, setup_context=_weighted_setup)
+
+
+@torch.library.custom_op("fwk_vcconv::residual_weights", mutates_args=())
+def residual_weights(w: torch.Tensor, offs: torch.Tensor, pos: torch.Tensor, scale: float) -> torch.Tensor:
+    """wn (R): wn[pos[s]] = scale |w[pos[s]]| / max(S_i, 1e-12), S_i = sum_s |w[pos[s]]| over output i's slots
+    s in [offs[i], offs[i + 1]) (vcconv's normalised residual weights, ``VCConv._res_weights``), one pass
+    per output vertex forward and backward; 0 at rows no slot names."""
+    return _load().norm_weights_forward(w.contiguous(), offs, pos, scale)
+
+
+@residual_weights.register_fake
+def _(w, offs, pos, scale):
+    return torch.empty_like(w)
+
+
+def _norm_setup(ctx, inputs, output):
+    w, offs, pos, scale = inputs
+    ctx.save_for_backward(w, offs, pos)
+    ctx.scale = scale
+
+
+def _norm_backward(ctx, dwn):
+    w, offs, pos = ctx.saved_tensors
+    return _load().norm_weights_backward(dwn.contiguous(), w.contiguous(), offs, pos, ctx.scale), None, None, None
+
+
+residual_weights.register_autograd(_norm_backward, setup_context=_norm_setup)
 
 
 # ---- kernel order
@@ -354,6 +420,10 @@ def _register_flops():
     def _basis_flops(Z_shape, coef_shape, offs_shape, dst_shape, pos_shape, n_out, *args, out_shape=None,
                      **kwargs) -> int:
         return 2 * dst_shape[0] * Z_shape[1] * Z_shape[2]
+
+    @register_flop_formula(torch.ops.fwk_vcconv.weighted_rows)
+    def _weighted_flops(x_shape, w_shape, offs_shape, src_shape, *args, out_shape=None, **kwargs) -> int:
+        return 2 * src_shape[0] * x_shape[1]  # as basis_product with one coefficient a slot, which it replaced
 
     @register_flop_formula(torch.ops.fwk_vcconv.kernel_product)
     def _kernel_flops(x_shape, Wk_shape, w_shape, offs_shape, src_shape, pos_shape, b, c, o, *args, out_shape=None,
