@@ -600,12 +600,18 @@ std::vector<torch::Tensor> weighted_backward(torch::Tensor dr, torch::Tensor x, 
 // (torch's: abs' gradient 0 at 0, clamp_min's none below eps). Rows no slot names get 0.
 constexpr float RESIDUAL_EPS = 1e-12f;
 
-torch::Tensor norm_weights_forward(torch::Tensor w, torch::Tensor offs, torch::Tensor pos, double scale) {
+// both directions' checks of w, offs and pos, and their result: one float per row of w, zero-filled only where some
+// row is named by no slot (row_grad)
+torch::Tensor norm_weights_result(const torch::Tensor& w, const torch::Tensor& offs, const torch::Tensor& pos) {
   check(w, "w", at::kFloat, 1);
-  const int64_t n_out = offs.size(0) - 1, R = w.size(0), slots = pos.size(0);
-  check_csr(offs, pos, n_out, R, "offs", "pos");
-  check_coef(w.view({-1, 1}), w, pos, slots);
-  auto wn = slots == R ? torch::empty({R}, w.options()) : torch::zeros({R}, w.options());
+  check_csr(offs, pos, offs.size(0) - 1, w.size(0), "offs", "pos");
+  check_coef(w.view({-1, 1}), w, pos, pos.size(0));
+  return row_grad(true, w.size(0), 0, pos.size(0), w.options());
+}
+
+torch::Tensor norm_weights_forward(torch::Tensor w, torch::Tensor offs, torch::Tensor pos, double scale) {
+  auto wn = norm_weights_result(w, offs, pos);
+  const int64_t n_out = offs.size(0) - 1;
   const float* wp = w.data_ptr<float>();
   const int64_t* op = offs.data_ptr<int64_t>();
   const int64_t* pp = pos.data_ptr<int64_t>();
@@ -624,13 +630,10 @@ torch::Tensor norm_weights_forward(torch::Tensor w, torch::Tensor offs, torch::T
 
 torch::Tensor norm_weights_backward(torch::Tensor dwn, torch::Tensor w, torch::Tensor offs, torch::Tensor pos,
                                     double scale) {
-  check(w, "w", at::kFloat, 1);
+  auto dw = norm_weights_result(w, offs, pos);
   check(dwn, "dwn", at::kFloat, 1);
-  const int64_t n_out = offs.size(0) - 1, R = w.size(0), slots = pos.size(0);
-  TORCH_CHECK(dwn.size(0) == R, "dwn: expected ", R, " entries");
-  check_csr(offs, pos, n_out, R, "offs", "pos");
-  check_coef(w.view({-1, 1}), w, pos, slots);
-  auto dw = slots == R ? torch::empty({R}, w.options()) : torch::zeros({R}, w.options());
+  TORCH_CHECK(dwn.size(0) == w.size(0), "dwn: expected ", w.size(0), " entries");
+  const int64_t n_out = offs.size(0) - 1;
   const float* wp = w.data_ptr<float>();
   const float* gp = dwn.data_ptr<float>();
   const int64_t* op = offs.data_ptr<int64_t>();
