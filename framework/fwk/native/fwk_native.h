@@ -92,7 +92,8 @@ inline void check(const torch::Tensor& t, const char* name, at::ScalarType dtype
 // expired), its data pointer, element count and version counter (every in-place write through torch bumps it). Not
 // seen: writes that bypass torch (through a numpy array sharing the memory, or raw pointers); fwk makes its index
 // buffers once and writes them only through torch, and tensors read from received files are fresh objects, checked
-// on first use. At most CAPACITY sets are remembered (the oldest forgotten first).
+// on first use. Sets whose tensors are gone are forgotten when the next is added, and at most CAPACITY are
+// remembered (the oldest forgotten first).
 class PassedChecks {
  public:
   static constexpr size_t CAPACITY = 512;
@@ -117,6 +118,13 @@ class PassedChecks {
     }
     e.args.assign(args.begin(), args.end());
     std::lock_guard<std::mutex> lock(mu_);
+    // entries whose tensors are gone first (a fresh index each call, as a pooling's selected rows, leaves one a call)
+    entries_.erase(std::remove_if(entries_.begin(), entries_.end(),
+                                  [](const Entry& x) {
+                                    return std::any_of(x.refs.begin(), x.refs.end(),
+                                                       [](const Weak& r) { return r.expired(); });
+                                  }),
+                   entries_.end());
     if (entries_.size() >= CAPACITY) entries_.erase(entries_.begin());
     entries_.push_back(std::move(e));
   }
