@@ -155,20 +155,13 @@ KERNEL_LANES_MAX_IN = 64
 KERNEL_LANES_MAX_OUT = 32
 
 
-class _BatchMajorView(torch.autograd.Function):
-    """The conv's vertex-major result y (n, b, c) handed on as the (b, n, c) view, whose gradient comes
-    back made vertex-major and contiguous once, here. Without it, a gradient that arrives batch-major
-    (the last layer's, from the loss) reaches the native kernels' backward passes as a transposed view, and
-    each one that takes it (the products, the residual's average, the bias's sum) made its own
-    transposing copy: about 0.9 ms each in the chapter 5 width's step, for (11,248, 16, 3) floats."""
-
-    @staticmethod
-    def forward(ctx, y):
-        return y.transpose(0, 1)
-
-    @staticmethod
-    def backward(ctx, g):
-        return g.transpose(0, 1).contiguous()
+def _vertex_major_gradient(g: torch.Tensor) -> torch.Tensor:
+    """The gradient of a conv's vertex-major result y (n, b, c), made contiguous once (a hook on y, which
+    the conv hands on as the (b, n, c) view). A gradient that arrives batch-major (the last layer's, from
+    the loss) reaches y as a transposed view; without this each native backward that takes it (the
+    products, the residual's average, the bias's sum) made its own transposing copy: about 0.9 ms each in
+    the chapter 5 width's step, for (11,248, 16, 3) floats."""
+    return g.contiguous()
 
 
 def _dense(A: torch.Tensor, B: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
@@ -604,8 +597,8 @@ class VCConv(nn.Module):
             if res is None:  # mode same: the identity (or R) on the input itself
                 res = math.sqrt(self.r) * (xv if self.res_lin is None else xv @ self.res_lin.weight.t())
             y = torch.add(res, y, alpha=math.sqrt(1 - self.r))
-        if usable and torch.is_grad_enabled():
-            return _BatchMajorView.apply(y)
+        if usable and y.requires_grad:
+            y.register_hook(_vertex_major_gradient)
         return y.transpose(0, 1)
 
 
