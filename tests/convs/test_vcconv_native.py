@@ -236,6 +236,11 @@ def test_malformed_supports_are_refused_not_read_out_of_bounds():
         native.sum_product(x, coef, torch.randn(2), offs, src, pos)
     with pytest.raises(RuntimeError, match="Float"):
         native.sum_product(x.double(), coef.double(), none, offs, src, pos)
+    empty = torch.empty(0, dtype=torch.long)  # no offsets at all: refused before any is read
+    with pytest.raises(RuntimeError, match="at least 1"):
+        native.weighted_rows(x, w, empty, src, pos, empty, src, pos)
+    with pytest.raises(RuntimeError, match="at least 1"):
+        native.residual_weights(w, empty, pos, 1.0)
 
 
 @pytestmark_native

@@ -191,7 +191,7 @@ inline void check_csr(const torch::Tensor& offs, const torch::Tensor& idx, int64
                       const char* offs_name = "offs", const char* idx_name = "index") {
   check(offs, offs_name, at::kLong, 1);
   check(idx, idx_name, at::kLong, 1);
-  TORCH_CHECK(offs.size(0) == n_rows + 1, offs_name, ": expected ", n_rows + 1, " entries");
+  TORCH_CHECK(n_rows >= 0 && offs.size(0) == n_rows + 1, offs_name, ": expected ", n_rows + 1, " entries (at least 1)");
   if (PassedChecks::instance().contains({&offs, &idx}, {CSR, n_rows, n_target})) return;
   const int64_t* o = offs.data_ptr<int64_t>();
   TORCH_CHECK(o[0] == 0 && o[n_rows] == idx.size(0), offs_name, ": must run from 0 to the slot count");
