@@ -598,6 +598,8 @@ std::vector<torch::Tensor> weighted_backward(torch::Tensor dr, torch::Tensor x, 
 // product (and as many again backward). Backward, with g = dwn and a = |w|:
 //     dw[pos[s]] = sgn(w[pos[s]]) (scale g_s / max(S_i, eps) - [S_i >= eps] scale (sum_t a_t g_t) / S_i^2)
 // (torch's: abs' gradient 0 at 0, clamp_min's none below eps). Rows no slot names get 0.
+namespace {
+
 constexpr float RESIDUAL_EPS = 1e-12f;
 
 // both directions' checks of w, offs and pos, and their result: one float per row of w, zero-filled only where some
@@ -608,6 +610,8 @@ torch::Tensor norm_weights_result(const torch::Tensor& w, const torch::Tensor& o
   check_coef(w.view({-1, 1}), w, pos, pos.size(0));
   return row_grad(true, w.size(0), 0, pos.size(0), w.options());
 }
+
+}  // namespace
 
 torch::Tensor norm_weights_forward(torch::Tensor w, torch::Tensor offs, torch::Tensor pos, double scale) {
   auto wn = norm_weights_result(w, offs, pos);
