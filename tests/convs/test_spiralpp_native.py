@@ -256,3 +256,30 @@ def test_up_linear_refuses_a_malformed_operator():
     with pytest.raises(RuntimeError, match="weight: expected"):  # (L o, c + 1): not x's channels
         native.up_linear(x, torch.randn(27, 5), bias, S.crow_indices(), S.col_indices(), S.values(),
                          St.crow_indices(), St.col_indices(), St.values(), 9)
+
+
+@needs_native
+def test_a_state_loaded_into_one_conv_leaves_the_others_and_is_checked():
+    """Every conv on a level gets the level's spirals, which are memoised per topology: each conv keeps a copy of
+    its own. A state_dict whose index is out of range, loaded into one conv, changes no other conv's index (nor the
+    memo's), and that conv refuses it on its next call instead of reading out of bounds, though the kernel had
+    remembered its index as checked (fwk_native.h's PassedChecks: the load writes the buffer in place)."""
+    from fwk.plugins import get_registry
+    from fwk.testing.sampler import two_components
+
+    h = get_registry().get("sampler", "quadric")(factors=[4]).build(two_components())
+    make = get_registry().get("conv", "spiral++")
+    a, b = make(3, 4, h, 0), make(3, 4, h, 0)
+    assert a.index.data_ptr() != b.index.data_ptr()
+    x = torch.randn(2, h.levels[0].n_vertices, 3)
+    with torch.no_grad():
+        a(x), b(x)  # both indices checked and remembered
+        state = a.state_dict()
+        state["index"] = state["index"].clone()
+        state["index"][0, 1] = 10 ** 6
+        before = b.index.clone()
+        a.load_state_dict(state)
+        assert torch.equal(b.index, before) and torch.equal(make(3, 4, h, 0).index, before)
+        b(x)
+        with pytest.raises(RuntimeError, match="out of range"):
+            a(x)

@@ -214,7 +214,10 @@ class SpiralPP(nn.Module):
                  dilation: int = 1):
         super().__init__()
         idx = level_spirals(hierarchy, level, length, dilation)
-        self.register_buffer("index", torch.as_tensor(idx, dtype=torch.long))
+        # a copy of its own: the spirals are memoised per topology (one array for every conv on the level), and a
+        # buffer sharing that memory would carry a state_dict loaded into one conv into the others and into the memo
+        # (and past the native kernel's remembered index checks, fwk_native.h's PassedChecks)
+        self.register_buffer("index", torch.tensor(idx, dtype=torch.long))
         self._flat = None  # (b, GatherLinear.rows_of(index, b)) for the last batch size seen
         self._up = None  # (up, bag, weights) of forward_up's last operator
         self.length = length
