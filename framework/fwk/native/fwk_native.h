@@ -90,9 +90,9 @@ inline void check(const torch::Tensor& t, const char* name, at::ScalarType dtype
 // same buffers step after step. A passed check is remembered with its arguments and, for each tensor, a weak reference to its
 // TensorImpl (a live object; a freed tensor whose address is taken by another no longer matches, its reference has
 // expired), its data pointer, element count and version counter (every in-place write through torch bumps it). Not
-// seen: writes that bypass torch (through a numpy array sharing the memory, or raw pointers); fwk makes its index
-// buffers once and writes them only through torch, and tensors read from received files are fresh objects, checked
-// on first use. Sets whose tensors are gone are forgotten when the next is added, and at most CAPACITY are
+// seen: writes that bypass torch (through a numpy array or another tensor sharing the memory, or raw pointers); fwk
+// makes its index buffers once, each owning its memory (spiral++ copies the memoised spirals it is given), and
+// writes them only through torch; tensors read from received files are fresh objects, checked on first use. Sets whose tensors are gone are forgotten when the next is added, and at most CAPACITY are
 // remembered (the oldest forgotten first).
 class PassedChecks {
  public:
