@@ -471,9 +471,10 @@ std::vector<torch::Tensor> tall_backward(torch::Tensor dC, torch::Tensor A, torc
 namespace {
 
 // The loops below are compiled for AVX-512 as well as for the baseline (GCC's target_clones: the CPU's version is
-// picked when the library loads); plain -O3 vectorises them for SSE2 only, 4 floats a multiply-add.
+// picked when the library loads); plain -O3 vectorises them for SSE2 only, 4 floats a multiply-add. "avx512f", not
+// "arch=x86-64-v4": GCCs before 11 do not know the x86-64-v levels, and then the whole extension would not build.
 #if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
-#define FWK_CLONES __attribute__((target_clones("arch=x86-64-v4", "default")))
+#define FWK_CLONES __attribute__((target_clones("avx512f", "default")))
 #else
 #define FWK_CLONES
 #endif
