@@ -77,6 +77,17 @@ inline void add_row(float* __restrict dst, const float* __restrict src, int64_t 
   for (int64_t t = 0; t < n; ++t) dst[t] += src[t];
 }
 
+// dst = a src (``first``) or dst += a src, n floats
+inline void axpy_row(float* __restrict dst, const float* __restrict src, float a, int64_t n, bool first) {
+  if (first) {
+#pragma omp simd
+    for (int64_t t = 0; t < n; ++t) dst[t] = a * src[t];
+  } else {
+#pragma omp simd
+    for (int64_t t = 0; t < n; ++t) dst[t] += a * src[t];
+  }
+}
+
 inline void check(const torch::Tensor& t, const char* name, at::ScalarType dtype, int64_t dim) {
   TORCH_CHECK(t.device().is_cpu(), name, ": expected a CPU tensor");
   TORCH_CHECK(t.scalar_type() == dtype, name, ": expected ", dtype, ", got ", t.scalar_type());
@@ -114,7 +125,7 @@ class PassedChecks {
     Entry e;
     for (const torch::Tensor* t : ts) {
       e.refs.emplace_back(t->getIntrusivePtr());
-      e.state.push_back({reinterpret_cast<intptr_t>(t->data_ptr()), t->numel(), int64_t(t->_version())});
+      e.state.push_back(state_of(*t));
     }
     e.args.assign(args.begin(), args.end());
     std::lock_guard<std::mutex> lock(mu_);
@@ -136,6 +147,9 @@ class PassedChecks {
     int64_t numel, version;
     bool operator==(const State& o) const { return data == o.data && numel == o.numel && version == o.version; }
   };
+  static State state_of(const torch::Tensor& t) {
+    return {reinterpret_cast<intptr_t>(t.data_ptr()), t.numel(), int64_t(t._version())};
+  }
   struct Entry {
     std::vector<Weak> refs;
     std::vector<State> state;
@@ -148,8 +162,7 @@ class PassedChecks {
     size_t k = 0;
     for (const torch::Tensor* t : ts) {
       if (e.refs[k].expired() || e.refs[k]._unsafe_get_target() != t->unsafeGetTensorImpl()) return false;
-      if (!(e.state[k] == State{reinterpret_cast<intptr_t>(t->data_ptr()), t->numel(), int64_t(t->_version())}))
-        return false;
+      if (!(e.state[k] == state_of(*t))) return false;
       ++k;
     }
     return true;
@@ -164,7 +177,7 @@ enum CheckKind : int64_t { RANGE = 1, CSR = 2, DISTINCT = 3 };
 
 // every entry of an int64 tensor in [0, n)
 inline void check_range(const torch::Tensor& idx, const char* name, int64_t n) {
-  TORCH_CHECK(idx.scalar_type() == at::kLong && idx.is_contiguous(), name, ": expected a contiguous int64 tensor");
+  check(idx, name, at::kLong, idx.dim());
   if (PassedChecks::instance().contains({&idx}, {RANGE, n})) return;
   const int64_t* s = idx.data_ptr<int64_t>();
   for (int64_t t = 0; t < idx.numel(); ++t) TORCH_CHECK(s[t] >= 0 && s[t] < n, name, ": entry out of range");

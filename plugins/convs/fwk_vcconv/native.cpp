@@ -23,7 +23,7 @@
 // (n_out K, M) coefficients, distinct) and their gradients written there, so no gathered copy and
 // no scatter-add of them is made. Scatters into a shared result (the ``sum`` order's dx, the
 // ``basis`` order's y) go to per-thread accumulators (fwk_native.h).
-#include "fwk_native.h"  // gemm, add_row, check, check_csr, thread_accumulator, reduce, tall_mm, tall_tn (fwk.native)
+#include "fwk_native.h"  // gemm, add_row, axpy_row, check, check_csr, thread_accumulator, reduce, tall_mm, tall_tn (fwk.native)
 
 #include <algorithm>
 #include <cstring>
@@ -487,17 +487,7 @@ FWK_CLONES void weighted_gather_range(float* rows, const float* base, const floa
     if (i + 1 < i1) prefetch_rows(base, idx, offs[i + 1], offs[i + 2], B, B * sizeof(float));
     float* __restrict ri = rows + i * B;
     if (s0 == s1) std::fill(ri, ri + B, 0.f);
-    for (int64_t s = s0; s < s1; ++s) {
-      const float a = w[pos[s]];
-      const float* __restrict xs = base + idx[s] * B;
-      if (s == s0) {
-#pragma omp simd
-        for (int64_t t = 0; t < B; ++t) ri[t] = a * xs[t];
-      } else {
-#pragma omp simd
-        for (int64_t t = 0; t < B; ++t) ri[t] += a * xs[t];
-      }
-    }
+    for (int64_t s = s0; s < s1; ++s) axpy_row(ri, base + idx[s] * B, w[pos[s]], B, s == s0);
   }
 }
 
@@ -515,16 +505,7 @@ FWK_CLONES void weighted_backward_range(float* dx, float* dw, const float* dr, c
     if (dxj && s0 == s1) std::fill(dxj, dxj + B, 0.f);
     for (int64_t s = s0; s < s1; ++s) {
       const float* __restrict d = dr + idst[s] * B;
-      if (dxj) {
-        const float a = w[ipos[s]];
-        if (s == s0) {
-#pragma omp simd
-          for (int64_t t = 0; t < B; ++t) dxj[t] = a * d[t];
-        } else {
-#pragma omp simd
-          for (int64_t t = 0; t < B; ++t) dxj[t] += a * d[t];
-        }
-      }
+      if (dxj) axpy_row(dxj, d, w[ipos[s]], B, s == s0);
       if (dw) {
         float acc = 0.f;
 #pragma omp simd reduction(+ : acc)
