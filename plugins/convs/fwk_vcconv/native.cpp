@@ -668,6 +668,26 @@ namespace lanes {
 constexpr int L = 16;  // lanes: batch entries per group
 constexpr int64_t MAX_M = 4 * L;  // da_all / zm_all up to 4 chunks of L kernels
 
+// one register of L floats (GCC's vector extension). The kernels' accumulators are arrays of these: declared as
+// float arrays with `= {}`, GCC zero-filled them on the stack with `rep stos` (its start-up cost was 9-16 % of
+// t_rows, da_block and lanes_forward in perf) before moving them to registers; arrays of vectors start as zeroed
+// registers. ld / st: unaligned loads and stores.
+typedef float vL __attribute__((vector_size(L * sizeof(float))));
+typedef float vLu __attribute__((vector_size(L * sizeof(float)), aligned(4), may_alias));
+inline vL ld(const float* p) { return *reinterpret_cast<const vLu*>(p); }
+inline void st(float* p, vL v) { *reinterpret_cast<vLu*>(p) = v; }
+// zeroed one vector at a time: an `= {}` initialiser of a whole array is still a memset (`rep stos`)
+template <int N>
+inline void zero(vL (&a)[N]) {
+#pragma GCC unroll 32
+  for (int i = 0; i < N; ++i) a[i] = vL{};
+}
+template <int N1, int N2>
+inline void zero(vL (&a)[N1][N2]) {
+#pragma GCC unroll 32
+  for (int i = 0; i < N1; ++i) zero(a[i]);
+}
+
 // the lane kernels' arguments: float32 contiguous tensors, a basis of at most MAX_M kernels, a CSR support
 inline void lanes_check(const torch::Tensor& x, const torch::Tensor& B, const torch::Tensor& coef,
                         const torch::Tensor& offs, const torch::Tensor& dst, const torch::Tensor& pos, int64_t n_out) {
@@ -734,14 +754,11 @@ inline torch::Tensor all_to_lanes(const torch::Tensor& x) {
 template <int RB>
 inline void rows_times_lanes(float* __restrict Z, const float* __restrict W, const float* __restrict xT, int64_t c,
                              int64_t r0) {
-  float acc[RB][L] = {};
+  vL acc[RB];
+  zero(acc);
   for (int64_t p = 0; p < c; ++p) {
-    const float* xp = xT + p * L;
-    for (int r = 0; r < RB; ++r) {
-      const float w = W[(r0 + r) * c + p];
-#pragma omp simd
-      for (int l = 0; l < L; ++l) acc[r][l] += w * xp[l];
-    }
+    const vL xp = ld(xT + p * L);
+    for (int r = 0; r < RB; ++r) acc[r] += W[(r0 + r) * c + p] * xp;
   }
   std::memcpy(Z + r0 * L, acc, sizeof acc);
 }
@@ -780,22 +797,21 @@ inline void matrix_times_lanes(float* Z, const float* W, const float* xT, int64_
 template <int KB, int QB>
 inline void y_block(float* const* out, const float* const* A, const float* __restrict Z, int64_t M, int64_t o,
                     int64_t q0) {
-  float acc[KB][QB][L] = {};
+  vL acc[KB][QB];
+  zero(acc);
   for (int64_t m = 0; m < M; ++m) {
     float a[KB];
     for (int k = 0; k < KB; ++k) a[k] = A[k][m];
     const float* z = Z + (m * o + q0) * L;
-    for (int q = 0; q < QB; ++q)
-      for (int k = 0; k < KB; ++k) {
-#pragma omp simd
-        for (int l = 0; l < L; ++l) acc[k][q][l] += a[k] * z[q * L + l];
-      }
+    for (int q = 0; q < QB; ++q) {
+      const vL zq = ld(z + q * L);
+      for (int k = 0; k < KB; ++k) acc[k][q] += a[k] * zq;
+    }
   }
   for (int k = 0; k < KB; ++k)
     for (int q = 0; q < QB; ++q) {
       float* d = out[k] + (q0 + q) * L;
-#pragma omp simd
-      for (int l = 0; l < L; ++l) d[l] += acc[k][q][l];
+      st(d, ld(d) + acc[k][q]);
     }
 }
 
@@ -815,18 +831,18 @@ inline void y_rows(float* const* out, const float* const* A, const float* Z, int
 template <int MB, int QB>
 inline void dz_block(float* __restrict dZ, const float* const* A, const float* const* dY, int64_t K, int64_t o,
                      int64_t m0, int64_t q0) {
-  float acc[MB][QB][L] = {};
+  vL acc[MB][QB];
+  zero(acc);
   for (int64_t k = 0; k < K; ++k) {
     const float* a = A[k] + m0;
     const float* y = dY[k] + q0 * L;
-    for (int q = 0; q < QB; ++q)
-      for (int m = 0; m < MB; ++m) {
-#pragma omp simd
-        for (int l = 0; l < L; ++l) acc[m][q][l] += a[m] * y[q * L + l];
-      }
+    for (int q = 0; q < QB; ++q) {
+      const vL yq = ld(y + q * L);
+      for (int m = 0; m < MB; ++m) acc[m][q] += a[m] * yq;
+    }
   }
   for (int m = 0; m < MB; ++m)
-    for (int q = 0; q < QB; ++q) std::memcpy(dZ + ((m0 + m) * o + q0 + q) * L, acc[m][q], L * sizeof(float));
+    for (int q = 0; q < QB; ++q) st(dZ + ((m0 + m) * o + q0 + q) * L, acc[m][q]);
 }
 
 template <int MB>
@@ -844,16 +860,14 @@ inline void dz_cols(float* dZ, const float* const* A, const float* const* dY, in
 template <int NV>
 inline void zm_block(float* __restrict Zm, const float* __restrict Bq, const float* __restrict xT, int64_t c,
                      int64_t o, int64_t ql0) {
-  float acc[4][NV][L] = {};
+  vL acc[4][NV];
+  zero(acc);
   for (int64_t p = 0; p < c; ++p)
     for (int i = 0; i < 4; ++i) {
       const int64_t ql = ql0 + i, q = ql / L, l = ql % L;
       const float w = xT[p * L + l];
       const float* bq = Bq + (p * o + q) * NV * L;
-      for (int v = 0; v < NV; ++v) {
-#pragma omp simd
-        for (int t = 0; t < L; ++t) acc[i][v][t] += w * bq[v * L + t];
-      }
+      for (int v = 0; v < NV; ++v) acc[i][v] += w * ld(bq + v * L);
     }
   std::memcpy(Zm + ql0 * NV * L, acc, sizeof acc);
 }
@@ -864,17 +878,17 @@ inline void zm_block(float* __restrict Zm, const float* __restrict Bq, const flo
 template <int KB, int NV>
 inline void da_block(float* const* dA, const float* const* dY, const float* __restrict Zm, int64_t QL, int64_t M,
                      bool assign) {
-  float acc[KB][NV][L] = {};
+  vL acc[KB][NV];
+  zero(acc);
   const float* y[KB];
   for (int k = 0; k < KB; ++k) y[k] = dY[k];
   for (int64_t ql = 0; ql < QL; ++ql) {
     const float* z = Zm + ql * NV * L;
+    vL zv[NV];
+    for (int v = 0; v < NV; ++v) zv[v] = ld(z + v * L);
     for (int k = 0; k < KB; ++k) {
       const float yk = y[k][ql];
-      for (int v = 0; v < NV; ++v) {
-#pragma omp simd
-        for (int t = 0; t < L; ++t) acc[k][v][t] += yk * z[v * L + t];
-      }
+      for (int v = 0; v < NV; ++v) acc[k][v] += yk * zv[v];
     }
   }
   for (int k = 0; k < KB; ++k)  // L kernels at a time (one vector each), not one scalar each
@@ -882,10 +896,9 @@ inline void da_block(float* const* dA, const float* const* dY, const float* __re
       const int64_t m0 = v * L, mn = std::min<int64_t>(L, M - m0);
       float* d = dA[k] + m0;
       if (assign) {
-        std::memcpy(d, acc[k][v], mn * sizeof(float));
+        std::memcpy(d, &acc[k][v], mn * sizeof(float));
       } else if (mn == L) {
-#pragma omp simd
-        for (int t = 0; t < L; ++t) d[t] += acc[k][v][t];
+        st(d, ld(d) + acc[k][v]);
       } else {
         for (int64_t t = 0; t < mn; ++t) d[t] += acc[k][v][t];
       }
@@ -933,14 +946,11 @@ inline void zm_then_da(float* const* dA, const float* const* rows, float* Zm, co
 template <int PB>
 inline void dx_block(float* __restrict dxT, const float* __restrict W, const float* __restrict dZ, int64_t R, int64_t c,
                      int64_t p0) {
-  float acc[PB][L] = {};
+  vL acc[PB];
+  zero(acc);
   for (int64_t r = 0; r < R; ++r) {
-    const float* z = dZ + r * L;
-    for (int p = 0; p < PB; ++p) {
-      const float w = W[r * c + p0 + p];
-#pragma omp simd
-      for (int l = 0; l < L; ++l) acc[p][l] += w * z[l];
-    }
+    const vL z = ld(dZ + r * L);
+    for (int p = 0; p < PB; ++p) acc[p] += W[r * c + p0 + p] * z;
   }
   std::memcpy(dxT + p0 * L, acc, sizeof acc);
 }
@@ -1263,11 +1273,8 @@ std::vector<torch::Tensor> kernel_lanes_backward(torch::Tensor dy, torch::Tensor
           }
           if (need_w) {
             const float* xs = xLp + (j * G + g) * c * L;
-            float part[L] = {};
-            for (int64_t p = 0; p < c; ++p) {
-#pragma omp simd
-              for (int l = 0; l < L; ++l) part[l] += xs[p * L + l] * drL[p * L + l];
-            }
+            vL part = {};
+            for (int64_t p = 0; p < c; ++p) part += ld(xs + p * L) * ld(drL.data() + p * L);
             float s = 0.f;
             for (int l = 0; l < L; ++l) s += part[l];
             dwp[row] += s;
@@ -1285,20 +1292,20 @@ namespace lanes {
 template <int BB, int NV>
 inline void t_rows(float* __restrict T, float* __restrict r, const float* const* X, const float* __restrict A,
                    int64_t K, int64_t M, int64_t beta0) {
-  float acc[BB][NV][L] = {};
+  vL acc[BB][NV];
+  zero(acc);
   for (int64_t k = 0; k < K; ++k) {
     const float* a = A + k * NV * L;
     const float* xk = X[k] + beta0;
+    vL av[NV];
+    for (int v = 0; v < NV; ++v) av[v] = ld(a + v * L);
     for (int t = 0; t < BB; ++t) {
       const float xv = xk[t];
-      for (int v = 0; v < NV; ++v) {
-#pragma omp simd
-        for (int l = 0; l < L; ++l) acc[t][v][l] += xv * a[v * L + l];
-      }
+      for (int v = 0; v < NV; ++v) acc[t][v] += xv * av[v];
     }
   }
   for (int t = 0; t < BB; ++t) {
-    std::memcpy(T + (beta0 + t) * M, acc[t], M * sizeof(float));  // acc[t] is NV L contiguous floats
+    std::memcpy(T + (beta0 + t) * M, &acc[t][0], M * sizeof(float));  // acc[t] is NV L contiguous floats
     if (r) r[beta0 + t] = acc[t][M / L][M % L];
   }
 }
