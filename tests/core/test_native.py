@@ -95,3 +95,85 @@ def test_processes_that_start_together_take_turns_and_one_says_it_compiles(tmp_p
         t.join()
     assert all(e.failed is None and e._module is not None for e in exts)
     assert capsys.readouterr().err.count("compiling its native kernels") == 1
+
+
+# ---- differentiable: a custom op's autograd without torch's per-call Python wrapper
+@torch.library.custom_op("fwk_test::scaled_square", mutates_args=())
+def _scaled_square(x: torch.Tensor, a: torch.Tensor, k: float) -> torch.Tensor:
+    return k * a * x * x
+
+
+@_scaled_square.register_fake
+def _(x, a, k):
+    return torch.empty_like(x)
+
+
+def _square_setup(ctx, inputs, output):
+    x, a, k = inputs
+    ctx.save_for_backward(x, a)
+    ctx.k = k
+
+
+def _square_backward(ctx, g):
+    x, a = ctx.saved_tensors
+    need_x, need_a = ctx.needs_input_grad[:2]
+    return (2 * ctx.k * a * x * g if need_x else None), ((ctx.k * x * x * g).sum(0) if need_a else None), None
+
+
+_scaled_square.register_autograd(_square_backward, setup_context=_square_setup)
+_fast_square = native.differentiable(_scaled_square)
+
+
+def test_differentiable_gives_the_ops_values_and_gradients():
+    torch.manual_seed(0)
+    x = torch.randn(5, 3, dtype=torch.float64, requires_grad=True)
+    a = torch.randn(3, dtype=torch.float64, requires_grad=True)
+    y, y_op = _fast_square(x, a, 0.5), _scaled_square(x, a, 0.5)
+    assert torch.equal(y, y_op) and torch.equal(y, 0.5 * a * x * x)
+    g = torch.randn_like(y)
+    assert all(torch.equal(u, v) for u, v in zip(torch.autograd.grad(y, (x, a), g),
+                                                 torch.autograd.grad(y_op, (x, a), g)))
+    assert torch.autograd.gradcheck(lambda x, a: _fast_square(x, a, 0.5), (x, a))
+    # an input that needs no gradient gets none (the op's backward is asked as the op would ask it)
+    (gx,) = torch.autograd.grad(_fast_square(x, a.detach(), 0.5).sum(), (x,))
+    assert torch.allclose(gx, a * x)
+    assert _fast_square.op is _scaled_square and _fast_square.__name__ == "scaled_square"
+
+
+def test_differentiable_skips_the_dispatcher_only_when_nothing_intercepts_it():
+    from torch._subclasses.fake_tensor import FakeTensorMode
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Seen(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.ops = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.ops.append(str(func))
+            return func(*args, **(kwargs or {}))
+
+    x, a = torch.randn(4, 2, requires_grad=True), torch.randn(2)
+    with Seen() as seen:  # a flop counter, a tracer: the op is called through the dispatcher, and seen
+        y = _fast_square(x, a, 2.0)
+    assert any("fwk_test.scaled_square" in op for op in seen.ops)
+    assert torch.allclose(y, 2 * a * x * x)
+    with torch.profiler.profile() as prof:  # a plain call: the op's implementation straight away
+        _fast_square(x, a, 2.0).sum().backward()
+    assert not any(e.name.startswith("fwk_test::scaled_square") for e in prof.events())
+    with FakeTensorMode() as mode:  # fake tensors: the op's fake
+        yf = _fast_square(mode.from_tensor(x), mode.from_tensor(a), 2.0)
+    assert yf.shape == x.shape
+
+
+def test_differentiable_refuses_an_op_without_a_gradient():
+    @torch.library.custom_op("fwk_test::no_gradient", mutates_args=())
+    def no_gradient(x: torch.Tensor) -> torch.Tensor:
+        return x.clone()
+
+    try:
+        native.differentiable(no_gradient)
+    except ValueError as e:
+        assert "fwk_test::no_gradient" in str(e) and "register_autograd" in str(e)
+    else:
+        raise AssertionError("an op without register_autograd was accepted")
