@@ -177,3 +177,13 @@ def test_differentiable_refuses_an_op_without_a_gradient():
         assert "fwk_test::no_gradient" in str(e) and "register_autograd" in str(e)
     else:
         raise AssertionError("an op without register_autograd was accepted")
+
+
+def test_differentiable_takes_parameters_as_plain_tensors_and_names_its_backward():
+    x, a = torch.nn.Parameter(torch.randn(4, 2)), torch.nn.Parameter(torch.randn(2))
+    with torch.profiler.profile() as prof:
+        _fast_square(x, a, 2.0).sum().backward()
+    names = {e.name for e in prof.events()}
+    assert not any(n.startswith("fwk_test::scaled_square") for n in names), "a parameter took the dispatcher"
+    assert "fwk_test_scaled_squareBackward" in names
+    assert torch.allclose(a.grad, (2 * x * x).sum(0).detach())

@@ -141,12 +141,16 @@ class Extension:
         return self.available()
 
 
+_PLAIN = (torch.Tensor, torch.nn.Parameter)  # a Parameter overrides neither __torch_function__ nor dispatch
+
+
 def _plain(args) -> bool:
     """Whether a call can skip the dispatcher: no TorchDispatchMode is active (a flop counter, fake
-    tensors, torch.compile's tracing) and every tensor argument is a plain ``torch.Tensor``."""
+    tensors, torch.compile's tracing) and every tensor argument is a plain tensor or a parameter (not
+    a subclass that intercepts calls)."""
     if torch._C._len_torch_dispatch_stack():
         return False
-    return all(type(a) is torch.Tensor for a in args if isinstance(a, torch.Tensor))
+    return all(type(a) in _PLAIN for a in args if isinstance(a, torch.Tensor))
 
 
 def differentiable(op):
@@ -166,18 +170,14 @@ def differentiable(op):
     if setup is None or backward is None:
         raise ValueError(f"{op._qualname}: register_autograd first")
 
-    class Call(torch.autograd.Function):
-        @staticmethod
-        def forward(ctx, *args):
-            out = impl(*args) if _plain(args) else op(*args)
-            setup(ctx, args, out)
-            return out
+    def forward(ctx, *args):
+        out = impl(*args) if _plain(args) else op(*args)
+        setup(ctx, args, out)
+        return out
 
-        @staticmethod
-        def backward(ctx, *grads):
-            return backward(ctx, *grads)
-
-    Call.__name__ = Call.__qualname__ = f"{op._namespace}_{op._name}"
+    # named after the op, so that profiles name it and its backward (``<namespace>_<name>Backward``)
+    Call = type(f"{op._namespace}_{op._name}", (torch.autograd.Function,),
+                {"forward": staticmethod(forward), "backward": staticmethod(lambda ctx, *grads: backward(ctx, *grads))})
 
     def call(*args):
         return Call.apply(*args)
