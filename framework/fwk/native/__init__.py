@@ -146,7 +146,7 @@ _PLAIN = (torch.Tensor, torch.nn.Parameter)  # a Parameter overrides neither __t
 
 def _plain(args) -> bool:
     """Whether a call can skip the dispatcher: no TorchDispatchMode is active (a flop counter, fake
-    tensors, torch.compile's tracing) and every tensor argument is a plain tensor or a parameter (not
+    tensors) and every tensor argument is a plain tensor or a parameter (not
     a subclass that intercepts calls)."""
     if torch._C._len_torch_dispatch_stack():
         return False
@@ -158,14 +158,16 @@ def differentiable(op):
     arguments, the same result and the same gradient, that a training step calls for less: a plain
     ``torch.autograd.Function`` whose forward runs op's own implementation straight away, and op
     itself (through the dispatcher) when something intercepts the dispatcher (``_plain``), so that
-    ``torch.utils.flop_counter``, fake tensors and torch.compile still see ``op``. The
-    Function saves and differentiates with op's ``setup_context`` and ``backward``.
+    ``torch.utils.flop_counter`` and fake tensors still see ``op`` (tested; fwk does not use
+    torch.compile, and it is not tested with it). The Function saves and differentiates with op's
+    ``setup_context`` and ``backward``.
 
     Why: torch's autograd for a custom op is Python built around each call (a generated Function,
-    the dispatcher entered twice, the schema's defaults filled in): 40-45 us a call more than this
-    (measured: 29 against 12 us forward, on a kernel of 2 us). The chapter 5 width's step makes 31 such
-    calls forward and as many backward: custom ops 88.0 ms, these functions 82.1 ms (1.072x, 22 of 30
-    rounds alternating in one process, 2 threads, 2026-12-07)."""
+    the dispatcher entered twice, the schema's defaults filled in): about 40 us a call more than this
+    (measured: 29 against 12 us forward, on a kernel of 2 us, and about 27 us more backward). The
+    chapter 5 width's step makes 31 such calls forward and as many backward: 1.05-1.07x the step in
+    most of six runs alternating in one process (2 threads, 2026-12-07; docs/methods/autoencoders.md
+    "Speed")."""
     impl, setup, backward = op._init_fn, op._setup_context_fn, op._backward_fn
     if setup is None or backward is None:
         raise ValueError(f"{op._qualname}: register_autograd first")
