@@ -187,3 +187,18 @@ def test_differentiable_takes_parameters_as_plain_tensors_and_names_its_backward
     assert not any(n.startswith("fwk_test::scaled_square") for n in names), "a parameter took the dispatcher"
     assert "fwk_test_scaled_squareBackward" in names
     assert torch.allclose(a.grad, (2 * x * x).sum(0).detach())
+
+
+def test_differentiable_falls_back_to_the_op_where_torch_keeps_its_parts_elsewhere(monkeypatch):
+    class Elsewhere:  # a custom op of a torch without CustomOpDef's private attributes
+        def __call__(self, x):
+            return 2 * x
+
+    op = Elsewhere()
+    assert native.differentiable(op) is op
+    monkeypatch.setattr(native, "_dispatch_modes", None)  # no way to see dispatch modes: always the dispatcher
+    x = torch.randn(3, 2, requires_grad=True)
+    with torch.profiler.profile() as prof:
+        y = _fast_square(x, torch.ones(2), 1.0)
+    assert any(e.name.startswith("fwk_test::scaled_square") for e in prof.events())
+    assert torch.allclose(y, x * x)

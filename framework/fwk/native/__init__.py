@@ -142,13 +142,14 @@ class Extension:
 
 
 _PLAIN = (torch.Tensor, torch.nn.Parameter)  # a Parameter overrides neither __torch_function__ nor dispatch
+_dispatch_modes = getattr(torch._C, "_len_torch_dispatch_stack", None)  # private: without it, always the dispatcher
 
 
 def _plain(args) -> bool:
     """Whether a call can skip the dispatcher: no TorchDispatchMode is active (a flop counter, fake
     tensors) and every tensor argument is a plain tensor or a parameter (not
     a subclass that intercepts calls)."""
-    if torch._C._len_torch_dispatch_stack():
+    if _dispatch_modes is None or _dispatch_modes():
         return False
     return all(type(a) in _PLAIN for a in args if isinstance(a, torch.Tensor))
 
@@ -168,7 +169,11 @@ def differentiable(op):
     chapter 5 width's step makes 31 such calls forward and as many backward: 1.05-1.07x the step in
     most of six runs alternating in one process (2 threads, 2026-12-07; docs/methods/autoencoders.md
     "Speed")."""
-    impl, setup, backward = op._init_fn, op._setup_context_fn, op._backward_fn
+    try:
+        impl, setup, backward = op._init_fn, op._setup_context_fn, op._backward_fn
+        namespace, name = op._namespace, op._name
+    except AttributeError:  # a torch whose CustomOpDef keeps them elsewhere: the op itself, at its per-call cost
+        return op
     if setup is None or backward is None:
         raise ValueError(f"{op._qualname}: register_autograd first")
 
@@ -178,13 +183,13 @@ def differentiable(op):
         return out
 
     # named after the op, so that profiles name it and its backward (``<namespace>_<name>Backward``)
-    Call = type(f"{op._namespace}_{op._name}", (torch.autograd.Function,),
+    Call = type(f"{namespace}_{name}", (torch.autograd.Function,),
                 {"forward": staticmethod(forward), "backward": staticmethod(lambda ctx, *grads: backward(ctx, *grads))})
 
     def call(*args):
         return Call.apply(*args)
 
-    call.__name__ = op._name
-    call.__doc__ = op._init_fn.__doc__
+    call.__name__ = name
+    call.__doc__ = impl.__doc__
     call.op = op
     return call
