@@ -668,10 +668,10 @@ namespace lanes {
 constexpr int L = 16;  // lanes: batch entries per group
 constexpr int64_t MAX_M = 4 * L;  // da_all / zm_all up to 4 chunks of L kernels
 
-// one register of L floats (GCC's vector extension). The kernels' accumulators are arrays of these: declared as
-// float arrays with `= {}`, GCC zero-filled them on the stack with `rep stos` (its start-up cost was 9-16 % of
-// t_rows, da_block and lanes_forward in perf) before moving them to registers; arrays of vectors start as zeroed
-// registers. ld / st: unaligned loads and stores.
+// one register of L floats (GCC's vector extension). The kernels' accumulators are arrays of these, zeroed a vector
+// at a time (`zero`): declared as float arrays with `= {}`, GCC zero-filled them on the stack with `rep stos` (its
+// start-up cost was 9-16 % of t_rows, da_block and lanes_forward in perf) before moving them to registers. ld / st:
+// unaligned loads and stores.
 typedef float vL __attribute__((vector_size(L * sizeof(float))));
 typedef float vLu __attribute__((vector_size(L * sizeof(float)), aligned(4), may_alias));
 inline vL ld(const float* p) { return *reinterpret_cast<const vLu*>(p); }
