@@ -604,9 +604,10 @@ def _naive_kernel_lanes(x, Wk, w, offs, src, pos, o):
 @pytest.mark.parametrize("b,c,o,residual", [(16, 3, 8, True), (5, 8, 16, False), (20, 4, 5, True), (33, 2, 11, True),
                                             (16, 9, 8, True), (17, 64, 32, True), (3, 40, 27, False)])
 def test_kernel_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, o, residual, torch_threads):
-    """``kernel_lanes`` (the kernel order, 16 batch entries a register; the kernels' gradient by
-    ``kernel_product``'s backward) against the slot loop in float64: y, the residual's average, and the
-    gradients of x, the kernels and the residual's weights; batches of 16 and not, supports of 0-9 slots."""
+    """``kernel_lanes`` (the kernel order, 16 batch entries a register; the kernels' gradient from the
+    batch-major rows, two slots at a time) against the slot loop in float64: y, the residual's average, and the
+    gradients of x, the kernels and the residual's weights, and of the kernels and weights alone (an input that
+    needs no gradient: the first layer's); batches of 16 and not, supports of 0-9 slots, odd and even."""
     torch.set_num_threads(threads)
     g = torch.Generator().manual_seed(13)
     offs, src = _csr(11, 30, 9, g, empty=(2,))
@@ -624,7 +625,12 @@ def test_kernel_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c,
     else:
         assert r.numel() == 0
     ins, insd = ((x, Wk, w), (xd, Wd, wd)) if residual else ((x, Wk), (xd, Wd))
-    for a, e in zip(torch.autograd.grad(out, ins), torch.autograd.grad(oute, insd)):
+    expected = torch.autograd.grad(oute, insd)
+    for a, e in zip(torch.autograd.grad(out, ins), expected):
+        assert torch.allclose(a.double(), e, atol=1e-4), (a.double() - e).abs().max()
+    y, r = native.kernel_lanes(x.detach(), Wk, w, offs, src, pos, o)  # no dx asked for
+    out = (y * gy).sum() + ((r * gr).sum() if residual else 0)
+    for a, e in zip(torch.autograd.grad(out, ins[1:]), expected[1:]):
         assert torch.allclose(a.double(), e, atol=1e-4), (a.double() - e).abs().max()
 
 

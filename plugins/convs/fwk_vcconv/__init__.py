@@ -146,11 +146,12 @@ def _bucketed(rows: list[np.ndarray], cols: list[np.ndarray], n_rows: int):
 LANES_MAX_OUT = 8
 #: the ``kernel`` order runs in lanes (``native.kernel_lanes``) for layers with at most this many input
 #: channels and at most ``KERNEL_LANES_MAX_OUT`` output channels (the chapter 5 width's first layer, 3 -> 8:
-#: 2.0-2.2x its per-vertex products forward and 1.9-2.0x the input's gradient; the kernels' gradient stays
-#: with ``kernel_product``'s BLAS call). Measured 2026-12-07 on the first layer (11,248 -> 3,089 vertices,
-#: forward and backward, 2 threads, batch 16) against ``kernel_product``: 1.10-1.20x for 9 -> 8 (the DR
-#: representation's 9 features), 1.14-1.19x for 12, 16, 24, 32 and 64 -> 8, 1.03-1.07x for 9 -> 32 and
-#: 32 -> 32, 0.97-0.98x for 64 -> 64 (until then 8 -> any)
+#: 2.0-2.2x its per-vertex products forward and 1.9-2.0x the input's gradient). Measured 2026-12-07 on the
+#: first layer (11,248 -> 3,089 vertices, forward and backward, 2 threads, batch 16) against
+#: ``kernel_product``, when the kernels' gradient was still ``kernel_product``'s BLAS call for both (it is
+#: ``kernel_lanes``' own now, 3.5x on that layer): 1.10-1.20x for 9 -> 8 (the DR representation's 9
+#: features), 1.14-1.19x for 12, 16, 24, 32 and 64 -> 8, 1.03-1.07x for 9 -> 32 and 32 -> 32, 0.97-0.98x
+#: for 64 -> 64 (until then 8 -> any)
 KERNEL_LANES_MAX_IN = 64
 KERNEL_LANES_MAX_OUT = 32
 

@@ -51,8 +51,9 @@ and dA with Z laid out kernels-innermost (the kernels as the vector, no horizont
 functions are compiled for AVX-512 only (``lanes``: False on other CPUs, where the tall product and
 ``basis_product`` run). ``kernel_lanes`` (``fwk_vcconv::kernel_lanes``) is ``kernel_product`` alike:
 each slot's kernel applied to 16 batch entries a register, forward and the input's gradient (2x the
-BLAS kernel's there); the kernels' gradient stays with ``kernel_product``'s per-vertex BLAS call, which
-was faster than a batch sum in lanes. ``sum_product``'s forward runs in lanes too (``sum_forward``
+BLAS kernel's there); the kernels' gradient is a sum over the batch for each slot, made from the
+batch-major rows two slots at a time (3.5x ``kernel_product``'s per-vertex BLAS call on the chapter 5
+width's first layer, 1.04x its training step). ``sum_product``'s forward runs in lanes too (``sum_forward``
 with ``lanes``: each T_i with the kernels as the vector, 1.2-2.0x the per-vertex BLAS call); its
 backward stays with BLAS. All three together: 1.10-1.46x the chapter 5 width's training step
 (``benchmarks/training.py``, "no lanes", 2026-12-07). The lane kernels ask for the next vertex's
@@ -396,15 +397,10 @@ def _kernel_lanes_backward(ctx, dy, dr):
         dr = x.new_empty(0)
     need = ctx.needs_input_grad
     x = x.contiguous()
-    dx = dw = dWk = None
-    if need[0] or (need[2] and w.shape[0]):
-        dx, dw = _load().kernel_lanes_backward(dy, dr, x, Wk.contiguous(), w.contiguous(), offs, src, pos, need[0],
-                                               need[2] and w.shape[0] > 0)
-    if need[1]:  # the kernels' gradient: kernel_backward's per-vertex BLAS product, on the same layouts
-        dWk = _load().kernel_backward(dy, dr.reshape(n_out, b * c) if w.shape[0] else dr, x.reshape(n_in, b * c),
-                                      Wk.contiguous(), w.contiguous(), offs, src, pos, b, c, o, False, True,
-                                      False)[1]
-    return (dx if need[0] else None), dWk, (dw if need[2] and w.shape[0] else None), None, None, None, None
+    dx, dWk, dw = _load().kernel_lanes_backward(dy, dr, x, Wk.contiguous(), w.contiguous(), offs, src, pos, need[0],
+                                                need[1], need[2] and w.shape[0] > 0)
+    return (dx if need[0] else None), (dWk if need[1] else None), (dw if need[2] and w.shape[0] else None), \
+        None, None, None, None
 
 
 kernel_lanes.register_autograd(_kernel_lanes_backward, setup_context=_kernel_lanes_setup)
