@@ -98,6 +98,9 @@ inline torch::Tensor row_grad(bool need, int64_t rows, int64_t cols, int64_t slo
 // (the lane kernels, compiled for AVX-512 below) T_i and r_i of one output vertex with the kernels as the vector
 void sum_vertex_lanes(float* Ti, float* ri, const float* const* X, const float* A, int64_t K, int64_t M, int64_t B,
                       int64_t NV);
+// (the same) the coefficients' gradient of one output vertex's slots, dA_k, with the kernels as the vector
+void sum_vertex_lanes_backward(float* dA, const float* const* X, const float* dTi, const float* dri, int64_t K,
+                               int64_t M, int64_t B, int64_t NV, std::vector<float>& work);
 bool lanes_supported();
 
 // sum order, forward. x (n_in, B); coef (R, M) and w (R, or empty) are read at pos (slots); offs
@@ -153,14 +156,17 @@ std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torc
 }
 
 // sum order, backward. dT (n_out, B, M), dr (n_out, B) or empty; returns dx (n_in, B), dcoef (R, M)
-// and dw (R) (zero at the rows no slot reads; empty where not asked for).
+// and dw (R) (zero at the rows no slot reads; empty where not asked for). dx by one BLAS call per vertex; dcoef and
+// dw the same way, or with ``lanes`` by sum_vertex_lanes_backward (the kernels as the vector, the x rows in place).
 std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torch::Tensor x, torch::Tensor coef,
                                         torch::Tensor w, torch::Tensor offs, torch::Tensor src, torch::Tensor pos,
-                                        bool need_dx, bool need_dcoef, bool need_dw) {
+                                        bool need_dx, bool need_dcoef, bool need_dw, bool lanes) {
   check(dT, "dT", at::kFloat, 3);
   const int64_t n_in = x.size(0), B = x.size(1), M = coef.size(1), n_out = offs.size(0) - 1;
   const bool res = w.size(0) > 0;
-  const int64_t Mx = M + (res ? 1 : 0);
+  const int64_t Mx = M + (res ? 1 : 0), NV = (Mx + 15) / 16;
+  TORCH_CHECK(!lanes || Mx <= 64, "coef: at most ", 64 - (res ? 1 : 0), " kernels in lanes");
+  TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
   if (res) check(dr, "dr", at::kFloat, 2);
   need_dw = need_dw && res;
   const int nt = at::get_num_threads();
@@ -182,8 +188,10 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
   const int64_t Kmax = max_run(op, n_out);
   fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
     float* mine = need_dx ? thread_accumulator(accp, nt, n_in * B) : nullptr;
-    std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), dbuf(std::max<int64_t>(Kmax * B, 1));
-    std::vector<float> A(std::max<int64_t>(Kmax * Mx, 1)), dA(std::max<int64_t>(Kmax * Mx, 1));
+    std::vector<float> buf(lanes ? 1 : std::max<int64_t>(Kmax * B, 1)), dbuf(std::max<int64_t>(Kmax * B, 1));
+    std::vector<float> A(std::max<int64_t>(Kmax * Mx, 1)), dA(lanes ? 1 : std::max<int64_t>(Kmax * Mx, 1));
+    std::vector<float> dAL(lanes ? Kmax * NV * 16 : 0), work;
+    std::vector<const float*> X(lanes ? Kmax : 0);
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
       if (i + 1 < i1) {  // the next vertex's x rows, and its rows of this thread's dx
@@ -192,7 +200,15 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
       }
       if (K == 0) continue;
       const float* dTi = dTp + i * B * M;
-      if (need_dcoef || need_dw) {
+      if ((need_dcoef || need_dw) && lanes) {  // the x rows read in place; dA_k padded to NV * 16 (w's in column M)
+        for (int64_t k = 0; k < K; ++k) X[k] = xp + sp[s0 + k] * B;
+        sum_vertex_lanes_backward(dAL.data(), X.data(), dTi, res ? drp + i * B : nullptr, K, M, B, NV, work);
+        for (int64_t k = 0; k < K; ++k) {
+          if (need_dcoef) std::memcpy(dcp + pp[s0 + k] * M, dAL.data() + k * NV * 16, M * sizeof(float));
+          if (need_dw) dwp[pp[s0 + k]] = dAL[k * NV * 16 + M];
+        }
+      }
+      if ((need_dcoef || need_dw) && !lanes) {
         gather_rows(buf.data(), xp, sp, s0, K, B);
         // dA_i[:, :M] (K x M) = X_i (K x B) dT_i (B x M)
         gemm('N', 'N', M, K, B, 1.f, dTi, M, buf.data(), B, 0.f, dA.data(), Mx);
@@ -1414,6 +1430,67 @@ struct TRows {
   }
 };
 }  // namespace lanes
+
+namespace lanes {
+// dA rows of KB slots: dA_k[m] = sum_beta X_k[beta] dTx[beta][m], the kernels (and the residual's column M) as the
+// vector: NV vectors of L (dTx (B x NV L), zero past Mx)
+template <int KB, int NV>
+inline void sum_da_block(float* __restrict dA, const float* const* X, const float* __restrict dTx, int64_t B,
+                         int64_t k0) {
+  vL acc[KB][NV];
+  zero(acc);
+  const float* x[KB];
+  for (int k = 0; k < KB; ++k) x[k] = X[k0 + k];
+  for (int64_t beta = 0; beta < B; ++beta) {
+    vL d[NV];
+    for (int v = 0; v < NV; ++v) d[v] = ld(dTx + (beta * NV + v) * L);
+    for (int k = 0; k < KB; ++k) {
+      const float xv = x[k][beta];
+      for (int v = 0; v < NV; ++v) acc[k][v] += xv * d[v];
+    }
+  }
+  for (int k = 0; k < KB; ++k)
+    for (int v = 0; v < NV; ++v) st(dA + ((k0 + k) * NV + v) * L, acc[k][v]);
+}
+
+template <int NV>
+inline void sum_da_rows(float* dA, const float* const* X, const float* dTx, int64_t B, int64_t K) {
+  int64_t k0 = 0;
+  for (; k0 + 4 <= K; k0 += 4) sum_da_block<4, NV>(dA, X, dTx, B, k0);
+  switch (K - k0) {
+    case 3: sum_da_block<3, NV>(dA, X, dTx, B, k0); break;
+    case 2: sum_da_block<2, NV>(dA, X, dTx, B, k0); break;
+    case 1: sum_da_block<1, NV>(dA, X, dTx, B, k0); break;
+    default: break;
+  }
+}
+
+}  // namespace lanes
+
+// sum_backward's coefficient gradients in lanes: dT_i (B x M) and dr_i (B, or null) copied into dTx (B x NV L: dr_i
+// in column M, zero past it), then dA_k[m] = sum_beta X_k[beta] dTx[beta][m] for the vertex's K slots, the kernels
+// as the vector (dA: K rows of NV L floats). The input's gradient stays with BLAS: a lane version (the rows of dT_i
+// transposed per vertex, the batch as the vector) was 0.6-0.9x its call on the chapter 5 and thesis widths' encoders.
+void sum_vertex_lanes_backward(float* dA, const float* const* X, const float* dTi, const float* dri, int64_t K,
+                               int64_t M, int64_t B, int64_t NV, std::vector<float>& work) {
+  using namespace lanes;
+  const int64_t NVL = NV * L;
+  if (static_cast<int64_t>(work.size()) < B * NVL) work.resize(B * NVL);
+  float* dTx = work.data();
+  for (int64_t beta = 0; beta < B; ++beta) {
+    float* row = dTx + beta * NVL;
+    std::memcpy(row, dTi + beta * M, M * sizeof(float));
+    int64_t m = M;
+    if (dri) row[m++] = dri[beta];
+    for (; m < NVL; ++m) row[m] = 0.f;
+  }
+  switch (NV) {
+    case 1: sum_da_rows<1>(dA, X, dTx, B, K); break;
+    case 2: sum_da_rows<2>(dA, X, dTx, B, K); break;
+    case 3: sum_da_rows<3>(dA, X, dTx, B, K); break;
+    default: sum_da_rows<4>(dA, X, dTx, B, K); break;
+  }
+}
 
 // sum_forward's per-vertex T_i and r_i with the kernels as the vector (rows of 8, NV vectors of 16 kernels each, the
 // residual's weight in column M): 1.2-2.0x the BLAS call on the encoders' layers
