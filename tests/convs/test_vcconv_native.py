@@ -77,13 +77,15 @@ def _offer_nan(*ts):
 @pytestmark_native
 @pytest.mark.parametrize("residual", [False, True])
 @pytest.mark.parametrize("threads", [1, 2])
-@pytest.mark.parametrize("B,M,lanes", [(12, 5, True), (12, 5, False), (37, 16, True), (128, 35, True), (20, 64, False)])
+@pytest.mark.parametrize("B,M,lanes", [(12, 5, True), (12, 5, False), (37, 16, True), (128, 35, True), (20, 63, True),
+                                        (20, 64, False)])
 @pytest.mark.parametrize("spare", [7, 0])
 def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, B, M, lanes, spare, torch_threads,
                                                              monkeypatch):
     """T and r against the per-vertex loops in float64, on the per-vertex BLAS call and (``lanes``,
-    where the CPU runs them) its lane path (``sum_vertex_lanes``): rows in blocks of 8 and the rest, kernels (and
-    the residual's column) in 1-3 vectors of 16; coefficient rows no slot reads (``spare``) or none."""
+    where the CPU runs them) its lane path (``sum_vertex_lanes``, and ``sum_vertex_lanes_backward`` for the
+    coefficients' gradient): rows in blocks of 8 and the rest, slots in blocks of 4 and the rest, kernels (and the
+    residual's column) in 1-4 vectors of 16; coefficient rows no slot reads (``spare``) or none."""
     if not lanes:
         monkeypatch.setattr(native, "lanes", lambda M=1: False)
     torch.set_num_threads(threads)
