@@ -721,3 +721,12 @@ def test_the_kernels_leave_mkls_thread_count_as_they_found_it(torch_threads):
     torch.set_num_threads(1)
     native.kernel_product(x, Wk, w, offs, src, pos, 16, 3, 8)
     assert _mkl_max_threads() == 1
+
+
+def test_basis_lanes_takes_the_cheaper_route_to_the_coefficients_gradient():
+    """``lanes_da_route``: through each slot's G_s where its multiply-adds, at their price, are fewer (the chapter 5
+    width's 8 -> 3 and 32 -> 4 layers), through Zm otherwise (its 16 -> 8 layer; the thesis width's 32 -> 3)."""
+    assert native.lanes_da_route(3089, 59623, 16, 8, 3, 35) == 2
+    assert native.lanes_da_route(16, 128, 16, 32, 4, 35) == 2
+    assert native.lanes_da_route(631, 19190, 16, 16, 8, 35) == 1
+    assert native.lanes_da_route(3089, 59623, 16, 32, 3, 35) == 1
