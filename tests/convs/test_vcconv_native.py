@@ -10,6 +10,8 @@ import torch
 from fwk_vcconv import native
 
 
+_NO_BIAS = torch.empty(0)  # the lane kernels' bias argument: none
+
 def test_the_native_kernels_build():
     """CI has a compiler (``.ci/run``): the kernels must build there, not fall back silently."""
     if not native.enabled():
@@ -501,7 +503,7 @@ def test_basis_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, 
     x = torch.randn(n_in, b, c, generator=g, requires_grad=True)
     basis = torch.randn(M, c, o, generator=g, requires_grad=True)
     coef, _, pos = _coefficients(len(dst), M, g, False, spare=spare)
-    y = native.basis_lanes(x, basis, coef, offs, dst, pos, n_out)
+    y = native.basis_lanes(x, basis, coef, offs, dst, pos, n_out, _NO_BIAS)
     xd, bd, cd = _double(x, basis, coef)
     ye = _naive_basis_lanes(xd, bd, cd, offs, dst, pos, n_out)
     assert y.shape == (n_out, b, o)
@@ -526,11 +528,11 @@ def test_basis_lanes_is_the_same_bits_on_repeat_and_asks_only_what_is_needed(tor
     basis = torch.randn(35, 8, 3, generator=g)
     coef, _, pos = _coefficients(len(dst), 35, g, False)
     coef = coef.detach()
-    runs = [native.basis_lanes(x, basis, coef, offs, dst, pos, 700) for _ in range(3)]
+    runs = [native.basis_lanes(x, basis, coef, offs, dst, pos, 700, _NO_BIAS) for _ in range(3)]
     assert all(torch.equal(r, runs[0]) for r in runs[1:])
     xr = x.clone().requires_grad_()
-    (dx,) = torch.autograd.grad(native.basis_lanes(xr, basis, coef, offs, dst, pos, 700).sum(), xr)
-    (dx2,) = torch.autograd.grad(native.basis_lanes(xr, basis, coef, offs, dst, pos, 700).sum(), xr)
+    (dx,) = torch.autograd.grad(native.basis_lanes(xr, basis, coef, offs, dst, pos, 700, _NO_BIAS).sum(), xr)
+    (dx2,) = torch.autograd.grad(native.basis_lanes(xr, basis, coef, offs, dst, pos, 700, _NO_BIAS).sum(), xr)
     assert torch.equal(dx, dx2)
 
 
@@ -541,18 +543,18 @@ def test_basis_lanes_refuses_malformed_arguments_and_is_counted():
     x, basis, coef = torch.randn(3, 4, 2), torch.randn(5, 2, 3), torch.randn(4, 5)
     offs, dst, pos = torch.tensor([0, 2, 2, 4]), torch.tensor([0, 1, 1, 2]), torch.tensor([3, 0, 1, 2])
     with pytest.raises(RuntimeError, match="out of range"):
-        native.basis_lanes(x, basis, coef, offs, torch.tensor([0, 1, 1, 3]), pos, 3)
+        native.basis_lanes(x, basis, coef, offs, torch.tensor([0, 1, 1, 3]), pos, 3, _NO_BIAS)
     with pytest.raises(RuntimeError, match="named twice"):
-        native.basis_lanes(x, basis, coef, offs, dst, torch.tensor([0, 0, 1, 2]), 3)
+        native.basis_lanes(x, basis, coef, offs, dst, torch.tensor([0, 0, 1, 2]), 3, _NO_BIAS)
     with pytest.raises(RuntimeError, match="input channels"):
-        native.basis_lanes(x, torch.randn(5, 3, 3), coef, offs, dst, pos, 3)
+        native.basis_lanes(x, torch.randn(5, 3, 3), coef, offs, dst, pos, 3, _NO_BIAS)
     with pytest.raises(RuntimeError, match="1 to 64 kernels"):
-        native.basis_lanes(x, torch.randn(65, 2, 3), torch.randn(4, 65), offs, dst, pos, 3)
+        native.basis_lanes(x, torch.randn(65, 2, 3), torch.randn(4, 65), offs, dst, pos, 3, _NO_BIAS)
     with pytest.raises(RuntimeError, match="Float"):
-        native.basis_lanes(x.double(), basis.double(), coef.double(), offs, dst, pos, 3)
+        native.basis_lanes(x.double(), basis.double(), coef.double(), offs, dst, pos, 3, _NO_BIAS)
     assert not native.lanes(65) and native.lanes(64)
     with FlopCounterMode(display=False) as fc:
-        native.basis_lanes(x, basis, coef, offs, dst, pos, 3)
+        native.basis_lanes(x, basis, coef, offs, dst, pos, 3, _NO_BIAS)
     assert fc.get_total_flops() == 2 * 3 * 4 * 2 * 5 * 3 + 2 * 4 * 5 * 4 * 3  # as the tall product and basis_product
 
 
@@ -621,7 +623,7 @@ def test_kernel_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c,
     offs, src = _csr(11, 30, 9, g, empty=(2,))
     x = torch.randn(30, b, c, generator=g, requires_grad=True)
     Wk, w, pos = _coefficients(len(src), c * o, g, residual)
-    y, r = native.kernel_lanes(x, Wk, w, offs, src, pos, o)
+    y, r = native.kernel_lanes(x, Wk, w, offs, src, pos, o, _NO_BIAS)
     xd, Wd, wd = _double(x, Wk, w)
     ye, re = _naive_kernel_lanes(xd, Wd, wd, offs, src, pos, o)
     assert torch.allclose(y.double(), ye, atol=1e-4)
@@ -636,7 +638,7 @@ def test_kernel_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c,
     expected = torch.autograd.grad(oute, insd)
     for a, e in zip(torch.autograd.grad(out, ins), expected):
         assert torch.allclose(a.double(), e, atol=1e-4), (a.double() - e).abs().max()
-    y, r = native.kernel_lanes(x.detach(), Wk, w, offs, src, pos, o)  # no dx asked for
+    y, r = native.kernel_lanes(x.detach(), Wk, w, offs, src, pos, o, _NO_BIAS)  # no dx asked for
     out = (y * gy).sum() + ((r * gr).sum() if residual else 0)
     for a, e in zip(torch.autograd.grad(out, ins[1:]), expected[1:]):
         assert torch.allclose(a.double(), e, atol=1e-4), (a.double() - e).abs().max()
@@ -651,12 +653,12 @@ def test_kernel_lanes_is_counted_as_kernel_product_and_refuses_malformed_argumen
     x = torch.randn(20, 4, 3, generator=g)
     Wk, w, pos = _coefficients(len(src), 3 * 8, g, True)
     with FlopCounterMode(display=False) as fc:
-        native.kernel_lanes(x, Wk.detach(), w.detach(), offs, src, pos, 8)
+        native.kernel_lanes(x, Wk.detach(), w.detach(), offs, src, pos, 8, _NO_BIAS)
     assert fc.get_total_flops() == 2 * len(src) * 4 * 3 * (8 + 1)
     with pytest.raises(RuntimeError, match="c o"):
-        native.kernel_lanes(x, Wk.detach(), w.detach(), offs, src, pos, 7)
+        native.kernel_lanes(x, Wk.detach(), w.detach(), offs, src, pos, 7, _NO_BIAS)
     with pytest.raises(RuntimeError, match="out of range"):
-        native.kernel_lanes(x, Wk.detach(), w.detach(), offs, torch.full_like(src, 20), pos, 8)
+        native.kernel_lanes(x, Wk.detach(), w.detach(), offs, torch.full_like(src, 20), pos, 8, _NO_BIAS)
 
 
 @pytestmark_lanes
@@ -730,3 +732,33 @@ def test_basis_lanes_takes_the_cheaper_route_to_the_coefficients_gradient():
     assert native.lanes_da_route(16, 128, 16, 32, 4, 35) == 2
     assert native.lanes_da_route(631, 19190, 16, 16, 8, 35) == 1
     assert native.lanes_da_route(3089, 59623, 16, 32, 3, 35) == 1
+
+
+@pytestmark_lanes
+@pytest.mark.parametrize("b", [16, 5, 20])
+def test_the_lane_kernels_add_the_bias_as_the_result_leaves_the_lanes(b, torch_threads):
+    """``basis_lanes`` and ``kernel_lanes`` with a bias: the result without one plus the bias (no pass of its own),
+    the bias's gradient the sum of the result's over vertices and batch, the other gradients unchanged; a bias of
+    the wrong length is refused."""
+    torch.set_num_threads(2)
+    g = torch.Generator().manual_seed(21)
+    c, o, M = 6, 5, 9
+    offs, dst = _csr(13, 40, 9, g, empty=(2,))
+    x = torch.randn(13, b, c, generator=g, requires_grad=True)
+    basis = torch.randn(M, c, o, generator=g, requires_grad=True)
+    coef, w, pos = _coefficients(len(dst), M, g, True)
+    bias = torch.randn(o, generator=g, requires_grad=True)
+    offs_o, src = _csr(11, 13, 9, g, empty=(3,))
+    Wk, wo, pos_o = _coefficients(len(src), c * o, g, True)
+    for call in (lambda bb: native.basis_lanes(x, basis, coef, offs, dst, pos, 40, bb),
+                 lambda bb: native.kernel_lanes(x, Wk, wo, offs_o, src, pos_o, o, bb)[0]):
+        y, y0 = call(bias), call(_NO_BIAS)
+        assert torch.allclose(y, y0 + bias, atol=1e-5)
+        gy = torch.randn(y.shape, generator=g)
+        ins = (x, bias)
+        got = torch.autograd.grad((y * gy).sum(), ins)
+        (dx0,) = torch.autograd.grad((y0 * gy).sum(), (x,))
+        assert torch.allclose(got[0], dx0, atol=1e-5)
+        assert torch.allclose(got[1], gy.sum((0, 1)), atol=1e-4)
+        with pytest.raises(RuntimeError, match="bias"):
+            call(torch.randn(o + 1))

@@ -480,15 +480,14 @@ class VCConv(nn.Module):
         res_first = has_res and self._residual_map_first(c, o)
         d = o if res_first else c
         x2 = xv.reshape(self.n_in, b * c)
-        if self._in_lanes(o, M):  # the basis product and the slots' products in one pass
+        if self._in_lanes(o, M):  # the basis product and the slots' products in one pass, the bias as it leaves
             y = native.basis_lanes(xv, self.basis, self.coef.reshape(-1, M), self._nat_in_offs, self._nat_in_dst,
-                                   self._nat_in_pos, self.n_out)
+                                   self._nat_in_pos, self.n_out, self.bias)
         else:
             Bm = self.basis.permute(1, 2, 0).reshape(c, o * M)
             Z = _dense(x2.reshape(self.n_in * b, c), Bm).reshape(self.n_in, b * o, M)  # Z_j^T: rows (b, q), columns m
             y = native.basis_product(Z, self.coef.reshape(-1, M), self._nat_in_offs, self._nat_in_dst,
-                                     self._nat_in_pos, self.n_out)
-        y = (y.reshape(self.n_out, b, o) + self.bias)
+                                     self._nat_in_pos, self.n_out).reshape(self.n_out, b, o) + self.bias
         res = None
         if has_res:
             src = _dense(x2.reshape(self.n_in * b, c), self.res_lin.weight.t()) if res_first else x2  # R x_j
@@ -548,8 +547,8 @@ class VCConv(nn.Module):
         if c <= KERNEL_LANES_MAX_IN and o <= KERNEL_LANES_MAX_OUT and native.lanes():  # 16 batch entries a register
             # xv made contiguous here, once: the op saves its input for the backward, which would copy it again
             y, r = native.kernel_lanes(xv.contiguous(), Wk, w, self._nat_out_offs, self._nat_out_src, self._nat_out_pos,
-                                       o)
-            return y + self.bias, (self._mapped_residual(r, b, c) if has_res else None)
+                                       o, self.bias)
+            return y, (self._mapped_residual(r, b, c) if has_res else None)
         y, r = native.kernel_product(xv.reshape(self.n_in, b * c), Wk, w, self._nat_out_offs, self._nat_out_src,
                                      self._nat_out_pos, b, c, o)
         return y + self.bias, (self._mapped_residual(r, b, c) if has_res else None)

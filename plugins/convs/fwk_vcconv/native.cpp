@@ -717,6 +717,12 @@ inline void lanes_check(const torch::Tensor& x, const torch::Tensor& B, const to
   check_coef(coef, torch::empty({0}, x.options()), pos, dst.size(0));
 }
 
+// a layer's bias: o floats, or none ((0,))
+inline void check_bias(const torch::Tensor& bias, int64_t o) {
+  check(bias, "bias", at::kFloat, 1);
+  TORCH_CHECK(bias.size(0) == 0 || bias.size(0) == o, "bias: expected ", o, " entries or none");
+}
+
 // rows (b x w, row-major) of one vertex, batch entries [L g, L g + L), transposed: d[p][l] (zero past b)
 inline void to_lanes(float* __restrict d, const float* __restrict x, int64_t b, int64_t w, int64_t g) {
   const int64_t l1 = std::min<int64_t>(L, b - g * L);
@@ -731,8 +737,14 @@ inline void from_lanes(float* __restrict x, const float* __restrict d, int64_t b
     for (int64_t p = 0; p < w; ++p) x[(g * L + l) * w + p] = d[p * L + l];
 }
 
-// the per-thread accumulators acc (nt, n, G, w, L) summed in thread order and taken out of lanes: (n, b, w)
-inline torch::Tensor sum_out_of_lanes(const torch::Tensor& acc, int64_t b) {
+// d[q][l] = bias[q] for q < w (zero without a bias): lanes that start at a layer's bias
+inline void start_lanes(float* d, const float* bias, int64_t w) {
+  for (int64_t q = 0; q < w; ++q) std::fill(d + q * L, d + (q + 1) * L, bias ? bias[q] : 0.f);
+}
+
+// the per-thread accumulators acc (nt, n, G, w, L) summed in thread order and taken out of lanes: (n, b, w), each
+// row starting at bias (w floats) where one is given (a pass over the result saved: the layer's bias add)
+inline torch::Tensor sum_out_of_lanes(const torch::Tensor& acc, int64_t b, const float* bias = nullptr) {
   const int nt = acc.size(0);
   const int64_t n = acc.size(1), G = acc.size(2), w = acc.size(3);
   auto out = torch::empty({n, b, w}, acc.options());
@@ -742,7 +754,7 @@ inline torch::Tensor sum_out_of_lanes(const torch::Tensor& acc, int64_t b) {
     std::vector<float> s(w * L);
     for (int64_t i = i0; i < i1; ++i)
       for (int64_t g = 0; g < G; ++g) {
-        std::fill(s.begin(), s.end(), 0.f);
+        start_lanes(s.data(), bias, w);
         for (int t = 0; t < nt; ++t) {
           const float* a = ap + ((t * n + i) * G + g) * w * L;
           for (int64_t u = 0; u < w * L; ++u) s[u] += a[u];
@@ -1013,13 +1025,14 @@ inline void db_group(float* dBv, const float* xTs, const float* dZs, int64_t R, 
 }  // namespace lanes
 
 // basis order in lanes, forward. x (n_in, b, c), B the basis (M, c, o), coef (R, M) read at pos (slots), offs
-// (n_in + 1), dst (slots). y (n_out, b, o) = the sum over input vertices j and their slots s of (A_s Z_j) at dst[s],
-// Z_j = B^T x_j made in cache (no bias).
+// (n_in + 1), dst (slots). y (n_out, b, o) = bias (o, or none: (0,)) + the sum over input vertices j and their slots s
+// of (A_s Z_j) at dst[s], Z_j = B^T x_j made in cache.
 torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef, torch::Tensor offs, torch::Tensor dst,
-                            torch::Tensor pos, int64_t n_out) {
+                            torch::Tensor pos, int64_t n_out, torch::Tensor bias) {
   using namespace lanes;
   lanes_check(x, B, coef, offs, dst, pos, n_out);
   const int64_t n_in = x.size(0), b = x.size(1), c = x.size(2), M = B.size(0), o = B.size(2);
+  check_bias(bias, o);
   const int64_t G = (b + L - 1) / L;
   const int nt = at::get_num_threads();
   auto acc = torch::zeros({nt, n_out, G, o, L}, x.options());
@@ -1059,7 +1072,7 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
       }
     }
   });
-  return sum_out_of_lanes(acc, b);
+  return sum_out_of_lanes(acc, b, bias.size(0) ? bias.data_ptr<float>() : nullptr);
 }
 
 namespace lanes {
@@ -1309,10 +1322,10 @@ struct KernelApply {
 
 
 // kernel order in lanes, forward (kernel_forward's arguments, x as (n_in, b, c)): y_i = sum_s x_src[s] W_pos[s] and
-// r_i = sum_s w_pos[s] x_src[s] per output vertex, 16 batch entries a register. Returns y (n_out, b, o) (no bias) and
-// r (n_out, b, c) (empty (0,) without w).
+// r_i = sum_s w_pos[s] x_src[s] per output vertex, 16 batch entries a register. Returns y (n_out, b, o) (plus bias (o),
+// or none: (0,)) and r (n_out, b, c) (empty (0,) without w).
 std::vector<torch::Tensor> kernel_lanes_forward(torch::Tensor x, torch::Tensor Wk, torch::Tensor w, torch::Tensor offs,
-                                                torch::Tensor src, torch::Tensor pos, int64_t o) {
+                                                torch::Tensor src, torch::Tensor pos, int64_t o, torch::Tensor bias) {
   using namespace lanes;
   check(x, "x", at::kFloat, 3);
   check(Wk, "Wk", at::kFloat, 2);
@@ -1320,6 +1333,8 @@ std::vector<torch::Tensor> kernel_lanes_forward(torch::Tensor x, torch::Tensor W
   TORCH_CHECK(o > 0 && Wk.size(1) == c * o, "Wk: expected c o = ", c * o, " columns");
   check_csr(offs, src, n_out, n_in);
   check_coef(Wk, w, pos, src.size(0));
+  check_bias(bias, o);
+  const float* biasp = bias.size(0) ? bias.data_ptr<float>() : nullptr;
   const bool res = w.size(0) > 0;
   const int64_t G = (b + L - 1) / L;
   auto xL = all_to_lanes(x);
@@ -1339,7 +1354,7 @@ std::vector<torch::Tensor> kernel_lanes_forward(torch::Tensor x, torch::Tensor W
       const int64_t s0 = op[i], K = op[i + 1] - s0;
       if (i + 1 < i1) prefetch_rows(xLp, sp, op[i + 1], op[i + 2], G * c * L, G * c * L * sizeof(float));
       for (int64_t g = 0; g < G; ++g) {
-        std::fill(yL.begin(), yL.end(), 0.f);
+        start_lanes(yL.data(), biasp, o);
         if (res) std::fill(rL.begin(), rL.end(), 0.f);
         for (int64_t k = 0; k < K; ++k) {
           const float* xs = xLp + (sp[s0 + k] * G + g) * c * L;

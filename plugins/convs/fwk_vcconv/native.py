@@ -269,7 +269,7 @@ def _kernel_backward(ctx, dy, dr):
     dx, dWk, dw = _load().kernel_backward(dy, dr, x.contiguous(), Wk.contiguous(), w.contiguous(), offs, src, pos,
                                           b, c, o, need[0], need[1], need[2] and w.shape[0] > 0)
     return (dx if need[0] else None), (dWk if need[1] else None), (dw if need[2] and w.shape[0] else None), \
-        None, None, None, None, None, None
+        None, None, None, None, (_bias_grad(dy) if need[7] else None), None, None
 
 
 kernel_product.register_autograd(_kernel_backward, setup_context=_kernel_setup)
@@ -338,21 +338,23 @@ def _cpu_runs_lanes() -> bool:
 
 @torch.library.custom_op("fwk_vcconv::basis_lanes", mutates_args=())
 def basis_lanes(x: torch.Tensor, basis: torch.Tensor, coef: torch.Tensor, offs: torch.Tensor, dst: torch.Tensor,
-                pos: torch.Tensor, n_out: int) -> torch.Tensor:
+                pos: torch.Tensor, n_out: int, bias: torch.Tensor) -> torch.Tensor:
     """y (n_out, b, o): the ``basis`` order in one pass, the batch as the vector (``native.cpp``,
     "the basis order in lanes"): for input vertex j, Z_j = B^T x_j in cache, and each of its slots s
     adds A_s Z_j (A_s = coef[pos[s]]) at dst[s]. x (n_in, b, c), basis (M, c, o), coef (R, M), offs
-    (n_in + 1), dst and pos (slots). No bias."""
-    return _load().lanes_forward(x.contiguous(), basis.contiguous(), coef.contiguous(), offs, dst, pos, n_out)
+    (n_in + 1), dst and pos (slots); bias (o) added as the result leaves the lanes (no pass of its own), or
+    (0,): none."""
+    return _load().lanes_forward(x.contiguous(), basis.contiguous(), coef.contiguous(), offs, dst, pos, n_out,
+                                 bias.contiguous())
 
 
 @basis_lanes.register_fake
-def _(x, basis, coef, offs, dst, pos, n_out):
+def _(x, basis, coef, offs, dst, pos, n_out, bias):
     return x.new_empty(n_out, x.shape[1], basis.shape[2])
 
 
 def _lanes_setup(ctx, inputs, output):
-    ctx.save_for_backward(*inputs[:6])  # x, basis, coef, offs, dst, pos (not n_out)
+    ctx.save_for_backward(*inputs[:6])  # x, basis, coef, offs, dst, pos (not n_out, not the bias)
 
 
 #: ``basis_lanes``' route to the coefficients' gradient (``native.cpp``, ``lanes_backward``): 1 through Z_j laid out
@@ -382,7 +384,13 @@ def _lanes_backward(ctx, dy):
                                            offs, dst, pos, need_x, need_B, need_c,
                                            LANES_DA or lanes_da_route(x.shape[0], dst.shape[0], *x.shape[1:],
                                                                       basis.shape[2], basis.shape[0]))
-    return (dx if need_x else None), (dB if need_B else None), (dcoef if need_c else None), None, None, None, None
+    return (dx if need_x else None), (dB if need_B else None), (dcoef if need_c else None), None, None, None, None, \
+        (_bias_grad(dy) if ctx.needs_input_grad[7] else None)
+
+
+def _bias_grad(dy):
+    """A bias's gradient from the result's, dy (n, b, o): its sum over vertices and batch."""
+    return dy.sum((0, 1))
 
 
 basis_lanes.register_autograd(_lanes_backward, setup_context=_lanes_setup)
@@ -390,23 +398,24 @@ basis_lanes.register_autograd(_lanes_backward, setup_context=_lanes_setup)
 
 @torch.library.custom_op("fwk_vcconv::kernel_lanes", mutates_args=())
 def kernel_lanes(x: torch.Tensor, Wk: torch.Tensor, w: torch.Tensor, offs: torch.Tensor, src: torch.Tensor,
-                 pos: torch.Tensor, o: int) -> tuple[torch.Tensor, torch.Tensor]:
+                 pos: torch.Tensor, o: int, bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(y (n_out, b, o), r (n_out, b, c)): ``kernel_product`` with the batch as the vector (``native.cpp``,
-    "kernel order in lanes"): y_i = sum_s x_src[s] W_pos[s] and r_i = sum_s w_pos[s] x_src[s] (r empty, (0,),
-    when w is), each slot's kernel (a row of Wk, c x o) applied to 16 batch entries a register. x (n_in,
-    b, c). Its gradient for x and w is in lanes as well; for Wk it is ``kernel_product``'s."""
-    y, r = _load().kernel_lanes_forward(x.contiguous(), Wk.contiguous(), w.contiguous(), offs, src, pos, o)
+    "kernel order in lanes"): y_i = bias + sum_s x_src[s] W_pos[s] and r_i = sum_s w_pos[s] x_src[s] (r empty,
+    (0,), when w is; bias (o) or (0,): none), each slot's kernel (a row of Wk, c x o) applied to 16 batch entries a
+    register. x (n_in, b, c). Its gradient for x in lanes as well, for Wk and w from the batch-major rows."""
+    y, r = _load().kernel_lanes_forward(x.contiguous(), Wk.contiguous(), w.contiguous(), offs, src, pos, o,
+                                        bias.contiguous())
     return y, r
 
 
 @kernel_lanes.register_fake
-def _(x, Wk, w, offs, src, pos, o):
+def _(x, Wk, w, offs, src, pos, o, bias):
     n_out, b, c = offs.shape[0] - 1, x.shape[1], x.shape[2]
     return x.new_empty(n_out, b, o), x.new_empty(n_out, b, c) if w.shape[0] else x.new_empty(0)
 
 
 def _kernel_lanes_setup(ctx, inputs, output):
-    x, Wk, w, offs, src, pos, o = inputs
+    x, Wk, w, offs, src, pos, o, _ = inputs
     ctx.save_for_backward(x, Wk, w, offs, src, pos)
     ctx.o = o
 
@@ -424,7 +433,7 @@ def _kernel_lanes_backward(ctx, dy, dr):
     dx, dWk, dw = _load().kernel_lanes_backward(dy, dr, x, Wk.contiguous(), w.contiguous(), offs, src, pos, need[0],
                                                 need[1], need[2] and w.shape[0] > 0)
     return (dx if need[0] else None), (dWk if need[1] else None), (dw if need[2] and w.shape[0] else None), \
-        None, None, None, None
+        None, None, None, None, (_bias_grad(dy) if need[7] else None)
 
 
 kernel_lanes.register_autograd(_kernel_lanes_backward, setup_context=_kernel_lanes_setup)
