@@ -587,7 +587,7 @@ def _lanes_against_off(monkeypatch, op, limit, c_in, c_out, mode, order, record)
 
 
 @pytestmark_lanes
-@pytest.mark.parametrize("c_out,lanes", [(3, True), (8, True), (9, False)])
+@pytest.mark.parametrize("c_out,lanes", [(3, True), (8, True), (16, True), (17, False)])
 def test_vcconv_runs_narrow_basis_layers_in_lanes(c_out, lanes, monkeypatch):
     """The ``basis`` order of a layer with at most ``LANES_MAX_OUT`` output channels takes
     ``basis_lanes``, a wider one the tall product and ``basis_product``; with lanes off

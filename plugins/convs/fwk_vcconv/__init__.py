@@ -141,9 +141,11 @@ def _bucketed(rows: list[np.ndarray], cols: list[np.ndarray], n_rows: int):
 
 #: the ``basis`` order runs in lanes (``native.basis_lanes``: the batch as the vector, the basis product
 #: made in cache) for layers with at most this many output channels, where MKL's per-vertex products
-#: are narrow; wider layers keep the tall product and ``native.basis_product`` (measured 2026-12-07,
-#: ``benchmarks/vcconv_orders.py``)
-LANES_MAX_OUT = 8
+#: are narrow; wider layers keep the tall product and ``native.basis_product``. 8 until session 28; 16 since
+#: (the lanes' bias and their second route to the coefficients' gradient): the chapter 5 width's 32 -> 16
+#: decoder layer 1.10-1.11x forward and backward in three runs, its 32 -> 32 layer 0.82x and the thesis
+#: width's 64 -> 32 0.87x in lanes (2 threads, batch 16, alternating in one process, 2026-12-07)
+LANES_MAX_OUT = 16
 #: the ``kernel`` order runs in lanes (``native.kernel_lanes``) for layers with at most this many input
 #: channels and at most ``KERNEL_LANES_MAX_OUT`` output channels (the chapter 5 width's first layer, 3 -> 8:
 #: 2.0-2.2x its per-vertex products forward and 1.9-2.0x the input's gradient). Measured 2026-12-07 on the
