@@ -1024,19 +1024,90 @@ inline void db_group(float* dBv, const float* xTs, const float* dZs, int64_t R, 
 }
 }  // namespace lanes
 
+namespace lanes {
+// acc[q][l] += sum_p W[p o + q] xs[p][l] for q < O (one slot's kernel W (c x o) applied to its input row in lanes)
+template <int O>
+inline void kernel_apply(float* __restrict acc, const float* __restrict W, const float* __restrict xs, int64_t c,
+                         int64_t o, int64_t q0) {
+  float a[O][L];
+  for (int q = 0; q < O; ++q)
+    for (int l = 0; l < L; ++l) a[q][l] = acc[(q0 + q) * L + l];
+  for (int64_t p = 0; p < c; ++p) {
+    const float* xv = xs + p * L;
+    for (int q = 0; q < O; ++q) {
+      const float w = W[p * o + q0 + q];
+#pragma omp simd
+      for (int l = 0; l < L; ++l) a[q][l] += w * xv[l];
+    }
+  }
+  for (int q = 0; q < O; ++q)
+    for (int l = 0; l < L; ++l) acc[(q0 + q) * L + l] = a[q][l];
+}
+
+template <int O>
+struct KernelApply {
+  static void run(int64_t q0, float* acc, const float* W, const float* xs, int64_t c, int64_t o) {
+    kernel_apply<O>(acc, W, xs, c, o, q0);
+  }
+};
+}  // namespace lanes
+
+namespace lanes {
+// W_k (NW L floats: the slot's kernel, row-major c x o, zero past c o) = sum_m A_k[m] Bf[m] for KB slots (Bf: M x NW L,
+// the basis as (M, c o), zero past c o): each slot's kernel made in cache, its entries the vector
+template <int KB, int NW>
+inline void kernels_of_slots(float* __restrict W, const float* const* A, const float* __restrict Bf, int64_t M) {
+  vL acc[KB][NW];
+  zero(acc);
+  for (int64_t m = 0; m < M; ++m) {
+    vL bv[NW];
+    for (int v = 0; v < NW; ++v) bv[v] = ld(Bf + (m * NW + v) * L);
+    for (int k = 0; k < KB; ++k) {
+      const float a = A[k][m];
+      for (int v = 0; v < NW; ++v) acc[k][v] += a * bv[v];
+    }
+  }
+  for (int k = 0; k < KB; ++k)
+    for (int v = 0; v < NW; ++v) st(W + (k * NW + v) * L, acc[k][v]);
+}
+
+template <int KB>
+inline void kernels_of_slots(float* W, const float* const* A, const float* Bf, int64_t M, int64_t NW) {
+  switch (NW) {
+    case 1: kernels_of_slots<KB, 1>(W, A, Bf, M); break;
+    case 2: kernels_of_slots<KB, 2>(W, A, Bf, M); break;
+    case 3: kernels_of_slots<KB, 3>(W, A, Bf, M); break;
+    default: kernels_of_slots<KB, 4>(W, A, Bf, M); break;
+  }
+}
+}  // namespace lanes
+
 // basis order in lanes, forward. x (n_in, b, c), B the basis (M, c, o), coef (R, M) read at pos (slots), offs
 // (n_in + 1), dst (slots). y (n_out, b, o) = bias (o, or none: (0,)) + the sum over input vertices j and their slots s
-// of (A_s Z_j) at dst[s], Z_j = B^T x_j made in cache.
+// of (A_s Z_j) at dst[s], by one of two routes (``route``, chosen by fwk_vcconv.native's cost model):
+//   1. Z_j = B^T x_j made in cache (M o c L multiply-adds an input vertex), then A_s Z_j per slot (M o L);
+//   2. each slot's kernel W_s = A_s B (c x o) made in cache (M c o), then x_j W_s (c o L): the kernel order's
+//      products on the basis order's traversal, for layers of few input channels (c o <= 64; half route 1's
+//      multiply-adds on the chapter 5 width's 8 -> 3 layer).
 torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef, torch::Tensor offs, torch::Tensor dst,
-                            torch::Tensor pos, int64_t n_out, torch::Tensor bias) {
+                            torch::Tensor pos, int64_t n_out, torch::Tensor bias, int64_t route) {
   using namespace lanes;
   lanes_check(x, B, coef, offs, dst, pos, n_out);
   const int64_t n_in = x.size(0), b = x.size(1), c = x.size(2), M = B.size(0), o = B.size(2);
   check_bias(bias, o);
+  const int64_t NW = (c * o + L - 1) / L;
+  TORCH_CHECK(route == 1 || (route == 2 && NW <= 4), "route: 1 (through Z_j), or 2 (each slot's kernel; c o <= 64)");
+  const bool via_w = route == 2;
   const int64_t G = (b + L - 1) / L;
   const int nt = at::get_num_threads();
   auto acc = torch::zeros({nt, n_out, G, o, L}, x.options());
-  auto W = B.permute({0, 2, 1}).contiguous();  // (M, o, c): row r = m o + q
+  torch::Tensor W;  // (M, o, c): row r = m o + q; or via W, the basis as (M, c o) rows of NW L floats
+  if (via_w) {
+    W = torch::zeros({M, NW * L}, x.options());
+    W.narrow(1, 0, c * o).copy_(B.reshape({M, c * o}));
+  } else {
+    W = B.permute({0, 2, 1}).contiguous();
+  }
   const float* xp = x.data_ptr<float>();
   const float* Wp = W.data_ptr<float>();
   const float* cp = coef.data_ptr<float>();
@@ -1046,7 +1117,7 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
   float* accp = acc.data_ptr<float>();
   fwk_native::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
     float* mine = accp + at::get_thread_num() * n_out * G * o * L;
-    std::vector<float> xT(c * L), Z(o * M * L);
+    std::vector<float> xT(c * L), Z(via_w ? 4 * NW * L : o * M * L);
     for (int64_t j = j0; j < j1; ++j) {
       const int64_t s0 = op[j], K = op[j + 1] - s0;
       if (j + 1 < j1) {  // the next vertex's coefficient rows and output rows
@@ -1056,7 +1127,7 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
       if (K == 0) continue;
       for (int64_t g = 0; g < G; ++g) {
         to_lanes(xT.data(), xp + j * b * c, b, c, g);
-        matrix_times_lanes(Z.data(), Wp, xT.data(), M * o, c);
+        if (!via_w) matrix_times_lanes(Z.data(), Wp, xT.data(), M * o, c);
         for (int64_t k0 = 0; k0 < K; k0 += 4) {  // the slots 4 at a time (their rows of y, their coefficients)
           const int64_t kb = std::min<int64_t>(4, K - k0);
           float* out[4];
@@ -1064,6 +1135,15 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
           for (int64_t t = 0; t < kb; ++t) {
             out[t] = mine + (dp[s0 + k0 + t] * G + g) * o * L;
             A[t] = cp + pp[s0 + k0 + t] * M;
+          }
+          if (via_w) {  // the slots' kernels W_s = A_s B in cache, each applied to x_j's lanes
+            for (int64_t t = 0; t < kb; t += (kb == 4 ? 4 : 1)) {
+              if (kb == 4) kernels_of_slots<4>(Z.data(), A, Wp, M, NW);
+              else kernels_of_slots<1>(Z.data() + t * NW * L, A + t, Wp, M, NW);
+            }
+            for (int64_t t = 0; t < kb; ++t)
+              by_blocks_of_8<KernelApply>(o, out[t], Z.data() + t * NW * L, xT.data(), c, o);
+            continue;
           }
           if (kb == 4) y_rows<4>(out, A, Z.data(), M, o);
           else
@@ -1292,33 +1372,6 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   return {dx, dB, dcoef};
 }
 
-namespace lanes {
-// acc[q][l] += sum_p W[p o + q] xs[p][l] for q < O (one slot's kernel W (c x o) applied to its input row in lanes)
-template <int O>
-inline void kernel_apply(float* __restrict acc, const float* __restrict W, const float* __restrict xs, int64_t c,
-                         int64_t o, int64_t q0) {
-  float a[O][L];
-  for (int q = 0; q < O; ++q)
-    for (int l = 0; l < L; ++l) a[q][l] = acc[(q0 + q) * L + l];
-  for (int64_t p = 0; p < c; ++p) {
-    const float* xv = xs + p * L;
-    for (int q = 0; q < O; ++q) {
-      const float w = W[p * o + q0 + q];
-#pragma omp simd
-      for (int l = 0; l < L; ++l) a[q][l] += w * xv[l];
-    }
-  }
-  for (int q = 0; q < O; ++q)
-    for (int l = 0; l < L; ++l) acc[(q0 + q) * L + l] = a[q][l];
-}
-
-template <int O>
-struct KernelApply {
-  static void run(int64_t q0, float* acc, const float* W, const float* xs, int64_t c, int64_t o) {
-    kernel_apply<O>(acc, W, xs, c, o, q0);
-  }
-};
-}  // namespace lanes
 
 
 // kernel order in lanes, forward (kernel_forward's arguments, x as (n_in, b, c)): y_i = sum_s x_src[s] W_pos[s] and

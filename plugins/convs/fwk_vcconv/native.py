@@ -344,8 +344,30 @@ def basis_lanes(x: torch.Tensor, basis: torch.Tensor, coef: torch.Tensor, offs: 
     adds A_s Z_j (A_s = coef[pos[s]]) at dst[s]. x (n_in, b, c), basis (M, c, o), coef (R, M), offs
     (n_in + 1), dst and pos (slots); bias (o) added as the result leaves the lanes (no pass of its own), or
     (0,): none."""
+    M, c, o = basis.shape
+    route = LANES_FORWARD or lanes_forward_route(x.shape[0], dst.shape[0], x.shape[1], c, o, M)
     return _load().lanes_forward(x.contiguous(), basis.contiguous(), coef.contiguous(), offs, dst, pos, n_out,
-                                 bias.contiguous())
+                                 bias.contiguous(), route)
+
+
+#: ``basis_lanes``' forward route (``native.cpp``, ``lanes_forward``): 1 through Z_j = B^T x_j per input vertex, 2
+#: through each slot's kernel W_s = A_s B (layers with c o <= 64), 0 the cheaper by ``lanes_forward_route``
+#: (tests force each)
+LANES_FORWARD = 0
+#: the price of route 2's multiply-adds in route 1's: route 2 ran at about 0.7 of route 1's rate per multiply-add
+#: (measured 2026-12-07 on the chapter 5 width's 8 -> 3 layer, 2 threads, batch 16: 2.66 against 3.56 ms at 0.52 of
+#: the multiply-adds)
+LANES_FORWARD_W_PRICE = 1.4
+
+
+def lanes_forward_route(n_in: int, slots: int, b: int, c: int, o: int, M: int) -> int:
+    """``basis_lanes``' cheaper forward route for a layer (``LANES_FORWARD``): 1 costs n_in M o c L' + slots M o L'
+    multiply-adds (L' = b rounded up to 16: the lanes), 2 costs slots G (M c o + 16 c o) (G = L' / 16: each slot's
+    kernel made once a group of 16 batch entries), priced at ``LANES_FORWARD_W_PRICE``; 2 only where c o <= 64."""
+    lanes_b = -(-b // 16) * 16
+    via_z = n_in * M * o * c * lanes_b + slots * M * o * lanes_b
+    via_w = slots * (lanes_b // 16) * (M * c * o + c * o * 16)
+    return 2 if c * o <= 64 and LANES_FORWARD_W_PRICE * via_w < via_z else 1
 
 
 @basis_lanes.register_fake
