@@ -766,3 +766,14 @@ def test_the_lane_kernels_add_the_bias_as_the_result_leaves_the_lanes(b, torch_t
         assert torch.allclose(got[1], gy.sum((0, 1)), atol=1e-4)
         with pytest.raises(RuntimeError, match="bias"):
             call(torch.randn(o + 1))
+
+
+def test_basis_lanes_takes_the_cheaper_forward_route():
+    """``lanes_forward_route``: each slot's kernel where c o <= 64 and its multiply-adds, at their price, are fewer
+    (the chapter 5 width's 8 -> 3 layer); Z_j otherwise (its 16 -> 8 and 32 -> 16 layers, c o > 64; input vertices
+    held by very many slots)."""
+    assert native.lanes_forward_route(3089, 59623, 16, 8, 3, 35) == 2
+    assert native.lanes_forward_route(631, 19190, 16, 16, 8, 35) == 1
+    assert native.lanes_forward_route(106, 4342, 16, 32, 16, 35) == 1
+    # Z_j is made once an input vertex: with 1,000 slots each, it is the cheaper
+    assert native.lanes_forward_route(10, 10_000, 16, 8, 3, 35) == 1
