@@ -591,14 +591,15 @@ def _lanes_against_off(monkeypatch, op, limit, c_in, c_out, mode, order, record)
 
 
 @pytestmark_lanes
-@pytest.mark.parametrize("c_out,lanes", [(3, True), (8, True), (16, True), (17, False)])
-def test_vcconv_runs_narrow_basis_layers_in_lanes(c_out, lanes, monkeypatch):
-    """The ``basis`` order of a layer with at most ``LANES_MAX_OUT`` output channels takes
-    ``basis_lanes``, a wider one the tall product and ``basis_product``; with lanes off
+@pytest.mark.parametrize("c_in,c_out,lanes", [(6, 3, True), (6, 8, True), (6, 16, True), (6, 17, False), (32, 4, True),
+                                              (33, 4, False)])
+def test_vcconv_runs_narrow_basis_layers_in_lanes(c_in, c_out, lanes, monkeypatch):
+    """The ``basis`` order of a layer with at most ``LANES_MAX_IN`` input and ``LANES_MAX_OUT`` output channels
+    takes ``basis_lanes``, a wider one the tall product and ``basis_product``; with lanes off
     (``LANES_MAX_OUT = 0``) the same layer agrees in value and gradient."""
-    calls = _lanes_against_off(monkeypatch, "basis_lanes", "LANES_MAX_OUT", 6, c_out, "up", "basis",
+    calls = _lanes_against_off(monkeypatch, "basis_lanes", "LANES_MAX_OUT", c_in, c_out, "up", "basis",
                                lambda x, basis, *rest: basis.shape)
-    assert calls == ([(5, 6, c_out)] if lanes else [])
+    assert calls == ([(5, c_in, c_out)] if lanes else [])
 
 
 def _naive_kernel_lanes(x, Wk, w, offs, src, pos, o):

@@ -52,7 +52,7 @@ training step, docs/methods/autoencoders.md "Speed"; ``kernel``: every coefficie
 from one product, then y_i = G_i W_i per output vertex on its gathered rows), and the products
 with the basis, where tall and narrow (``native.tall``: the outer layers' (n b) x c M @ c M x o),
 in ``native.tall_product`` (1.1-1.2x the chapter 5 width's step); the ``basis`` order of layers with
-at most ``LANES_MAX_OUT`` output channels runs in one pass with the batch as the vector
+at most ``LANES_MAX_IN`` input and ``LANES_MAX_OUT`` output channels runs in one pass with the batch as the vector
 (``native.basis_lanes``: the basis product made in cache), and so does the ``kernel`` order of layers
 with at most ``KERNEL_LANES_MAX_IN`` input and ``KERNEL_LANES_MAX_OUT`` output channels
 (``native.kernel_lanes``), and the ``sum`` order's forward (``native.sum_product``, the kernels as the
@@ -146,6 +146,11 @@ def _bucketed(rows: list[np.ndarray], cols: list[np.ndarray], n_rows: int):
 #: decoder layer 1.10-1.11x forward and backward in three runs, its 32 -> 32 layer 0.82x and the thesis
 #: width's 64 -> 32 0.87x in lanes (2 threads, batch 16, alternating in one process, 2026-12-07)
 LANES_MAX_OUT = 16
+#: ... and at most this many input channels: with 16 output channels allowed, the thesis width's 128 -> 16 latent
+#: layer went to the lanes (auto prices them without Z) and took 5.1 ms against 1.4 ms for ``basis_product`` and
+#: 1.7 for ``kernel`` (``benchmarks/vcconv_orders.py``, 2026-12-07); 32 is the widest input measured faster in lanes
+#: (the chapter 5 width's 32 -> 16, the thesis width's 32 -> 3)
+LANES_MAX_IN = 32
 #: the ``kernel`` order runs in lanes (``native.kernel_lanes``) for layers with at most this many input
 #: channels and at most ``KERNEL_LANES_MAX_OUT`` output channels (the chapter 5 width's first layer, 3 -> 8:
 #: 2.0-2.2x its per-vertex products forward and 1.9-2.0x the input's gradient). Measured 2026-12-07 on the
@@ -355,7 +360,7 @@ class VCConv(nn.Module):
         # native kernels copy each slot's input row once, transposed into the vertex's (b, K c) block
         kernel = (self.coef.shape[0] * c * o + self._slots(True)[0] * b * c if native_kernels
                   else P_out * c * o + 3 * P_out * b * c)
-        Z = 0 if native_kernels and self._in_lanes(o, M) else self.n_in * M * b * o
+        Z = 0 if native_kernels and self._in_lanes(c, o, M) else self.n_in * M * b * o
         return {"sum": gathered + self.n_out * (M + 1) * b * c + y,
                 "basis": Z + sent + y,
                 "kernel": kernel + y}
@@ -376,10 +381,10 @@ class VCConv(nn.Module):
         return min(cost, key=cost.get)
 
     @staticmethod
-    def _in_lanes(o: int, M: int) -> bool:
+    def _in_lanes(c: int, o: int, M: int) -> bool:
         """Whether the ``basis`` order of this layer (o output channels, M kernels) runs in lanes on the
-        native path (``native.basis_lanes``; ``LANES_MAX_OUT``)."""
-        return o <= LANES_MAX_OUT and native.lanes(M)
+        native path (``native.basis_lanes``; ``LANES_MAX_IN``, ``LANES_MAX_OUT``)."""
+        return c <= LANES_MAX_IN and o <= LANES_MAX_OUT and native.lanes(M)
 
     def _res_weights(self, nat: bool = False):
         """sqrt(r) w~ (one per coefficient row), w~_ij = |w_ij| / sum_j |w_ij| over the support of
@@ -482,7 +487,7 @@ class VCConv(nn.Module):
         res_first = has_res and self._residual_map_first(c, o)
         d = o if res_first else c
         x2 = xv.reshape(self.n_in, b * c)
-        if self._in_lanes(o, M):  # the basis product and the slots' products in one pass, the bias as it leaves
+        if self._in_lanes(c, o, M):  # the basis product and the slots' products in one pass, the bias as it leaves
             y = native.basis_lanes(xv, self.basis, self.coef.reshape(-1, M), self._nat_in_offs, self._nat_in_dst,
                                    self._nat_in_pos, self.n_out, self.bias)
         else:

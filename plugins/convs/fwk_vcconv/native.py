@@ -47,15 +47,21 @@ time (one AVX-512 register of floats), Z_j = B^T x_j is made in cache instead of
 and every per-vertex product is a multiply-add of whole registers whatever the channel counts
 (3-16 at the chapter 5 width, where MKL runs the per-vertex products at 30-50 GFLOP/s and a plain
 loop in registers at 100-140). Its backward makes dZ_j in cache the same way, dx_j and dB from it,
-and dA with Z laid out kernels-innermost (the kernels as the vector, no horizontal sums). Those
+and dA with Z laid out kernels-innermost (the kernels as the vector, no horizontal sums). For layers
+whose input vertices hold many slots of few channels (the chapter 5 width's 8 -> 3), each sum has a
+second route with about half the multiply-adds, taken where the cost model prices it cheaper
+(``lanes_forward_route``, ``lanes_da_route``): each slot's kernel W_s = A_s B made in cache forward,
+and each slot's sum over the batch G_s = dY_s^T x_j for dA. It adds the layer's bias as the result
+leaves the lanes. Those
 functions are compiled for AVX-512 only (``lanes``: False on other CPUs, where the tall product and
 ``basis_product`` run). ``kernel_lanes`` (``fwk_vcconv::kernel_lanes``) is ``kernel_product`` alike:
 each slot's kernel applied to 16 batch entries a register, forward and the input's gradient (2x the
 BLAS kernel's there); the kernels' gradient is a sum over the batch for each slot, made from the
 batch-major rows two slots at a time (3.5x ``kernel_product``'s per-vertex BLAS call on the chapter 5
 width's first layer, 1.04x its training step). ``sum_product``'s forward runs in lanes too (``sum_forward``
-with ``lanes``: each T_i with the kernels as the vector, 1.2-2.0x the per-vertex BLAS call); its
-backward stays with BLAS. All three together: 1.10-1.46x the chapter 5 width's training step
+with ``lanes``: each T_i with the kernels as the vector, 1.2-2.0x the per-vertex BLAS call), and its
+coefficients' gradient (1.3-1.6x); x's gradient stays with BLAS. All three together: 1.10-1.46x the
+chapter 5 width's training step
 (``benchmarks/training.py``, "no lanes", 2026-12-07). The lane kernels ask for the next vertex's
 scattered rows while computing this one's (``fwk_native.h``'s ``prefetch_rows``).
 
