@@ -382,7 +382,7 @@ class VCConv(nn.Module):
 
     @staticmethod
     def _in_lanes(c: int, o: int, M: int) -> bool:
-        """Whether the ``basis`` order of this layer (o output channels, M kernels) runs in lanes on the
+        """Whether the ``basis`` order of this layer (c input and o output channels, M kernels) runs in lanes on the
         native path (``native.basis_lanes``; ``LANES_MAX_IN``, ``LANES_MAX_OUT``)."""
         return c <= LANES_MAX_IN and o <= LANES_MAX_OUT and native.lanes(M)
 

@@ -704,6 +704,22 @@ inline void zero(vL (&a)[N1][N2]) {
   for (int i = 0; i < N1; ++i) zero(a[i]);
 }
 
+// acc[k] = sum_r s[k][r] rows[r] for KB rows of scalars s[k] (R floats each) and rows (R x NV L): each row of `rows`
+// read once for the KB sums (KB NV chains of multiply-adds). The slots' kernels W_s = A_s B, the coefficients'
+// gradients dA_s = G_s Bt (basis_lanes' second route) and dA_k = X_k^T dTx (the sum order's), each with its layout.
+template <int KB, int NV>
+inline void combine_rows(vL (&acc)[KB][NV], const float* const* s, const float* __restrict rows, int64_t R) {
+  zero(acc);
+  for (int64_t r = 0; r < R; ++r) {
+    vL row[NV];
+    for (int v = 0; v < NV; ++v) row[v] = ld(rows + (r * NV + v) * L);
+    for (int k = 0; k < KB; ++k) {
+      const float sk = s[k][r];
+      for (int v = 0; v < NV; ++v) acc[k][v] += sk * row[v];
+    }
+  }
+}
+
 // the lane kernels' arguments: float32 contiguous tensors, a basis of at most MAX_M kernels, a CSR support
 inline void lanes_check(const torch::Tensor& x, const torch::Tensor& B, const torch::Tensor& coef,
                         const torch::Tensor& offs, const torch::Tensor& dst, const torch::Tensor& pos, int64_t n_out) {
@@ -1058,15 +1074,7 @@ namespace lanes {
 template <int KB, int NW>
 inline void kernels_of_slots(float* __restrict W, const float* const* A, const float* __restrict Bf, int64_t M) {
   vL acc[KB][NW];
-  zero(acc);
-  for (int64_t m = 0; m < M; ++m) {
-    vL bv[NW];
-    for (int v = 0; v < NW; ++v) bv[v] = ld(Bf + (m * NW + v) * L);
-    for (int k = 0; k < KB; ++k) {
-      const float a = A[k][m];
-      for (int v = 0; v < NW; ++v) acc[k][v] += a * bv[v];
-    }
-  }
+  combine_rows(acc, A, Bf, M);
   for (int k = 0; k < KB; ++k)
     for (int v = 0; v < NW; ++v) st(W + (k * NW + v) * L, acc[k][v]);
 }
@@ -1219,16 +1227,10 @@ namespace lanes {
 template <int KB, int NV>
 inline void da_from_g(float* const* dA, const float* __restrict G, const float* __restrict Bt, int64_t R, int64_t M,
                       int64_t k0) {
+  const float* g[KB];
+  for (int k = 0; k < KB; ++k) g[k] = G + (k0 + k) * R;
   vL acc[KB][NV];
-  zero(acc);
-  for (int64_t r = 0; r < R; ++r) {
-    vL bv[NV];
-    for (int v = 0; v < NV; ++v) bv[v] = ld(Bt + (r * NV + v) * L);
-    for (int k = 0; k < KB; ++k) {
-      const float gk = G[(k0 + k) * R + r];
-      for (int v = 0; v < NV; ++v) acc[k][v] += gk * bv[v];
-    }
-  }
+  combine_rows(acc, g, Bt, R);
   for (int k = 0; k < KB; ++k)
     for (int v = 0; v < NV; ++v) {
       const int64_t m0 = v * L, mn = std::min<int64_t>(L, M - m0);
@@ -1581,17 +1583,7 @@ template <int KB, int NV>
 inline void sum_da_block(float* __restrict dA, const float* const* X, const float* __restrict dTx, int64_t B,
                          int64_t k0) {
   vL acc[KB][NV];
-  zero(acc);
-  const float* x[KB];
-  for (int k = 0; k < KB; ++k) x[k] = X[k0 + k];
-  for (int64_t beta = 0; beta < B; ++beta) {
-    vL d[NV];
-    for (int v = 0; v < NV; ++v) d[v] = ld(dTx + (beta * NV + v) * L);
-    for (int k = 0; k < KB; ++k) {
-      const float xv = x[k][beta];
-      for (int v = 0; v < NV; ++v) acc[k][v] += xv * d[v];
-    }
-  }
+  combine_rows(acc, X + k0, dTx, B);
   for (int k = 0; k < KB; ++k)
     for (int v = 0; v < NV; ++v) st(dA + ((k0 + k) * NV + v) * L, acc[k][v]);
 }

@@ -275,7 +275,7 @@ def _kernel_backward(ctx, dy, dr):
     dx, dWk, dw = _load().kernel_backward(dy, dr, x.contiguous(), Wk.contiguous(), w.contiguous(), offs, src, pos,
                                           b, c, o, need[0], need[1], need[2] and w.shape[0] > 0)
     return (dx if need[0] else None), (dWk if need[1] else None), (dw if need[2] and w.shape[0] else None), \
-        None, None, None, None, (_bias_grad(dy) if need[7] else None), None, None
+        None, None, None, None, None, None
 
 
 kernel_product.register_autograd(_kernel_backward, setup_context=_kernel_setup)
