@@ -486,19 +486,17 @@ def _naive_basis_lanes(x, basis, coef, offs, dst, pos, n_out):
 @pytest.mark.parametrize("b,c,o,M", [(16, 8, 3, 35), (5, 3, 8, 7), (20, 4, 5, 16), (33, 2, 1, 64), (1, 6, 7, 17),
                                      (16, 16, 8, 35), (7, 11, 2, 33)])
 @pytest.mark.parametrize("spare", [7, 0])
-@pytest.mark.parametrize("da,fwd", [(0, 0), (1, 1), (2, 2), (1, 2), (2, 1)])
-def test_basis_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, o, M, spare, da, fwd, torch_threads,
+@pytest.mark.parametrize("fwd", [0, 1, 2])
+def test_basis_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, o, M, spare, fwd, torch_threads,
                                                                   monkeypatch):
     """Batches of 16 and not (the lanes past b are zero; past 16, the first group writes a coefficient
     row's gradient and the others add to it), kernel counts in 1-4 chunks of 16 (the dA and Zm paths),
     supports of 0 to 9 slots, the forward by either route (``LANES_FORWARD``: the cheaper, through Z_j, through each
-    slot's kernel where c o <= 64) and the coefficients' gradient by either route (``LANES_DA``: the cheaper, through
-    Zm, through each slot's G_s, odd and even slot counts, input channels padded to 8 or not): value and gradients of x,
-    the basis and the coefficients against the slot loop in float64; coefficient rows no slot reads get zero
-    (``spare``), or there are none (``_offer_nan``)."""
+    slot's kernel where c o <= 64, slots in blocks of 4 and the rest): value and gradients of x, the basis and the
+    coefficients against the slot loop in float64; coefficient rows no slot reads get zero (``spare``), or there
+    are none (``_offer_nan``)."""
     if fwd == 2 and c * o > 64:
         pytest.skip("route 2 of the forward takes c o <= 64")
-    monkeypatch.setattr(native, "LANES_DA", da)
     monkeypatch.setattr(native, "LANES_FORWARD", fwd)
     torch.set_num_threads(threads)
     g = torch.Generator().manual_seed(11)
@@ -728,15 +726,6 @@ def test_the_kernels_leave_mkls_thread_count_as_they_found_it(torch_threads):
     torch.set_num_threads(1)
     native.kernel_product(x, Wk, w, offs, src, pos, 16, 3, 8)
     assert _mkl_max_threads() == 1
-
-
-def test_basis_lanes_takes_the_cheaper_route_to_the_coefficients_gradient():
-    """``lanes_da_route``: through each slot's G_s where its multiply-adds, at their price, are fewer (the chapter 5
-    width's 8 -> 3 and 32 -> 4 layers), through Zm otherwise (its 16 -> 8 layer; the thesis width's 32 -> 3)."""
-    assert native.lanes_da_route(3089, 59623, 16, 8, 3, 35) == 2
-    assert native.lanes_da_route(16, 128, 16, 32, 4, 35) == 2
-    assert native.lanes_da_route(631, 19190, 16, 16, 8, 35) == 1
-    assert native.lanes_da_route(3089, 59623, 16, 32, 3, 35) == 1
 
 
 @pytestmark_lanes

@@ -705,8 +705,8 @@ inline void zero(vL (&a)[N1][N2]) {
 }
 
 // acc[k] = sum_r s[k][r] rows[r] for KB rows of scalars s[k] (R floats each) and rows (R x NV L): each row of `rows`
-// read once for the KB sums (KB NV chains of multiply-adds). The slots' kernels W_s = A_s B, the coefficients'
-// gradients dA_s = G_s Bt (basis_lanes' second route) and dA_k = X_k^T dTx (the sum order's), each with its layout.
+// read once for the KB sums (KB NV chains of multiply-adds). The slots' kernels W_s = A_s B (basis_lanes' second
+// forward route) and the sum order's coefficient gradients dA_k = X_k^T dTx, each with its layout.
 template <int KB, int NV>
 inline void combine_rows(vL (&acc)[KB][NV], const float* const* s, const float* __restrict rows, int64_t R) {
   zero(acc);
@@ -1166,9 +1166,8 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
 namespace lanes {
 // a sum over the batch for S slots, rows [p0, p0 + PB) and columns [8 q0, 8 q0 + 8 QV) of
 //     dW_s[p][q] = sum_beta X_s[beta][p] dY[beta][q]      (X_s: b x c row-major, dY: b x O8, zero past o)
-// with 8 floats a vector (dY's row read once for the S slots and PB rows: S PB QV chains of multiply-adds). The
-// kernel order's kernel gradients (X_s a slot's input rows, dY its output vertex's gradient) and the basis order's
-// G_s^T = dY_s^T x_j (below: X_s a slot's rows of dy, dY the input vertex's rows)
+// with 8 floats a vector (dY's row read once for the S slots and PB rows: S PB QV chains of multiply-adds): the
+// kernel order's kernel gradients (X_s a slot's input rows, dY its output vertex's gradient)
 typedef float v8 __attribute__((vector_size(8 * sizeof(float))));
 typedef float v8u __attribute__((vector_size(8 * sizeof(float)), aligned(4), may_alias));
 
@@ -1221,57 +1220,17 @@ inline void dw_slots(float* const* dW, const float* const* X, const float* dY, i
 }
 }  // namespace lanes
 
-namespace lanes {
-// dA_s[m] = sum_r G_s[r] Bt[r][m] (r over R = o c) for KB slots (G: K rows of R floats from row k0; Bt: R x NV L,
-// zero past M), the kernels as the vector; each slot's row of dA written once (the whole batch is in G_s)
-template <int KB, int NV>
-inline void da_from_g(float* const* dA, const float* __restrict G, const float* __restrict Bt, int64_t R, int64_t M,
-                      int64_t k0) {
-  const float* g[KB];
-  for (int k = 0; k < KB; ++k) g[k] = G + (k0 + k) * R;
-  vL acc[KB][NV];
-  combine_rows(acc, g, Bt, R);
-  for (int k = 0; k < KB; ++k)
-    for (int v = 0; v < NV; ++v) {
-      const int64_t m0 = v * L, mn = std::min<int64_t>(L, M - m0);
-      std::memcpy(dA[k0 + k] + m0, &acc[k][v], mn * sizeof(float));
-    }
-}
-
-template <int NV>
-inline void da_from_g_all(float* const* dA, const float* G, const float* Bt, int64_t R, int64_t M, int64_t K) {
-  int64_t k0 = 0;
-  for (; k0 + 4 <= K; k0 += 4) da_from_g<4, NV>(dA, G, Bt, R, M, k0);
-  switch (K - k0) {
-    case 3: da_from_g<3, NV>(dA, G, Bt, R, M, k0); break;
-    case 2: da_from_g<2, NV>(dA, G, Bt, R, M, k0); break;
-    case 1: da_from_g<1, NV>(dA, G, Bt, R, M, k0); break;
-    default: break;
-  }
-}
-}  // namespace lanes
-
 // its backward: dy (n_out, b, o); returns dx (n_in, b, c), dB (M, c, o) and dcoef (R, M) (zero at the rows no slot
-// reads; empty where not asked for). The coefficients' gradient takes one of two routes (``da``, chosen by
-// fwk_vcconv.native's cost model):
-//   1. Zm_j (o L x M) = Z_j laid out kernels-innermost, made per input vertex, then dA_s = dY_s Zm_j per slot:
-//      n_in c o M L + slots o L M multiply-adds;
-//   2. G_s (o x c) = dY_s^T x_j per slot (a sum over the batch: dw_slots on the batch-major rows), then
-//      dA_s[m] = sum_(q, p) G_s[q][p] B[m][p][q]: slots (c o b + c o M), no Zm. Half the first's on the chapter 5
-//      width's last layer (8 -> 3 channels, 19 slots an input vertex), and less on every narrow layer whose input
-//      vertices hold few slots.
+// reads; empty where not asked for)
 std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, torch::Tensor B, torch::Tensor coef,
                                           torch::Tensor offs, torch::Tensor dst, torch::Tensor pos, bool need_x,
-                                          bool need_B, bool need_coef, int64_t da) {
+                                          bool need_B, bool need_coef) {
   using namespace lanes;
   check(dy, "dy", at::kFloat, 3);
   lanes_check(x, B, coef, offs, dst, pos, dy.size(0));
   const int64_t n_in = x.size(0), b = x.size(1), c = x.size(2), M = B.size(0), o = B.size(2), n_out = dy.size(0);
   TORCH_CHECK(dy.size(1) == b && dy.size(2) == o, "dy: expected (n_out, b, o)");
   const int64_t G = (b + L - 1) / L, NV = (M + L - 1) / L, QL = o * L;
-  TORCH_CHECK(da == 1 || da == 2, "da: 1 (through Zm) or 2 (through G)");
-  const int64_t C8 = (c + 7) / 8 * 8;
-  const bool via_g = need_coef && da == 2;
   const int nt = at::get_num_threads();
   auto dyT = all_to_lanes(dy);  // (n_out, G, o, L)
   const float* dyTp = dyT.data_ptr<float>();
@@ -1282,9 +1241,8 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   auto dcoef = row_grad(need_coef, coef.size(0), M, dst.size(0), x.options());
   auto dBv = need_B ? torch::zeros({nt, M * o, c, L}, x.options()) : empty;
   auto W = B.permute({0, 2, 1}).contiguous();  // (M, o, c)
-  auto Bq = torch::zeros({via_g ? o : c, via_g ? c : o, NV * L}, x.options());  // (p, q, m), or (q, p, m) via G
-  Bq.narrow(2, 0, M).copy_(via_g ? B.permute({2, 1, 0}) : B.permute({1, 2, 0}));
-  const float* dyp = dy.data_ptr<float>();
+  auto Bq = torch::zeros({c, o, NV * L}, x.options());  // (p, q, m), zero past M
+  Bq.narrow(2, 0, M).copy_(B.permute({1, 2, 0}));
   const float* xp = x.data_ptr<float>();
   const float* Wp = W.data_ptr<float>();
   const float* Bqp = Bq.data_ptr<float>();
@@ -1299,18 +1257,16 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   fwk_native::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
     float* myB = need_B ? dBvp + at::get_thread_num() * M * o * c * L : nullptr;
     // xT and dZ of the pairs (vertex, batch group) since db_group last ran: the next pair's are at `held`
-    std::vector<float> xTs(DB_GROUP * c * L), Zm(via_g ? 0 : QL * NV * L), dZs(DB_GROUP * o * M * L), dxT(c * L);
-    std::vector<float> Gs(via_g ? Kmax * o * c : 0), xpad(via_g && C8 != c ? b * C8 : 0);
+    std::vector<float> xTs(DB_GROUP * c * L), Zm(QL * NV * L), dZs(DB_GROUP * o * M * L), dxT(c * L);
     int held = 0;
     std::vector<const float*> A(Kmax), dY(Kmax);
-    std::vector<float*> dA(Kmax), Gp(via_g ? Kmax : 0);
+    std::vector<float*> dA(Kmax);
     for (int64_t j = j0; j < j1; ++j) {
       const int64_t s0 = op[j], K = op[j + 1] - s0;
       if (j + 1 < j1) {  // the next vertex's coefficient rows, their gradient's rows and its rows of dy
         prefetch_rows<0>(cp, pp, op[j + 1], op[j + 2], M, M * sizeof(float));
         if (need_coef) prefetch_rows<1>(dcp, pp, op[j + 1], op[j + 2], M, M * sizeof(float));
         prefetch_rows<0>(dyTp, dp, op[j + 1], op[j + 2], G * o * L, G * o * L * sizeof(float));
-        if (via_g) prefetch_rows<0>(dyp, dp, op[j + 1], op[j + 2], b * o, b * o * sizeof(float));
       }
       if (K == 0) {
         if (need_x) std::fill(dxp + j * b * c, dxp + (j + 1) * b * c, 0.f);
@@ -1320,35 +1276,12 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
         A[k] = cp + pp[s0 + k] * M;
         if (need_coef) dA[k] = dcp + pp[s0 + k] * M;
       }
-      if (via_g) {  // G_s^T (o x c) = dY_s^T x_j for the slots, two at a time (x_j's rows padded to C8), then dA
-        const float* xj = xp + j * b * c;
-        if (C8 != c) {
-          for (int64_t beta = 0; beta < b; ++beta) {
-            std::copy(xj + beta * c, xj + beta * c + c, xpad.begin() + beta * C8);
-            std::fill(xpad.begin() + beta * C8 + c, xpad.begin() + beta * C8 + C8, 0.f);
-          }
-          xj = xpad.data();
-        }
-        for (int64_t k = 0; k < K; ++k) {
-          Gp[k] = Gs.data() + k * o * c;
-          dY[k] = dyp + dp[s0 + k] * b * o;
-        }
-        int64_t k = 0;
-        for (; k + 2 <= K; k += 2) dw_slots<2>(Gp.data() + k, dY.data() + k, xj, b, o, c, C8);
-        if (k < K) dw_slots<1>(Gp.data() + k, dY.data() + k, xj, b, o, c, C8);
-        switch (NV) {
-          case 1: da_from_g_all<1>(dA.data(), Gs.data(), Bqp, o * c, M, K); break;
-          case 2: da_from_g_all<2>(dA.data(), Gs.data(), Bqp, o * c, M, K); break;
-          case 3: da_from_g_all<3>(dA.data(), Gs.data(), Bqp, o * c, M, K); break;
-          default: da_from_g_all<4>(dA.data(), Gs.data(), Bqp, o * c, M, K); break;
-        }
-      }
       for (int64_t g = 0; g < G; ++g) {
         float* xT = xTs.data() + held * c * L;
         float* dZ = dZs.data() + held * o * M * L;
         to_lanes(xT, xp + j * b * c, b, c, g);
         for (int64_t k = 0; k < K; ++k) dY[k] = dyTp + (dp[s0 + k] * G + g) * o * L;
-        if (need_coef && !via_g) zm_then_da(dA.data(), dY.data(), Zm.data(), Bqp, xT, c, o, K, M, every_row && g == 0);
+        if (need_coef) zm_then_da(dA.data(), dY.data(), Zm.data(), Bqp, xT, c, o, K, M, every_row && g == 0);
         if (!need_x && !need_B) continue;
         int64_t m0 = 0;
         for (; m0 + 4 <= M; m0 += 4) dz_cols<4>(dZ, A.data(), dY.data(), K, o, m0);

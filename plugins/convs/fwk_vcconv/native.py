@@ -48,11 +48,10 @@ and every per-vertex product is a multiply-add of whole registers whatever the c
 (3-16 at the chapter 5 width, where MKL runs the per-vertex products at 30-50 GFLOP/s and a plain
 loop in registers at 100-140). Its backward makes dZ_j in cache the same way, dx_j and dB from it,
 and dA with Z laid out kernels-innermost (the kernels as the vector, no horizontal sums). For layers
-whose input vertices hold many slots of few channels (the chapter 5 width's 8 -> 3), each sum has a
-second route with about half the multiply-adds, taken where the cost model prices it cheaper
-(``lanes_forward_route``, ``lanes_da_route``): each slot's kernel W_s = A_s B made in cache forward,
-and each slot's sum over the batch G_s = dY_s^T x_j for dA. It adds the layer's bias as the result
-leaves the lanes. Those
+whose input vertices hold many slots of few channels (the chapter 5 width's 8 -> 3), the forward has
+a second route with about half the multiply-adds, taken where the cost model prices it cheaper
+(``lanes_forward_route``): each slot's kernel W_s = A_s B made in cache and applied to x_j. It adds
+the layer's bias as the result leaves the lanes. Those
 functions are compiled for AVX-512 only (``lanes``: False on other CPUs, where the tall product and
 ``basis_product`` run). ``kernel_lanes`` (``fwk_vcconv::kernel_lanes``) is ``kernel_product`` alike:
 each slot's kernel applied to 16 batch entries a register, forward and the input's gradient (2x the
@@ -385,33 +384,11 @@ def _lanes_setup(ctx, inputs, output):
     ctx.save_for_backward(*inputs[:6])  # x, basis, coef, offs, dst, pos (not n_out, not the bias)
 
 
-#: ``basis_lanes``' route to the coefficients' gradient (``native.cpp``, ``lanes_backward``): 1 through Z_j laid out
-#: kernels-innermost, 2 through each slot's sum over the batch G_s = dY_s^T x_j, 0 the cheaper by ``lanes_da_route``
-#: (tests force each)
-LANES_DA = 0
-#: the price of route 2's multiply-adds in route 1's: route 2 ran at 0.6-0.7 of route 1's rate per multiply-add
-#: (measured 2026-12-07, the chapter 5 and thesis widths' lane layers, 2 threads, batch 16: 8 -> 3 channels 4.3
-#: against 5.5 ms at 0.52 of the multiply-adds; 16 -> 8 6.7 against 5.9 ms at 0.95 of them)
-LANES_DA_G_PRICE = 1.5
-
-
-def lanes_da_route(n_in: int, slots: int, b: int, c: int, o: int, M: int) -> int:
-    """``basis_lanes``' cheaper route to the coefficients' gradient for a layer (``LANES_DA``; ``native.cpp``):
-    1 costs n_in c o M L' + slots o L' M multiply-adds (L' = b rounded up to 16: the lanes), 2 costs
-    slots (c o b + c o M), priced at ``LANES_DA_G_PRICE``."""
-    lanes_b = -(-b // 16) * 16
-    via_zm = n_in * c * o * M * lanes_b + slots * o * lanes_b * M
-    via_g = slots * (c * o * b + c * o * M)
-    return 2 if LANES_DA_G_PRICE * via_g < via_zm else 1
-
-
 def _lanes_backward(ctx, dy):
     x, basis, coef, offs, dst, pos = ctx.saved_tensors
     need_x, need_B, need_c = ctx.needs_input_grad[:3]
     dx, dB, dcoef = _load().lanes_backward(dy.contiguous(), x.contiguous(), basis.contiguous(), coef.contiguous(),
-                                           offs, dst, pos, need_x, need_B, need_c,
-                                           LANES_DA or lanes_da_route(x.shape[0], dst.shape[0], *x.shape[1:],
-                                                                      basis.shape[2], basis.shape[0]))
+                                           offs, dst, pos, need_x, need_B, need_c)
     return (dx if need_x else None), (dB if need_B else None), (dcoef if need_c else None), None, None, None, None, \
         (_bias_grad(dy) if ctx.needs_input_grad[7] else None)
 
