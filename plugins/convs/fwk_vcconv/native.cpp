@@ -1145,10 +1145,9 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
             A[t] = cp + pp[s0 + k0 + t] * M;
           }
           if (via_w) {  // the slots' kernels W_s = A_s B in cache, each applied to x_j's lanes
-            for (int64_t t = 0; t < kb; t += (kb == 4 ? 4 : 1)) {
-              if (kb == 4) kernels_of_slots<4>(Z.data(), A, Wp, M, NW);
-              else kernels_of_slots<1>(Z.data() + t * NW * L, A + t, Wp, M, NW);
-            }
+            if (kb == 4) kernels_of_slots<4>(Z.data(), A, Wp, M, NW);
+            else
+              for (int64_t t = 0; t < kb; ++t) kernels_of_slots<1>(Z.data() + t * NW * L, A + t, Wp, M, NW);
             for (int64_t t = 0; t < kb; ++t)
               by_blocks_of_8<KernelApply>(o, out[t], Z.data() + t * NW * L, xT.data(), c, o);
             continue;
