@@ -740,7 +740,7 @@ def test_the_lane_kernels_add_the_bias_as_the_result_leaves_the_lanes(b, torch_t
     offs, dst = _csr(13, 40, 9, g, empty=(2,))
     x = torch.randn(13, b, c, generator=g, requires_grad=True)
     basis = torch.randn(M, c, o, generator=g, requires_grad=True)
-    coef, w, pos = _coefficients(len(dst), M, g, True)
+    coef, _, pos = _coefficients(len(dst), M, g, True)  # its residual weights drawn, not used: basis_lanes has none
     bias = torch.randn(o, generator=g, requires_grad=True)
     offs_o, src = _csr(11, 13, 9, g, empty=(3,))
     Wk, wo, pos_o = _coefficients(len(src), c * o, g, True)

@@ -705,7 +705,8 @@ inline void zero(vL (&a)[N1][N2]) {
 }
 
 // acc[k] = sum_r s[k][r] rows[r] for KB rows of scalars s[k] (R floats each) and rows (R x NV L): each row of `rows`
-// read once for the KB sums (KB NV chains of multiply-adds). The slots' kernels W_s = A_s B (basis_lanes' second
+// read once for the KB sums (KB NV chains of multiply-adds). The basis product Z_j in lanes (rows_times_lanes),
+// basis_lanes' coefficient gradients dA_s = dY_s Zm_j (da_block), the slots' kernels W_s = A_s B (its second
 // forward route) and the sum order's coefficient gradients dA_k = X_k^T dTx, each with its layout.
 template <int KB, int NV>
 inline void combine_rows(vL (&acc)[KB][NV], const float* const* s, const float* __restrict rows, int64_t R) {
@@ -798,12 +799,10 @@ inline torch::Tensor all_to_lanes(const torch::Tensor& x) {
 template <int RB>
 inline void rows_times_lanes(float* __restrict Z, const float* __restrict W, const float* __restrict xT, int64_t c,
                              int64_t r0) {
-  vL acc[RB];
-  zero(acc);
-  for (int64_t p = 0; p < c; ++p) {
-    const vL xp = ld(xT + p * L);
-    for (int r = 0; r < RB; ++r) acc[r] += W[(r0 + r) * c + p] * xp;
-  }
+  const float* w[RB];
+  for (int r = 0; r < RB; ++r) w[r] = W + (r0 + r) * c;
+  vL acc[RB][1];
+  combine_rows(acc, w, xT, c);
   std::memcpy(Z + r0 * L, acc, sizeof acc);
 }
 
@@ -923,18 +922,7 @@ template <int KB, int NV>
 inline void da_block(float* const* dA, const float* const* dY, const float* __restrict Zm, int64_t QL, int64_t M,
                      bool assign) {
   vL acc[KB][NV];
-  zero(acc);
-  const float* y[KB];
-  for (int k = 0; k < KB; ++k) y[k] = dY[k];
-  for (int64_t ql = 0; ql < QL; ++ql) {
-    const float* z = Zm + ql * NV * L;
-    vL zv[NV];
-    for (int v = 0; v < NV; ++v) zv[v] = ld(z + v * L);
-    for (int k = 0; k < KB; ++k) {
-      const float yk = y[k][ql];
-      for (int v = 0; v < NV; ++v) acc[k][v] += yk * zv[v];
-    }
-  }
+  combine_rows(acc, dY, Zm, QL);
   for (int k = 0; k < KB; ++k)  // L kernels at a time (one vector each), not one scalar each
     for (int v = 0; v < NV; ++v) {
       const int64_t m0 = v * L, mn = std::min<int64_t>(L, M - m0);
@@ -1162,63 +1150,6 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
   return sum_out_of_lanes(acc, b, bias.size(0) ? bias.data_ptr<float>() : nullptr);
 }
 
-namespace lanes {
-// a sum over the batch for S slots, rows [p0, p0 + PB) and columns [8 q0, 8 q0 + 8 QV) of
-//     dW_s[p][q] = sum_beta X_s[beta][p] dY[beta][q]      (X_s: b x c row-major, dY: b x O8, zero past o)
-// with 8 floats a vector (dY's row read once for the S slots and PB rows: S PB QV chains of multiply-adds): the
-// kernel order's kernel gradients (X_s a slot's input rows, dY its output vertex's gradient)
-typedef float v8 __attribute__((vector_size(8 * sizeof(float))));
-typedef float v8u __attribute__((vector_size(8 * sizeof(float)), aligned(4), may_alias));
-
-template <int S, int PB, int QV>
-inline void dw_block(float* const* dW, const float* const* X, const float* __restrict dY, int64_t b, int64_t c,
-                     int64_t o, int64_t O8, int64_t p0, int64_t q0) {
-  v8 acc[S][PB][QV];
-  for (int s = 0; s < S; ++s)
-    for (int p = 0; p < PB; ++p)
-      for (int v = 0; v < QV; ++v) acc[s][p][v] = v8{};
-  for (int64_t beta = 0; beta < b; ++beta) {
-    v8 y[QV];
-    for (int v = 0; v < QV; ++v) y[v] = *reinterpret_cast<const v8u*>(dY + beta * O8 + (q0 + v) * 8);
-    for (int s = 0; s < S; ++s)
-      for (int p = 0; p < PB; ++p) {
-        const float xv = X[s][beta * c + p0 + p];
-        for (int v = 0; v < QV; ++v) acc[s][p][v] += xv * y[v];
-      }
-  }
-  for (int s = 0; s < S; ++s)
-    for (int p = 0; p < PB; ++p)
-      for (int v = 0; v < QV; ++v) {
-        const int64_t q = (q0 + v) * 8, n = std::min<int64_t>(8, o - q);
-        std::memcpy(dW[s] + (p0 + p) * o + q, &acc[s][p][v], n * sizeof(float));
-      }
-}
-
-// dw_block over every row of S slots, for column vectors [q0, q0 + QV): rows in blocks of 4, then the 1-3 left
-template <int S, int QV>
-inline void dw_rows(float* const* dW, const float* const* X, const float* dY, int64_t b, int64_t c, int64_t o,
-                    int64_t O8, int64_t q0) {
-  int64_t p0 = 0;
-  for (; p0 + 4 <= c; p0 += 4) dw_block<S, 4, QV>(dW, X, dY, b, c, o, O8, p0, q0);
-  switch (c - p0) {
-    case 3: dw_block<S, 3, QV>(dW, X, dY, b, c, o, O8, p0, q0); break;
-    case 2: dw_block<S, 2, QV>(dW, X, dY, b, c, o, O8, p0, q0); break;
-    case 1: dw_block<S, 1, QV>(dW, X, dY, b, c, o, O8, p0, q0); break;
-    default: break;
-  }
-}
-
-// dW_s (c x o, row-major) = X_s^T dY for S slots: column vectors two at a time, then the one left
-template <int S>
-inline void dw_slots(float* const* dW, const float* const* X, const float* dY, int64_t b, int64_t c, int64_t o,
-                     int64_t O8) {
-  const int64_t nv = O8 / 8;
-  int64_t q0 = 0;
-  for (; q0 + 2 <= nv; q0 += 2) dw_rows<S, 2>(dW, X, dY, b, c, o, O8, q0);
-  if (q0 < nv) dw_rows<S, 1>(dW, X, dY, b, c, o, O8, q0);
-}
-}  // namespace lanes
-
 // its backward: dy (n_out, b, o); returns dx (n_in, b, c), dB (M, c, o) and dcoef (R, M) (zero at the rows no slot
 // reads; empty where not asked for)
 std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, torch::Tensor B, torch::Tensor coef,
@@ -1306,8 +1237,6 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   return {dx, dB, dcoef};
 }
 
-
-
 // kernel order in lanes, forward (kernel_forward's arguments, x as (n_in, b, c)): y_i = sum_s x_src[s] W_pos[s] and
 // r_i = sum_s w_pos[s] x_src[s] per output vertex, 16 batch entries a register. Returns y (n_out, b, o) (plus bias (o),
 // or none: (0,)) and r (n_out, b, c) (empty (0,) without w).
@@ -1359,6 +1288,63 @@ std::vector<torch::Tensor> kernel_lanes_forward(torch::Tensor x, torch::Tensor W
   });
   return {y, r};
 }
+
+namespace lanes {
+// a sum over the batch for S slots, rows [p0, p0 + PB) and columns [8 q0, 8 q0 + 8 QV) of
+//     dW_s[p][q] = sum_beta X_s[beta][p] dY[beta][q]      (X_s: b x c row-major, dY: b x O8, zero past o)
+// with 8 floats a vector (dY's row read once for the S slots and PB rows: S PB QV chains of multiply-adds): the
+// kernel order's kernel gradients (X_s a slot's input rows, dY its output vertex's gradient)
+typedef float v8 __attribute__((vector_size(8 * sizeof(float))));
+typedef float v8u __attribute__((vector_size(8 * sizeof(float)), aligned(4), may_alias));
+
+template <int S, int PB, int QV>
+inline void dw_block(float* const* dW, const float* const* X, const float* __restrict dY, int64_t b, int64_t c,
+                     int64_t o, int64_t O8, int64_t p0, int64_t q0) {
+  v8 acc[S][PB][QV];
+  for (int s = 0; s < S; ++s)
+    for (int p = 0; p < PB; ++p)
+      for (int v = 0; v < QV; ++v) acc[s][p][v] = v8{};
+  for (int64_t beta = 0; beta < b; ++beta) {
+    v8 y[QV];
+    for (int v = 0; v < QV; ++v) y[v] = *reinterpret_cast<const v8u*>(dY + beta * O8 + (q0 + v) * 8);
+    for (int s = 0; s < S; ++s)
+      for (int p = 0; p < PB; ++p) {
+        const float xv = X[s][beta * c + p0 + p];
+        for (int v = 0; v < QV; ++v) acc[s][p][v] += xv * y[v];
+      }
+  }
+  for (int s = 0; s < S; ++s)
+    for (int p = 0; p < PB; ++p)
+      for (int v = 0; v < QV; ++v) {
+        const int64_t q = (q0 + v) * 8, n = std::min<int64_t>(8, o - q);
+        std::memcpy(dW[s] + (p0 + p) * o + q, &acc[s][p][v], n * sizeof(float));
+      }
+}
+
+// dw_block over every row of S slots, for column vectors [q0, q0 + QV): rows in blocks of 4, then the 1-3 left
+template <int S, int QV>
+inline void dw_rows(float* const* dW, const float* const* X, const float* dY, int64_t b, int64_t c, int64_t o,
+                    int64_t O8, int64_t q0) {
+  int64_t p0 = 0;
+  for (; p0 + 4 <= c; p0 += 4) dw_block<S, 4, QV>(dW, X, dY, b, c, o, O8, p0, q0);
+  switch (c - p0) {
+    case 3: dw_block<S, 3, QV>(dW, X, dY, b, c, o, O8, p0, q0); break;
+    case 2: dw_block<S, 2, QV>(dW, X, dY, b, c, o, O8, p0, q0); break;
+    case 1: dw_block<S, 1, QV>(dW, X, dY, b, c, o, O8, p0, q0); break;
+    default: break;
+  }
+}
+
+// dW_s (c x o, row-major) = X_s^T dY for S slots: column vectors two at a time, then the one left
+template <int S>
+inline void dw_slots(float* const* dW, const float* const* X, const float* dY, int64_t b, int64_t c, int64_t o,
+                     int64_t O8) {
+  const int64_t nv = O8 / 8;
+  int64_t q0 = 0;
+  for (; q0 + 2 <= nv; q0 += 2) dw_rows<S, 2>(dW, X, dY, b, c, o, O8, q0);
+  if (q0 < nv) dw_rows<S, 1>(dW, X, dY, b, c, o, O8, q0);
+}
+}  // namespace lanes
 
 // its backward: dy (n_out, b, o), dr (n_out, b, c) or empty; returns dx (n_in, b, c), dWk (R, c o) and dw (R) (zero
 // at the rows no slot reads; empty where not asked for). dx in lanes (each slot's kernel transposed, applied to dy_i);
@@ -1531,7 +1517,6 @@ inline void sum_da_rows(float* dA, const float* const* X, const float* dTx, int6
     default: break;
   }
 }
-
 }  // namespace lanes
 
 // sum_backward's coefficient gradients in lanes: dT_i (B x M) and dr_i (B, or null) copied into dTx (B x NV L: dr_i

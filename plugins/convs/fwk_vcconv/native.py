@@ -427,7 +427,7 @@ def _kernel_lanes_setup(ctx, inputs, output):
 
 def _kernel_lanes_backward(ctx, dy, dr):
     x, Wk, w, offs, src, pos = ctx.saved_tensors
-    (n_in, b, c), o, n_out = x.shape, ctx.o, offs.shape[0] - 1
+    (_, b, c), o, n_out = x.shape, ctx.o, offs.shape[0] - 1
     dy = x.new_zeros(n_out, b, o) if dy is None else dy.contiguous()
     if w.shape[0]:
         dr = x.new_zeros(n_out, b, c) if dr is None else dr.contiguous()
