@@ -80,14 +80,15 @@ def _offer_nan(*ts):
 @pytest.mark.parametrize("residual", [False, True])
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("B,M,lanes", [(12, 5, True), (12, 5, False), (37, 16, True), (128, 35, True), (20, 63, True),
-                                        (20, 64, False)])
+                                        (20, 64, False), (20, 28, True), (20, 40, True), (20, 52, True)])
 @pytest.mark.parametrize("spare", [7, 0])
 def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, B, M, lanes, spare, torch_threads,
                                                              monkeypatch):
     """T and r against the per-vertex loops in float64, on the per-vertex BLAS call and (``lanes``,
     where the CPU runs them) its lane path (``sum_vertex_lanes``, and ``sum_vertex_lanes_backward`` for the
     coefficients' gradient): rows in blocks of 8 and the rest, slots in blocks of 4 and the rest, kernels (and the
-    residual's column) in 1-4 vectors of 16; coefficient rows no slot reads (``spare``) or none."""
+    residual's column) in every layout of ``KernelChunks`` (1-4 vectors of 16, with and without a half vector for
+    the last 1-8); coefficient rows no slot reads (``spare``) or none."""
     if not lanes:
         monkeypatch.setattr(native, "lanes", lambda M=1: False)
     torch.set_num_threads(threads)
@@ -484,13 +485,15 @@ def _naive_basis_lanes(x, basis, coef, offs, dst, pos, n_out):
 @pytestmark_lanes
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("b,c,o,M", [(16, 8, 3, 35), (5, 3, 8, 7), (20, 4, 5, 16), (33, 2, 1, 64), (1, 6, 7, 17),
-                                     (16, 16, 8, 35), (7, 11, 2, 33)])
+                                     (16, 16, 8, 35), (7, 11, 2, 33), (20, 5, 4, 24), (9, 2, 3, 28), (16, 3, 3, 45),
+                                     (4, 4, 2, 52)])
 @pytest.mark.parametrize("spare", [7, 0])
 @pytest.mark.parametrize("fwd", [0, 1, 2])
 def test_basis_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, o, M, spare, fwd, torch_threads,
                                                                   monkeypatch):
     """Batches of 16 and not (the lanes past b are zero; past 16, the first group writes a coefficient
-    row's gradient and the others add to it), kernel counts in 1-4 chunks of 16 (the dA and Zm paths),
+    row's gradient and the others add to it), kernel counts in every layout of the dA and Zm paths (``KernelChunks``:
+    1-4 vectors of 16, with and without a half vector for the last 1-8; 24 and 40 fill it),
     supports of 0 to 9 slots, the forward by either route (``LANES_FORWARD``: the cheaper, through Z_j, through each
     slot's kernel where c o <= 64, slots in blocks of 4 and the rest): value and gradients of x, the basis and the
     coefficients against the slot loop in float64; coefficient rows no slot reads get zero (``spare``), or there

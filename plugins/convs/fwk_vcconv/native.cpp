@@ -28,6 +28,9 @@
 #include <algorithm>
 #include <cstring>
 #include <vector>
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__)
+#include <immintrin.h>  // the lane kernels' masked loads and stores (AVX-512, in their target region below)
+#endif
 
 namespace {
 
@@ -95,12 +98,31 @@ inline torch::Tensor row_grad(bool need, int64_t rows, int64_t cols, int64_t slo
 
 }  // namespace
 
-// (the lane kernels, compiled for AVX-512 below) T_i and r_i of one output vertex with the kernels as the vector
-void sum_vertex_lanes(float* Ti, float* ri, const float* const* X, const float* A, int64_t K, int64_t M, int64_t B,
-                      int64_t NV);
-// (the same) the coefficients' gradient of one output vertex's slots, dA_k, with the kernels as the vector
-void sum_vertex_lanes_backward(float* dA, const float* const* X, const float* dTi, const float* dri, int64_t K,
-                               int64_t M, int64_t B, int64_t NV, std::vector<float>& work);
+// The lane kernels that take the kernels (the coefficients' M columns, and the residual's weight in the sum order) as
+// the vector hold them as NV vectors of 16 floats and, where the last 1-8 would fill half a vector or less, a half
+// vector (H = 1) for those: W = 16 NV + 8 H floats a row, zero past the kernels. Zen 4 runs a 16-float multiply-add
+// as two 8-float halves, so M = 35 (36 with the residual) costs 2.5 vectors a row instead of 3 (13 of 48 lanes wasted).
+struct KernelChunks {
+  int64_t NV, H, W;
+};
+inline KernelChunks kernel_chunks(int64_t Mx) {
+  int64_t NV = Mx / 16, H = 0;
+  const int64_t rem = Mx % 16;
+  if (rem > 8 || (rem > 0 && NV == 0)) ++NV;
+  else if (rem > 0) H = 1;
+  return {NV, H, 16 * NV + 8 * H};
+}
+
+// (the lane kernels, compiled for AVX-512 below) T_i and r_i of one output vertex (its slots [s0, s0 + K)) with the
+// kernels as the vector; A (K W floats) and X (K pointers) are the caller's buffers
+void sum_vertex_lanes(float* Ti, float* ri, const float* x, const float* coef, const float* w, const int64_t* src,
+                      const int64_t* pos, int64_t s0, int64_t K, int64_t M, int64_t B, KernelChunks ch, float* A,
+                      const float** X);
+// (the same) the coefficients' gradient of one output vertex's slots, written to their rows of dcoef and dw (either
+// null where not asked for), with the kernels as the vector; dA (K W floats) and X (K pointers) the caller's buffers
+void sum_vertex_lanes_backward(float* dcoef, float* dw, const float* x, const int64_t* src, const int64_t* pos,
+                               int64_t s0, int64_t K, const float* dTi, const float* dri, int64_t M, int64_t B,
+                               KernelChunks ch, std::vector<float>& work, float* dA, const float** X);
 bool lanes_supported();
 
 // sum order, forward. x (n_in, B); coef (R, M) and w (R, or empty) are read at pos (slots); offs
@@ -113,7 +135,8 @@ std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torc
   check_csr(offs, src, n_out, n_in);
   check_coef(coef, w, pos, src.size(0));
   const bool res = w.size(0) > 0;
-  const int64_t Mx = M + (res ? 1 : 0), NV = (Mx + 15) / 16;  // NV vectors of 16 kernels (lanes)
+  const int64_t Mx = M + (res ? 1 : 0);
+  const KernelChunks ch = kernel_chunks(Mx);  // the kernels' vectors (lanes): W floats a slot
   TORCH_CHECK(!lanes || Mx <= 64, "coef: at most ", 64 - (res ? 1 : 0), " kernels in lanes");
   TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
   auto T = torch::empty({n_out, B, M}, x.options());
@@ -129,19 +152,14 @@ std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torc
   const int64_t Kmax = max_run(op, n_out);
   fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
     std::vector<float> buf(lanes ? 1 : std::max<int64_t>(Kmax * B, 1));
-    std::vector<float> A(std::max<int64_t>(Kmax * (lanes ? NV * 16 : Mx), 1));
+    std::vector<float> A(std::max<int64_t>(Kmax * (lanes ? ch.W : Mx), 1));
     std::vector<const float*> X(std::max<int64_t>(Kmax, 1));
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
       if (i + 1 < i1) prefetch_rows(xp, sp, op[i + 1], op[i + 2], B, B * sizeof(float));  // the next vertex's x rows
-      if (lanes) {  // the rows read in place; each slot's coefficients (and w in column M) zero-padded to NV * 16
-        std::fill(A.begin(), A.begin() + K * NV * 16, 0.f);
-        for (int64_t k = 0; k < K; ++k) {
-          std::memcpy(A.data() + k * NV * 16, cp + pp[s0 + k] * M, M * sizeof(float));
-          if (res) A[k * NV * 16 + M] = wp[pp[s0 + k]];
-          X[k] = xp + sp[s0 + k] * B;
-        }
-        sum_vertex_lanes(Tp + i * B * M, res ? rp + i * B : nullptr, X.data(), A.data(), K, M, B, NV);
+      if (lanes) {  // the rows read in place; each slot's coefficients (and w in column M) zero-padded to W
+        sum_vertex_lanes(Tp + i * B * M, res ? rp + i * B : nullptr, xp, cp, wp, sp, pp, s0, K, M, B, ch, A.data(),
+                         X.data());
         continue;
       }
       gather_rows(buf.data(), xp, sp, s0, K, B);
@@ -164,7 +182,8 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
   check(dT, "dT", at::kFloat, 3);
   const int64_t n_in = x.size(0), B = x.size(1), M = coef.size(1), n_out = offs.size(0) - 1;
   const bool res = w.size(0) > 0;
-  const int64_t Mx = M + (res ? 1 : 0), NV = (Mx + 15) / 16;
+  const int64_t Mx = M + (res ? 1 : 0);
+  const KernelChunks ch = kernel_chunks(Mx);
   TORCH_CHECK(!lanes || Mx <= 64, "coef: at most ", 64 - (res ? 1 : 0), " kernels in lanes");
   TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
   if (res) check(dr, "dr", at::kFloat, 2);
@@ -190,7 +209,7 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
     float* mine = need_dx ? thread_accumulator(accp, nt, n_in * B) : nullptr;
     std::vector<float> buf(lanes ? 1 : std::max<int64_t>(Kmax * B, 1)), dbuf(std::max<int64_t>(Kmax * B, 1));
     std::vector<float> A(std::max<int64_t>(Kmax * Mx, 1)), dA(lanes ? 1 : std::max<int64_t>(Kmax * Mx, 1));
-    std::vector<float> dAL(lanes ? Kmax * NV * 16 : 0), work;
+    std::vector<float> dAL(lanes ? Kmax * ch.W : 0), work;
     std::vector<const float*> X(lanes ? Kmax : 0);
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
@@ -200,14 +219,9 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
       }
       if (K == 0) continue;
       const float* dTi = dTp + i * B * M;
-      if ((need_dcoef || need_dw) && lanes) {  // the x rows read in place; dA_k padded to NV * 16 (w's in column M)
-        for (int64_t k = 0; k < K; ++k) X[k] = xp + sp[s0 + k] * B;
-        sum_vertex_lanes_backward(dAL.data(), X.data(), dTi, res ? drp + i * B : nullptr, K, M, B, NV, work);
-        for (int64_t k = 0; k < K; ++k) {
-          if (need_dcoef) std::memcpy(dcp + pp[s0 + k] * M, dAL.data() + k * NV * 16, M * sizeof(float));
-          if (need_dw) dwp[pp[s0 + k]] = dAL[k * NV * 16 + M];
-        }
-      }
+      if ((need_dcoef || need_dw) && lanes)  // the x rows read in place; dA_k padded to W (w's in column M)
+        sum_vertex_lanes_backward(need_dcoef ? dcp : nullptr, need_dw ? dwp : nullptr, xp, sp, pp, s0, K, dTi,
+                                  res ? drp + i * B : nullptr, M, B, ch, work, dAL.data(), X.data());
       if ((need_dcoef || need_dw) && !lanes) {
         gather_rows(buf.data(), xp, sp, s0, K, B);
         // dA_i[:, :M] (K x M) = X_i (K x B) dT_i (B x M)
@@ -692,11 +706,41 @@ typedef float vL __attribute__((vector_size(L * sizeof(float))));
 typedef float vLu __attribute__((vector_size(L * sizeof(float)), aligned(4), may_alias));
 inline vL ld(const float* p) { return *reinterpret_cast<const vLu*>(p); }
 inline void st(float* p, vL v) { *reinterpret_cast<vLu*>(p) = v; }
+// half a register: 8 floats (the kernels' last 1-8 where H = 1: KernelChunks; the kernel gradients' columns)
+typedef float v8 __attribute__((vector_size(8 * sizeof(float))));
+typedef float v8u __attribute__((vector_size(8 * sizeof(float)), aligned(4), may_alias));
+inline v8 ld8(const float* p) { return *reinterpret_cast<const v8u*>(p); }
+inline void st8(float* p, v8 v) { *reinterpret_cast<v8u*>(p) = v; }
+// the first n floats of a register (n in [0, 16], or [0, 8] for a half): masked loads and stores, the rest of the
+// register zero on a load. A copy of a run-time number of floats (M = 35 a row) was a call to the C library's memcpy
+// per row: 2-3 % of the chapter 5 width's step in perf, in sum_forward, sum_backward and da_block.
+inline vL ld_n(const float* p, int64_t n) { return (vL)_mm512_maskz_loadu_ps((__mmask16)((1u << n) - 1), p); }
+inline void st_n(float* p, vL v, int64_t n) { _mm512_mask_storeu_ps(p, (__mmask16)((1u << n) - 1), (__m512)v); }
+inline v8 ld8_n(const float* p, int64_t n) { return (v8)_mm256_maskz_loadu_ps((__mmask8)((1u << n) - 1), p); }
+inline void st8_n(float* p, v8 v, int64_t n) { _mm256_mask_storeu_ps(p, (__mmask8)((1u << n) - 1), (__m256)v); }
+inline int64_t clamp_to(int64_t n, int64_t hi) { return std::min(std::max<int64_t>(n, 0), hi); }
+// d[0, n) = s[0, n) (n <= 64: a row of kernels or of their gradients)
+inline void copy_n(float* d, const float* s, int64_t n) {
+  int64_t i = 0;
+  for (; i + L <= n; i += L) st(d + i, ld(s + i));
+  if (i < n) st_n(d + i, ld_n(s + i, n - i), n - i);
+}
+// d[0, W) = s[0, n) and zeros past n (W = KernelChunks' row: a multiple of 8, n <= W)
+inline void copy_padded(float* d, const float* s, int64_t n, int64_t W) {
+  int64_t i = 0;
+  for (; i + L <= W; i += L) st(d + i, ld_n(s + i, clamp_to(n - i, L)));
+  if (i < W) st8(d + i, ld8_n(s + i, clamp_to(n - i, 8)));
+}
 // zeroed one vector at a time: an `= {}` initialiser of a whole array is still a memset (`rep stos`)
 template <int N>
 inline void zero(vL (&a)[N]) {
 #pragma GCC unroll 32
   for (int i = 0; i < N; ++i) a[i] = vL{};
+}
+template <int N>
+inline void zero(v8 (&a)[N]) {
+#pragma GCC unroll 32
+  for (int i = 0; i < N; ++i) a[i] = v8{};
 }
 template <int N1, int N2>
 inline void zero(vL (&a)[N1][N2]) {
@@ -704,20 +748,46 @@ inline void zero(vL (&a)[N1][N2]) {
   for (int i = 0; i < N1; ++i) zero(a[i]);
 }
 
-// acc[k] = sum_r s[k][r] rows[r] for KB rows of scalars s[k] (R floats each) and rows (R x NV L): each row of `rows`
-// read once for the KB sums (KB NV chains of multiply-adds). The basis product Z_j in lanes (rows_times_lanes),
-// basis_lanes' coefficient gradients dA_s = dY_s Zm_j (da_block), the slots' kernels W_s = A_s B (its second
-// forward route) and the sum order's coefficient gradients dA_k = X_k^T dTx, each with its layout.
-template <int KB, int NV>
-inline void combine_rows(vL (&acc)[KB][NV], const float* const* s, const float* __restrict rows, int64_t R) {
+// acc[k] (and tail[k] where H = 1) = sum_r s[k][r] rows[r] for KB rows of scalars s[k] (R floats each) and rows
+// (R x (NV L + 8 H)): each row of `rows` read once for the KB sums (KB (NV + H) chains of multiply-adds). The basis
+// product Z_j in lanes (rows_times_lanes), basis_lanes' coefficient gradients dA_s = dY_s Zm_j (da_block), the slots'
+// kernels W_s = A_s B (its second forward route) and the sum order's coefficient gradients dA_k = X_k^T dTx, each with
+// its layout.
+template <int KB, int NV, int H>
+inline void combine_rows(vL (&acc)[KB][NV], v8 (&tail)[KB], const float* const* s, const float* __restrict rows,
+                         int64_t R) {
+  constexpr int W = NV * L + 8 * H;
   zero(acc);
+  zero(tail);
   for (int64_t r = 0; r < R; ++r) {
     vL row[NV];
-    for (int v = 0; v < NV; ++v) row[v] = ld(rows + (r * NV + v) * L);
+    for (int v = 0; v < NV; ++v) row[v] = ld(rows + r * W + v * L);
+    const v8 row8 = H ? ld8(rows + r * W + NV * L) : v8{};
     for (int k = 0; k < KB; ++k) {
       const float sk = s[k][r];
       for (int v = 0; v < NV; ++v) acc[k][v] += sk * row[v];
+      if (H) tail[k] += sk * row8;
     }
+  }
+}
+
+template <int KB, int NV>
+inline void combine_rows(vL (&acc)[KB][NV], const float* const* s, const float* __restrict rows, int64_t R) {
+  v8 unused[KB];
+  combine_rows<KB, NV, 0>(acc, unused, s, rows, R);
+}
+
+// F::go<NV, H>(args...) for the layout KernelChunks gives (NV 1-4, H 0-1, 16 NV + 8 H <= 64)
+template <class F, typename... Args>
+inline void by_chunks(const KernelChunks& ch, Args&&... args) {
+  switch (ch.NV * 2 + ch.H) {
+    case 2: F::template go<1, 0>(args...); break;
+    case 3: F::template go<1, 1>(args...); break;
+    case 4: F::template go<2, 0>(args...); break;
+    case 5: F::template go<2, 1>(args...); break;
+    case 6: F::template go<3, 0>(args...); break;
+    case 7: F::template go<3, 1>(args...); break;
+    default: F::template go<4, 0>(args...); break;
   }
 }
 
@@ -899,80 +969,84 @@ inline void dz_cols(float* dZ, const float* const* A, const float* const* dY, in
   }
 }
 
-// Zm[ql][m] (m innermost, NV chunks of L) = sum_p xT[p][l] Bq[p][q][m] for the (q, l) pairs [ql0, ql0 + 4)
-template <int NV>
+// Zm[ql][m] (m innermost, rows of W = NV L + 8 H: KernelChunks) = sum_p xT[p][l] Bq[p][q][m] for the (q, l) pairs
+// [ql0, ql0 + 4)
+template <int NV, int H>
 inline void zm_block(float* __restrict Zm, const float* __restrict Bq, const float* __restrict xT, int64_t c,
                      int64_t o, int64_t ql0) {
+  constexpr int W = NV * L + 8 * H;
   vL acc[4][NV];
+  v8 tail[4];
   zero(acc);
+  zero(tail);
   for (int64_t p = 0; p < c; ++p)
     for (int i = 0; i < 4; ++i) {
       const int64_t ql = ql0 + i, q = ql / L, l = ql % L;
       const float w = xT[p * L + l];
-      const float* bq = Bq + (p * o + q) * NV * L;
+      const float* bq = Bq + (p * o + q) * W;
       for (int v = 0; v < NV; ++v) acc[i][v] += w * ld(bq + v * L);
+      if (H) tail[i] += w * ld8(bq + NV * L);
     }
-  std::memcpy(Zm + ql0 * NV * L, acc, sizeof acc);
+  for (int i = 0; i < 4; ++i) {
+    for (int v = 0; v < NV; ++v) st(Zm + (ql0 + i) * W + v * L, acc[i][v]);
+    if (H) st8(Zm + (ql0 + i) * W + NV * L, tail[i]);
+  }
 }
 
 // dA[k][m] += sum_ql dY[k][ql] Zm[ql][m] for KB rows, each slot's dY row read where it lies (one broadcast a
 // multiply-add row, no packed copy); with `assign`, dA[k][m] = that sum (the row's first write: no zero-fill of dA
 // before, no read of it here)
-template <int KB, int NV>
+// d[m] (+)= a[m] for m < mn (mn <= L): masked where mn < L
+inline void add_or_assign(float* d, vL a, int64_t mn, bool assign) {
+  if (mn == L) st(d, assign ? a : ld(d) + a);
+  else st_n(d, assign ? a : ld_n(d, mn) + a, mn);
+}
+inline void add_or_assign(float* d, v8 a, int64_t mn, bool assign) {  // (mn <= 8)
+  if (mn == 8) st8(d, assign ? a : ld8(d) + a);
+  else st8_n(d, assign ? a : ld8_n(d, mn) + a, mn);
+}
+
+template <int KB, int NV, int H>
 inline void da_block(float* const* dA, const float* const* dY, const float* __restrict Zm, int64_t QL, int64_t M,
                      bool assign) {
   vL acc[KB][NV];
-  combine_rows(acc, dY, Zm, QL);
-  for (int k = 0; k < KB; ++k)  // L kernels at a time (one vector each), not one scalar each
-    for (int v = 0; v < NV; ++v) {
-      const int64_t m0 = v * L, mn = std::min<int64_t>(L, M - m0);
-      float* d = dA[k] + m0;
-      if (assign) {
-        std::memcpy(d, &acc[k][v], mn * sizeof(float));
-      } else if (mn == L) {
-        st(d, ld(d) + acc[k][v]);
-      } else {
-        for (int64_t t = 0; t < mn; ++t) d[t] += acc[k][v][t];
-      }
-    }
+  v8 tail[KB];
+  combine_rows<KB, NV, H>(acc, tail, dY, Zm, QL);
+  for (int k = 0; k < KB; ++k) {  // L kernels at a time (one vector each), not one scalar each
+    for (int v = 0; v < NV; ++v) add_or_assign(dA[k] + v * L, acc[k][v], std::min<int64_t>(L, M - v * L), assign);
+    if (H) add_or_assign(dA[k] + NV * L, tail[k], M - NV * L, assign);
+  }
 }
 
 // da_block over K rows: 8 at a time, the rest (1-7) in one block of their own size
-template <int NV>
+template <int NV, int H>
 void da_all(float* const* dA, const float* const* dY, const float* Zm, int64_t K, int64_t QL, int64_t M, bool assign) {
   int64_t k0 = 0;
-  for (; k0 + 8 <= K; k0 += 8) da_block<8, NV>(dA + k0, dY + k0, Zm, QL, M, assign);
+  for (; k0 + 8 <= K; k0 += 8) da_block<8, NV, H>(dA + k0, dY + k0, Zm, QL, M, assign);
   float* const* a = dA + k0;
   const float* const* y = dY + k0;
   switch (K - k0) {
-    case 7: da_block<7, NV>(a, y, Zm, QL, M, assign); break;
-    case 6: da_block<6, NV>(a, y, Zm, QL, M, assign); break;
-    case 5: da_block<5, NV>(a, y, Zm, QL, M, assign); break;
-    case 4: da_block<4, NV>(a, y, Zm, QL, M, assign); break;
-    case 3: da_block<3, NV>(a, y, Zm, QL, M, assign); break;
-    case 2: da_block<2, NV>(a, y, Zm, QL, M, assign); break;
-    case 1: da_block<1, NV>(a, y, Zm, QL, M, assign); break;
+    case 7: da_block<7, NV, H>(a, y, Zm, QL, M, assign); break;
+    case 6: da_block<6, NV, H>(a, y, Zm, QL, M, assign); break;
+    case 5: da_block<5, NV, H>(a, y, Zm, QL, M, assign); break;
+    case 4: da_block<4, NV, H>(a, y, Zm, QL, M, assign); break;
+    case 3: da_block<3, NV, H>(a, y, Zm, QL, M, assign); break;
+    case 2: da_block<2, NV, H>(a, y, Zm, QL, M, assign); break;
+    case 1: da_block<1, NV, H>(a, y, Zm, QL, M, assign); break;
     default: break;
   }
 }
 
-template <int NV>
-void zm_all(float* Zm, const float* Bq, const float* xT, int64_t c, int64_t o) {
-  for (int64_t ql0 = 0; ql0 < o * L; ql0 += 4) zm_block<NV>(Zm, Bq, xT, c, o, ql0);
-}
-
-// Zm = zm_all(Bq, X) (X: contract x L, Zm's rows (q, l) for q < width) and then dA[k] += sum_ql rows[k][ql] Zm[ql]
-// (da_all; = with `assign`), for NV = ceil(M / L) chunks of kernels
-inline void zm_then_da(float* const* dA, const float* const* rows, float* Zm, const float* Bq,
-                       const float* X, int64_t contract, int64_t width, int64_t K, int64_t M, bool assign) {
-  const int64_t QL = width * L;
-  switch ((M + L - 1) / L) {
-    case 1: zm_all<1>(Zm, Bq, X, contract, width); da_all<1>(dA, rows, Zm, K, QL, M, assign); break;
-    case 2: zm_all<2>(Zm, Bq, X, contract, width); da_all<2>(dA, rows, Zm, K, QL, M, assign); break;
-    case 3: zm_all<3>(Zm, Bq, X, contract, width); da_all<3>(dA, rows, Zm, K, QL, M, assign); break;
-    default: zm_all<4>(Zm, Bq, X, contract, width); da_all<4>(dA, rows, Zm, K, QL, M, assign); break;
+// Zm = the products of Bq with X (zm_block; X: contract x L, Zm's rows (q, l) for q < width) and then
+// dA[k] += sum_ql rows[k][ql] Zm[ql] (da_all; = with `assign`), in the kernels' layout NV, H (KernelChunks)
+struct ZmThenDa {
+  template <int NV, int H>
+  static void go(float* const* dA, const float* const* rows, float* Zm, const float* Bq, const float* X,
+                 int64_t contract, int64_t width, int64_t K, int64_t M, bool assign) {
+    for (int64_t ql0 = 0; ql0 < width * L; ql0 += 4) zm_block<NV, H>(Zm, Bq, X, contract, width, ql0);
+    da_all<NV, H>(dA, rows, Zm, K, width * L, M, assign);
   }
-}
+};
 
 // dxT[p][l] = sum_r W[r][p] dZ[r][l] for PB columns p from p0 (W (R, c))
 template <int PB>
@@ -1160,7 +1234,8 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   lanes_check(x, B, coef, offs, dst, pos, dy.size(0));
   const int64_t n_in = x.size(0), b = x.size(1), c = x.size(2), M = B.size(0), o = B.size(2), n_out = dy.size(0);
   TORCH_CHECK(dy.size(1) == b && dy.size(2) == o, "dy: expected (n_out, b, o)");
-  const int64_t G = (b + L - 1) / L, NV = (M + L - 1) / L, QL = o * L;
+  const int64_t G = (b + L - 1) / L, QL = o * L;
+  const KernelChunks ch = kernel_chunks(M);
   const int nt = at::get_num_threads();
   auto dyT = all_to_lanes(dy);  // (n_out, G, o, L)
   const float* dyTp = dyT.data_ptr<float>();
@@ -1171,7 +1246,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   auto dcoef = row_grad(need_coef, coef.size(0), M, dst.size(0), x.options());
   auto dBv = need_B ? torch::zeros({nt, M * o, c, L}, x.options()) : empty;
   auto W = B.permute({0, 2, 1}).contiguous();  // (M, o, c)
-  auto Bq = torch::zeros({c, o, NV * L}, x.options());  // (p, q, m), zero past M
+  auto Bq = torch::zeros({c, o, ch.W}, x.options());  // (p, q, m), zero past M
   Bq.narrow(2, 0, M).copy_(B.permute({1, 2, 0}));
   const float* xp = x.data_ptr<float>();
   const float* Wp = W.data_ptr<float>();
@@ -1187,7 +1262,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   fwk_native::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
     float* myB = need_B ? dBvp + at::get_thread_num() * M * o * c * L : nullptr;
     // xT and dZ of the pairs (vertex, batch group) since db_group last ran: the next pair's are at `held`
-    std::vector<float> xTs(DB_GROUP * c * L), Zm(QL * NV * L), dZs(DB_GROUP * o * M * L), dxT(c * L);
+    std::vector<float> xTs(DB_GROUP * c * L), Zm(QL * ch.W), dZs(DB_GROUP * o * M * L), dxT(c * L);
     int held = 0;
     std::vector<const float*> A(Kmax), dY(Kmax);
     std::vector<float*> dA(Kmax);
@@ -1211,7 +1286,8 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
         float* dZ = dZs.data() + held * o * M * L;
         to_lanes(xT, xp + j * b * c, b, c, g);
         for (int64_t k = 0; k < K; ++k) dY[k] = dyTp + (dp[s0 + k] * G + g) * o * L;
-        if (need_coef) zm_then_da(dA.data(), dY.data(), Zm.data(), Bqp, xT, c, o, K, M, every_row && g == 0);
+        if (need_coef)
+          by_chunks<ZmThenDa>(ch, dA.data(), dY.data(), Zm.data(), Bqp, xT, c, o, K, M, every_row && g == 0);
         if (!need_x && !need_B) continue;
         int64_t m0 = 0;
         for (; m0 + 4 <= M; m0 += 4) dz_cols<4>(dZ, A.data(), dY.data(), K, o, m0);
@@ -1294,9 +1370,6 @@ namespace lanes {
 //     dW_s[p][q] = sum_beta X_s[beta][p] dY[beta][q]      (X_s: b x c row-major, dY: b x O8, zero past o)
 // with 8 floats a vector (dY's row read once for the S slots and PB rows: S PB QV chains of multiply-adds): the
 // kernel order's kernel gradients (X_s a slot's input rows, dY its output vertex's gradient)
-typedef float v8 __attribute__((vector_size(8 * sizeof(float))));
-typedef float v8u __attribute__((vector_size(8 * sizeof(float)), aligned(4), may_alias));
-
 template <int S, int PB, int QV>
 inline void dw_block(float* const* dW, const float* const* X, const float* __restrict dY, int64_t b, int64_t c,
                      int64_t o, int64_t O8, int64_t p0, int64_t q0) {
@@ -1317,7 +1390,8 @@ inline void dw_block(float* const* dW, const float* const* X, const float* __res
     for (int p = 0; p < PB; ++p)
       for (int v = 0; v < QV; ++v) {
         const int64_t q = (q0 + v) * 8, n = std::min<int64_t>(8, o - q);
-        std::memcpy(dW[s] + (p0 + p) * o + q, &acc[s][p][v], n * sizeof(float));
+        if (n == 8) st8(dW[s] + (p0 + p) * o + q, acc[s][p][v]);
+        else st8_n(dW[s] + (p0 + p) * o + q, acc[s][p][v], n);
       }
 }
 
@@ -1454,101 +1528,119 @@ std::vector<torch::Tensor> kernel_lanes_backward(torch::Tensor dy, torch::Tensor
 
 namespace lanes {
 // T rows [beta0, beta0 + BB) of one output vertex: T[beta][m] = sum_k X_k[beta] A_k[m] for its K slots, the kernels
-// (and the residual's weight, column M) as the vector: NV vectors of L kernels, A zero past Mx
-template <int BB, int NV>
+// (and the residual's weight, column M) as the vector: rows of W = NV L + 8 H (KernelChunks), A zero past Mx
+template <int BB, int NV, int H>
 inline void t_rows(float* __restrict T, float* __restrict r, const float* const* X, const float* __restrict A,
                    int64_t K, int64_t M, int64_t beta0) {
+  constexpr int W = NV * L + 8 * H;
   vL acc[BB][NV];
+  v8 tail[BB];
   zero(acc);
+  zero(tail);
   for (int64_t k = 0; k < K; ++k) {
-    const float* a = A + k * NV * L;
+    const float* a = A + k * W;
     const float* xk = X[k] + beta0;
     vL av[NV];
     for (int v = 0; v < NV; ++v) av[v] = ld(a + v * L);
+    const v8 at = H ? ld8(a + NV * L) : v8{};
     for (int t = 0; t < BB; ++t) {
       const float xv = xk[t];
       for (int v = 0; v < NV; ++v) acc[t][v] += xv * av[v];
+      if (H) tail[t] += xv * at;
     }
   }
-  for (int t = 0; t < BB; ++t) {
-    std::memcpy(T + (beta0 + t) * M, &acc[t][0], M * sizeof(float));  // acc[t] is NV L contiguous floats
-    if (r) r[beta0 + t] = acc[t][M / L][M % L];
+  for (int t = 0; t < BB; ++t) {  // T's row: M floats (masked past them); r: column M
+    float* Tt = T + (beta0 + t) * M;
+    for (int v = 0; v < NV; ++v) {
+      if ((v + 1) * L <= M) st(Tt + v * L, acc[t][v]);
+      else if (v * L < M) st_n(Tt + v * L, acc[t][v], M - v * L);
+    }
+    if (H && NV * L < M) st8_n(Tt + NV * L, tail[t], M - NV * L);
+    if (r) r[beta0 + t] = M < NV * L ? acc[t][M / L][M % L] : tail[t][M - NV * L];
   }
 }
 
 template <int BB>
 struct TRows {
-  template <int NV>
+  template <int NV, int H>
   static void go(float* T, float* r, const float* const* X, const float* A, int64_t K, int64_t M, int64_t beta0) {
-    t_rows<BB, NV>(T, r, X, A, K, M, beta0);
+    t_rows<BB, NV, H>(T, r, X, A, K, M, beta0);
   }
   static void run(int64_t beta0, float* T, float* r, const float* const* X, const float* A, int64_t K, int64_t M,
-                  int64_t NV) {
-    switch (NV) {
-      case 1: go<1>(T, r, X, A, K, M, beta0); break;
-      case 2: go<2>(T, r, X, A, K, M, beta0); break;
-      case 3: go<3>(T, r, X, A, K, M, beta0); break;
-      default: go<4>(T, r, X, A, K, M, beta0); break;
-    }
+                  const KernelChunks& ch) {
+    by_chunks<TRows>(ch, T, r, X, A, K, M, beta0);
   }
 };
 }  // namespace lanes
 
 namespace lanes {
 // dA rows of KB slots: dA_k[m] = sum_beta X_k[beta] dTx[beta][m], the kernels (and the residual's column M) as the
-// vector: NV vectors of L (dTx (B x NV L), zero past Mx)
-template <int KB, int NV>
+// vector: rows of W = NV L + 8 H (KernelChunks; dTx (B x W), zero past Mx)
+template <int KB, int NV, int H>
 inline void sum_da_block(float* __restrict dA, const float* const* X, const float* __restrict dTx, int64_t B,
                          int64_t k0) {
+  constexpr int W = NV * L + 8 * H;
   vL acc[KB][NV];
-  combine_rows(acc, X + k0, dTx, B);
-  for (int k = 0; k < KB; ++k)
-    for (int v = 0; v < NV; ++v) st(dA + ((k0 + k) * NV + v) * L, acc[k][v]);
-}
-
-template <int NV>
-inline void sum_da_rows(float* dA, const float* const* X, const float* dTx, int64_t B, int64_t K) {
-  int64_t k0 = 0;
-  for (; k0 + 4 <= K; k0 += 4) sum_da_block<4, NV>(dA, X, dTx, B, k0);
-  switch (K - k0) {
-    case 3: sum_da_block<3, NV>(dA, X, dTx, B, k0); break;
-    case 2: sum_da_block<2, NV>(dA, X, dTx, B, k0); break;
-    case 1: sum_da_block<1, NV>(dA, X, dTx, B, k0); break;
-    default: break;
+  v8 tail[KB];
+  combine_rows<KB, NV, H>(acc, tail, X + k0, dTx, B);
+  for (int k = 0; k < KB; ++k) {
+    for (int v = 0; v < NV; ++v) st(dA + (k0 + k) * W + v * L, acc[k][v]);
+    if (H) st8(dA + (k0 + k) * W + NV * L, tail[k]);
   }
 }
+
+struct SumDaRows {
+  template <int NV, int H>
+  static void go(float* dA, const float* const* X, const float* dTx, int64_t B, int64_t K) {
+    int64_t k0 = 0;
+    for (; k0 + 4 <= K; k0 += 4) sum_da_block<4, NV, H>(dA, X, dTx, B, k0);
+    switch (K - k0) {
+      case 3: sum_da_block<3, NV, H>(dA, X, dTx, B, k0); break;
+      case 2: sum_da_block<2, NV, H>(dA, X, dTx, B, k0); break;
+      case 1: sum_da_block<1, NV, H>(dA, X, dTx, B, k0); break;
+      default: break;
+    }
+  }
+};
 }  // namespace lanes
 
-// sum_backward's coefficient gradients in lanes: dT_i (B x M) and dr_i (B, or null) copied into dTx (B x NV L: dr_i
+// sum_backward's coefficient gradients in lanes: dT_i (B x M) and dr_i (B, or null) copied into dTx (B x W: dr_i
 // in column M, zero past it), then dA_k[m] = sum_beta X_k[beta] dTx[beta][m] for the vertex's K slots, the kernels
-// as the vector (dA: K rows of NV L floats). The input's gradient stays with BLAS: a lane version (the rows of dT_i
-// transposed per vertex, the batch as the vector) was 0.6-0.9x its call on the chapter 5 and thesis widths' encoders.
-void sum_vertex_lanes_backward(float* dA, const float* const* X, const float* dTi, const float* dri, int64_t K,
-                               int64_t M, int64_t B, int64_t NV, std::vector<float>& work) {
+// as the vector (dA: K rows of W floats; W = KernelChunks' row), and each slot's row written to its row of dcoef (M
+// floats) and of dw (column M). The input's gradient stays with BLAS: a lane version (the rows of dT_i transposed per
+// vertex, the batch as the vector) was 0.6-0.9x its call on the chapter 5 and thesis widths' encoders.
+void sum_vertex_lanes_backward(float* dcoef, float* dw, const float* x, const int64_t* src, const int64_t* pos,
+                               int64_t s0, int64_t K, const float* dTi, const float* dri, int64_t M, int64_t B,
+                               KernelChunks ch, std::vector<float>& work, float* dA, const float** X) {
   using namespace lanes;
-  const int64_t NVL = NV * L;
-  if (static_cast<int64_t>(work.size()) < B * NVL) work.resize(B * NVL);
+  if (static_cast<int64_t>(work.size()) < B * ch.W) work.resize(B * ch.W);
   float* dTx = work.data();
   for (int64_t beta = 0; beta < B; ++beta) {
-    float* row = dTx + beta * NVL;
-    std::memcpy(row, dTi + beta * M, M * sizeof(float));
-    int64_t m = M;
-    if (dri) row[m++] = dri[beta];
-    for (; m < NVL; ++m) row[m] = 0.f;
+    float* row = dTx + beta * ch.W;
+    copy_padded(row, dTi + beta * M, M, ch.W);
+    if (dri) row[M] = dri[beta];
   }
-  switch (NV) {
-    case 1: sum_da_rows<1>(dA, X, dTx, B, K); break;
-    case 2: sum_da_rows<2>(dA, X, dTx, B, K); break;
-    case 3: sum_da_rows<3>(dA, X, dTx, B, K); break;
-    default: sum_da_rows<4>(dA, X, dTx, B, K); break;
+  for (int64_t k = 0; k < K; ++k) X[k] = x + src[s0 + k] * B;
+  by_chunks<SumDaRows>(ch, dA, X, dTx, B, K);
+  for (int64_t k = 0; k < K; ++k) {
+    if (dcoef) copy_n(dcoef + pos[s0 + k] * M, dA + k * ch.W, M);
+    if (dw) dw[pos[s0 + k]] = dA[k * ch.W + M];
   }
 }
 
-// sum_forward's per-vertex T_i and r_i with the kernels as the vector (rows of 8, NV vectors of 16 kernels each, the
-// residual's weight in column M): 1.2-2.0x the BLAS call on the encoders' layers
-void sum_vertex_lanes(float* Ti, float* ri, const float* const* X, const float* A, int64_t K, int64_t M, int64_t B,
-                      int64_t NV) {
-  lanes::by_blocks_of_8<lanes::TRows>(B, Ti, ri, X, A, K, M, NV);
+// sum_forward's per-vertex T_i and r_i with the kernels as the vector (rows of 8, the kernels in KernelChunks' layout,
+// the residual's weight in column M): 1.2-2.0x the BLAS call on the encoders' layers. Each slot's coefficient row (and
+// w in column M) is copied into A, zero-padded to W; the x rows are read in place.
+void sum_vertex_lanes(float* Ti, float* ri, const float* x, const float* coef, const float* w, const int64_t* src,
+                      const int64_t* pos, int64_t s0, int64_t K, int64_t M, int64_t B, KernelChunks ch, float* A,
+                      const float** X) {
+  using namespace lanes;
+  for (int64_t k = 0; k < K; ++k) {
+    copy_padded(A + k * ch.W, coef + pos[s0 + k] * M, M, ch.W);
+    if (w) A[k * ch.W + M] = w[pos[s0 + k]];
+    X[k] = x + src[s0 + k] * B;
+  }
+  by_blocks_of_8<TRows>(B, Ti, ri, X, A, K, M, ch);
 }
 
 #ifdef FWK_VCCONV_LANES
