@@ -714,10 +714,27 @@ inline void st8(float* p, v8 v) { *reinterpret_cast<v8u*>(p) = v; }
 // the first n floats of a register (n in [0, 16], or [0, 8] for a half): masked loads and stores, the rest of the
 // register zero on a load. A copy of a run-time number of floats (M = 35 a row) was a call to the C library's memcpy
 // per row: 2-3 % of the chapter 5 width's step in perf, in sum_forward, sum_backward and da_block.
+#ifdef FWK_VCCONV_LANES
 inline vL ld_n(const float* p, int64_t n) { return (vL)_mm512_maskz_loadu_ps((__mmask16)((1u << n) - 1), p); }
 inline void st_n(float* p, vL v, int64_t n) { _mm512_mask_storeu_ps(p, (__mmask16)((1u << n) - 1), (__m512)v); }
 inline v8 ld8_n(const float* p, int64_t n) { return (v8)_mm256_maskz_loadu_ps((__mmask8)((1u << n) - 1), p); }
 inline void st8_n(float* p, v8 v, int64_t n) { _mm256_mask_storeu_ps(p, (__mmask8)((1u << n) - 1), (__m256)v); }
+#else  // other compilers and CPUs build these kernels too (lanes_supported says they do not run them): plain loops
+template <typename V>
+inline V ld_first(const float* p, int64_t n) {
+  V v{};
+  for (int64_t i = 0; i < n; ++i) v[i] = p[i];
+  return v;
+}
+template <typename V>
+inline void st_first(float* p, V v, int64_t n) {
+  for (int64_t i = 0; i < n; ++i) p[i] = v[i];
+}
+inline vL ld_n(const float* p, int64_t n) { return ld_first<vL>(p, n); }
+inline void st_n(float* p, vL v, int64_t n) { st_first(p, v, n); }
+inline v8 ld8_n(const float* p, int64_t n) { return ld_first<v8>(p, n); }
+inline void st8_n(float* p, v8 v, int64_t n) { st_first(p, v, n); }
+#endif
 inline int64_t clamp_to(int64_t n, int64_t hi) { return std::min(std::max<int64_t>(n, 0), hi); }
 // d[0, n) = s[0, n) (n <= 64: a row of kernels or of their gradients)
 inline void copy_n(float* d, const float* s, int64_t n) {
