@@ -397,15 +397,23 @@ def test_without_a_compiler_vcconv_says_so_once_and_runs_its_torch_code(tmp_path
 
 
 # ---- the products with the basis (``tall_product``)
-TALL_SHAPES = [(700, 8, 105), (700, 105, 8), (513, 3, 8), (300, 40, 16), (9, 5, 3), (1, 4, 20)]  # N >= 16 and N < 16,
-# N >= K and N < K (the two orientations of each product), a partial last block, fewer rows than a block
+TALL_SHAPES = [(700, 8, 105), (700, 105, 8), (513, 3, 8), (300, 40, 16), (9, 5, 3), (1, 4, 20), (37, 7, 64),
+               (101, 64, 33)]  # N >= 16 and N < 16, N >= K and N < K (the two orientations of each product), a partial
+# last block, fewer rows than a block; in lanes (results of at most 64 columns: the forward's N, dA's K): 1-4 vectors
+# a row, the last one partial or whole, rows in blocks of 8 or 4 and the rest
 
 
 @pytestmark_native
 @pytest.mark.parametrize("R,K,N", TALL_SHAPES)
 @pytest.mark.parametrize("bias", [False, True])
 @pytest.mark.parametrize("threads", [1, 2])
-def test_tall_product_matches_the_dense_product_in_value_and_gradient(R, K, N, bias, threads, torch_threads):
+@pytest.mark.parametrize("lanes", [True, False])
+def test_tall_product_matches_the_dense_product_in_value_and_gradient(R, K, N, bias, threads, lanes, torch_threads,
+                                                                     monkeypatch):
+    """C, dA and dB against float64 products, by the lane kernel (``tall_lanes``, where the CPU runs it) and by
+    the BLAS calls on row blocks (``tall_mm``)."""
+    if not lanes:
+        monkeypatch.setattr(native, "lanes", lambda M=1: False)
     torch.set_num_threads(threads)
     g = torch.Generator().manual_seed(R + K + N)
     A, B, b, up = (torch.randn(*s, generator=g, dtype=torch.float64) for s in ((R, K), (K, N), (N,), (R, N)))

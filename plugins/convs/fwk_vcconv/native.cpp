@@ -124,6 +124,13 @@ void sum_vertex_lanes_backward(float* dcoef, float* dw, const float* x, const in
                                int64_t s0, int64_t K, const float* dTi, const float* dri, int64_t M, int64_t B,
                                KernelChunks ch, std::vector<float>& work, float* dA, const float** X);
 bool lanes_supported();
+// (the same) C (R x N) = A (R x K) op(B) + bias (N, or null); op(B) = B (K x N) or, with bt, B^T (B: N x K).
+// Taken for results of at most TALL_LANES_MAX_N columns: 1.3-3.0x tall_mm's BLAS calls for 3-35 (the chapter 5
+// width's products with its basis and residual maps, alternating), 0.8-1.1x for 280 and 560, whose rows of C are
+// written at the memory's rate either way. (The basis's gradient A^T dC stays with tall_tn: the same in lanes, the rows
+// of C the vectors, was 0.5-0.9x.)
+constexpr int64_t TALL_LANES_MAX_N = 64;
+void tall_lanes(const float* A, const float* B, bool bt, const float* bias, float* C, int64_t R, int64_t K, int64_t N);
 
 // sum order, forward. x (n_in, B); coef (R, M) and w (R, or empty) are read at pos (slots); offs
 // (n_out + 1), src (slots). Returns T (n_out, B, M) and r (n_out, B) (empty (0,) without w). Each T_i by one BLAS
@@ -456,23 +463,28 @@ std::vector<torch::Tensor> kernel_backward(torch::Tensor dy, torch::Tensor dr, t
 }
 
 // the products with the basis: C (R, N) = A (R, K) B (K, N) + bias (N, or empty (0,)), R large, K and N
-// small (fwk_native.h's tall_mm: row blocks in cache, one BLAS call each)
-torch::Tensor tall_forward(torch::Tensor A, torch::Tensor B, torch::Tensor bias) {
+// small: with ``lanes`` (on CPUs that run them: lanes_supported) by tall_lanes where the result has at most
+// TALL_LANES_MAX_N columns, else by fwk_native.h's tall_mm (row blocks in cache, one BLAS call each)
+torch::Tensor tall_forward(torch::Tensor A, torch::Tensor B, torch::Tensor bias, bool lanes) {
   check(A, "A", at::kFloat, 2);
   check(B, "B", at::kFloat, 2);
   check(bias, "bias", at::kFloat, 1);
   const int64_t R = A.size(0), K = A.size(1), N = B.size(1);
   TORCH_CHECK(B.size(0) == K, "B: expected ", K, " rows, got ", B.size(0));
   TORCH_CHECK(bias.size(0) == 0 || bias.size(0) == N, "bias: expected ", N, " entries or none");
+  TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
   auto C = torch::empty({R, N}, A.options());
-  tall_mm(A.data_ptr<float>(), B.data_ptr<float>(), false, bias.size(0) ? bias.data_ptr<float>() : nullptr,
-          C.data_ptr<float>(), R, K, N);
+  const float* biasp = bias.size(0) ? bias.data_ptr<float>() : nullptr;
+  if (lanes && N <= TALL_LANES_MAX_N)
+    tall_lanes(A.data_ptr<float>(), B.data_ptr<float>(), false, biasp, C.data_ptr<float>(), R, K, N);
+  else tall_mm(A.data_ptr<float>(), B.data_ptr<float>(), false, biasp, C.data_ptr<float>(), R, K, N);
   return C;
 }
 
-// its backward: dA = dC B^T (R, K) and dB = A^T dC (K, N) (empty (0,) where not asked for)
+// its backward: dA = dC B^T (R, K) (tall_lanes or tall_mm, as the forward) and dB = A^T dC (K, N) (tall_tn) (empty
+// (0,) where not asked for)
 std::vector<torch::Tensor> tall_backward(torch::Tensor dC, torch::Tensor A, torch::Tensor B, bool need_A,
-                                         bool need_B) {
+                                         bool need_B, bool lanes) {
   check(dC, "dC", at::kFloat, 2);
   check(A, "A", at::kFloat, 2);
   check(B, "B", at::kFloat, 2);
@@ -481,8 +493,11 @@ std::vector<torch::Tensor> tall_backward(torch::Tensor dC, torch::Tensor A, torc
   auto empty = torch::empty({0}, A.options());
   torch::Tensor dA = empty, dB = empty;
   if (need_A) {
+    TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
     dA = torch::empty({R, K}, A.options());  // dC (R x N) B^T: B (K x N) is op(B)'s transpose
-    tall_mm(dC.data_ptr<float>(), B.data_ptr<float>(), true, nullptr, dA.data_ptr<float>(), R, N, K);
+    if (lanes && K <= TALL_LANES_MAX_N)
+      tall_lanes(dC.data_ptr<float>(), B.data_ptr<float>(), true, nullptr, dA.data_ptr<float>(), R, N, K);
+    else tall_mm(dC.data_ptr<float>(), B.data_ptr<float>(), true, nullptr, dA.data_ptr<float>(), R, N, K);
   }
   if (need_B) dB = tall_tn(A.data_ptr<float>(), dC.data_ptr<float>(), R, K, N, A.options());
   return {dA, dB};
@@ -1328,6 +1343,77 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   // dB[m][p][q] = sum over threads and lanes of dBv[(m o + q)][p]
   auto dB = need_B ? dBv.sum(at::IntArrayRef{0, 3}).reshape({M, o, c}).permute({0, 2, 1}).contiguous() : empty;
   return {dx, dB, dcoef};
+}
+
+namespace lanes {
+// rows [r0, r0 + RB) and vectors [v0, v0 + CV) of C = A Bp + bias: each row's K scalars broadcast against Bp's rows
+// (K x NP, op(B) zero-padded to NP = 16 NC columns), RB CV chains of multiply-adds, the last vector of a row stored
+// masked (N - 16 v floats)
+template <int RB, int CV>
+inline void tall_block(float* __restrict C, const float* __restrict A, const float* __restrict Bp,
+                       const float* __restrict biasp, int64_t K, int64_t N, int64_t NP, int64_t r0, int64_t v0) {
+  vL acc[RB][CV];
+  for (int v = 0; v < CV; ++v) {
+    const vL b0 = ld(biasp + (v0 + v) * L);
+    for (int r = 0; r < RB; ++r) acc[r][v] = b0;
+  }
+  const float* a = A + r0 * K;
+  for (int64_t k = 0; k < K; ++k) {
+    vL b[CV];
+    for (int v = 0; v < CV; ++v) b[v] = ld(Bp + k * NP + (v0 + v) * L);
+    for (int r = 0; r < RB; ++r) {
+      const float ar = a[r * K + k];
+      for (int v = 0; v < CV; ++v) acc[r][v] += ar * b[v];
+    }
+  }
+  for (int r = 0; r < RB; ++r)
+    for (int v = 0; v < CV; ++v) {
+      const int64_t col = (v0 + v) * L, n = std::min<int64_t>(L, N - col);
+      float* d = C + (r0 + r) * N + col;
+      if (n == L) st(d, acc[r][v]);
+      else st_n(d, acc[r][v], n);
+    }
+}
+
+// rows [r0, r0 + RB) of C, every vector: 4 at a time (RB 4) or, for N <= 32, all at once (RB 8)
+template <int RB, int CVMAX>
+inline void tall_rows(float* C, const float* A, const float* Bp, const float* biasp, int64_t K, int64_t N, int64_t NP,
+                      int64_t r0) {
+  const int64_t NC = NP / L;
+  int64_t v0 = 0;
+  for (; v0 + CVMAX <= NC; v0 += CVMAX) tall_block<RB, CVMAX>(C, A, Bp, biasp, K, N, NP, r0, v0);
+  switch (NC - v0) {
+    case 3: tall_block<RB, 3>(C, A, Bp, biasp, K, N, NP, r0, v0); break;
+    case 2: tall_block<RB, 2>(C, A, Bp, biasp, K, N, NP, r0, v0); break;
+    case 1: tall_block<RB, 1>(C, A, Bp, biasp, K, N, NP, r0, v0); break;
+    default: break;
+  }
+}
+}  // namespace lanes
+
+// the tall products in lanes: C (R x N) = A (R x K) op(B) + bias, rows in blocks of 8 (N <= 32) or 4, op(B)'s rows
+// the vectors (zero-padded to whole registers, in L1 for the whole product). MKL's calls on the same row blocks
+// (tall_mm) packed A and scaled C first: their copy and scaling routines were as many samples in perf as its
+// products on the chapter 5 width's step.
+void tall_lanes(const float* A, const float* B, bool bt, const float* bias, float* C, int64_t R, int64_t K,
+                int64_t N) {
+  using namespace lanes;
+  const int64_t NP = (N + L - 1) / L * L;
+  std::vector<float> Bp(K * NP, 0.f), biasp(NP, 0.f);
+  for (int64_t k = 0; k < K; ++k)
+    for (int64_t n = 0; n < N; ++n) Bp[k * NP + n] = bt ? B[n * K + k] : B[k * N + n];
+  if (bias) std::copy(bias, bias + N, biasp.begin());
+  const bool narrow = NP <= 2 * L;
+  const int64_t RB = narrow ? 8 : 4;
+  fwk_native::parallel_for(0, (R + RB - 1) / RB, 64, [&](int64_t q0, int64_t q1) {
+    int64_t r0 = q0 * RB;
+    const int64_t r1 = std::min(q1 * RB, R);
+    for (; r0 + RB <= r1; r0 += RB) {
+      if (narrow) tall_rows<8, 2>(C, A, Bp.data(), biasp.data(), K, N, NP, r0);
+      else tall_rows<4, 4>(C, A, Bp.data(), biasp.data(), K, N, NP, r0);
+    }
+    for (; r0 < r1; ++r0) tall_rows<1, 4>(C, A, Bp.data(), biasp.data(), K, N, NP, r0);
+  });
 }
 
 // kernel order in lanes, forward (kernel_forward's arguments, x as (n_in, b, c)): y_i = sum_s x_src[s] W_pos[s] and

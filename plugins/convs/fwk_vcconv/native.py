@@ -295,13 +295,16 @@ def tall(A: torch.Tensor, B: torch.Tensor) -> bool:
 
 @torch.library.custom_op("fwk_vcconv::tall_product", mutates_args=())
 def tall_product(A: torch.Tensor, B: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-    """C (R, N) = A (R, K) @ B (K, N) + bias (N; or (0,): none), for R large and K, N small:
-    blocks of rows that stay in cache, one single-threaded BLAS call each, in parallel
-    (``fwk_native.h``'s ``tall_mm``; MKL runs (49,424 x 8) @ (8 x 105) at 6-25 GFLOP/s on 2 threads,
-    its gradient A^T dC 6x slower than the same product transposed). The gradients:
-    dA = dC B^T by the same blocks, dB = A^T dC summed per thread in thread order, dbias = dC's
-    column sums."""
-    return _load().tall_forward(A.contiguous(), B.contiguous(), bias.contiguous())
+    """C (R, N) = A (R, K) @ B (K, N) + bias (N; or (0,): none), for R large and K, N small. Where the
+    lane kernels run (``lanes``) and the result has at most 64 columns: ``tall_lanes``, rows of A against
+    B's rows as the vectors in registers, 1.2-3.0x the BLAS route on the chapter 5 width's products (MKL
+    packed A and scaled C first on every block). Otherwise blocks of rows that stay in cache, one
+    single-threaded BLAS call each, in parallel (``fwk_native.h``'s ``tall_mm``; MKL runs (49,424 x 8) @
+    (8 x 105) at 6-25 GFLOP/s on 2 threads, its gradient A^T dC 6x slower than the same product
+    transposed). The gradients: dA = dC B^T by the same route for its K columns, dB = A^T dC by BLAS,
+    summed per thread in thread order, dbias = dC's column sums. Each row of C (and of dA) is the same
+    bits on any thread count."""
+    return _load().tall_forward(A.contiguous(), B.contiguous(), bias.contiguous(), lanes())
 
 
 @tall_product.register_fake
@@ -319,7 +322,7 @@ def _tall_backward(ctx, dC):
     A, B = ctx.saved_tensors
     need_A, need_B, need_bias = ctx.needs_input_grad
     dC = dC.contiguous()
-    dA, dB = _load().tall_backward(dC, A.contiguous(), B.contiguous(), need_A, need_B)
+    dA, dB = _load().tall_backward(dC, A.contiguous(), B.contiguous(), need_A, need_B, lanes())
     dbias = dC.sum(0) if need_bias and ctx.has_bias else None
     return (dA if need_A else None), (dB if need_B else None), dbias
 
