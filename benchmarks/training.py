@@ -15,8 +15,9 @@ the line below each ("torch code") times the same network on its conv's torch ev
 rows, "no tall" times the native kernels with the products with the basis on torch's product
 instead of ``fwk_vcconv.native.tall_product``, and "no lanes" with the narrow ``basis`` and ``kernel``
 layers on the BLAS kernels (the tall product and ``basis_product``, ``kernel_product``) instead of
-``fwk_vcconv.native.basis_lanes`` and ``kernel_lanes``, and the ``sum`` order's forward on its
-per-vertex BLAS call instead of lanes (``sum_vertex_lanes``).
+``fwk_vcconv.native.basis_lanes`` and ``kernel_lanes``, the ``sum`` order's forward on its
+per-vertex BLAS call instead of lanes (``sum_vertex_lanes``), and the tall products on BLAS calls per
+row block (``tall_mm``) instead of ``tall_lanes``.
 
 * ``vcconv VAE``: the fully convolutional VAE at the thesis's width (its Mesh Autoencoder and
   Deep Spectral Meshes' bands, issue 28's "thesis-width" network), channels [3, 32, 64, 128,
@@ -241,7 +242,7 @@ def variant_lines(r: dict, ts: dict) -> None:
     print(f"{'  no tall':<13} {'':>10} {r['no_tall_ms']:>9.0f}   (the basis products on torch's: tall_product is "
           f"{r['tall_speedup']:.2f}x faster)")
     print(f"{'  no lanes':<13} {'':>10} {r['no_lanes_ms']:>9.0f}   (the lane kernels off, BLAS per vertex: "
-          f"basis_lanes, kernel_lanes and sum in lanes are {r['lanes_speedup']:.2f}x faster)")
+          f"basis_lanes, kernel_lanes, sum and tall in lanes are {r['lanes_speedup']:.2f}x faster)")
 
 
 def load_average() -> float:
