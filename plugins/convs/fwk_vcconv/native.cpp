@@ -734,6 +734,7 @@ inline vL ld_n(const float* p, int64_t n) { return (vL)_mm512_maskz_loadu_ps((__
 inline void st_n(float* p, vL v, int64_t n) { _mm512_mask_storeu_ps(p, (__mmask16)((1u << n) - 1), (__m512)v); }
 inline v8 ld8_n(const float* p, int64_t n) { return (v8)_mm256_maskz_loadu_ps((__mmask8)((1u << n) - 1), p); }
 inline void st8_n(float* p, v8 v, int64_t n) { _mm256_mask_storeu_ps(p, (__mmask8)((1u << n) - 1), (__m256)v); }
+inline float lane_sum(vL v) { return _mm512_reduce_add_ps((__m512)v); }  // the sum of a register's 16 floats
 #else  // other compilers and CPUs build these kernels too (lanes_supported says they do not run them): plain loops
 template <typename V>
 inline V ld_first(const float* p, int64_t n) {
@@ -749,6 +750,11 @@ inline vL ld_n(const float* p, int64_t n) { return ld_first<vL>(p, n); }
 inline void st_n(float* p, vL v, int64_t n) { st_first(p, v, n); }
 inline v8 ld8_n(const float* p, int64_t n) { return ld_first<v8>(p, n); }
 inline void st8_n(float* p, v8 v, int64_t n) { st_first(p, v, n); }
+inline float lane_sum(vL v) {
+  float t = 0.f;
+  for (int i = 0; i < L; ++i) t += v[i];
+  return t;
+}
 #endif
 inline int64_t clamp_to(int64_t n, int64_t hi) { return std::min(std::max<int64_t>(n, 0), hi); }
 // d[0, n) = s[0, n) (n <= 64: a row of kernels or of their gradients)
@@ -1340,8 +1346,22 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
       db_group(myB, xTs.data(), dZs.data(), M * o, c);
     }
   });
-  // dB[m][p][q] = sum over threads and lanes of dBv[(m o + q)][p]
-  auto dB = need_B ? dBv.sum(at::IntArrayRef{0, 3}).reshape({M, o, c}).permute({0, 2, 1}).contiguous() : empty;
+  // dB[m][p][q] = sum over threads and lanes of dBv[(m o + q)][p] (the threads' vectors added in thread order, then
+  // the 16 lanes: torch's sum over dimensions 0 and 3 took 0.44 ms for the 32 -> 16 layer's 2 x 560 x 32 x 16 floats)
+  torch::Tensor dB = empty;
+  if (need_B) {
+    dB = torch::empty({M, c, o}, x.options());
+    float* dBp = dB.data_ptr<float>();
+    const int64_t R = M * o;
+    fwk_native::parallel_for(0, R, 16, [&](int64_t r0, int64_t r1) {
+      for (int64_t r = r0; r < r1; ++r)
+        for (int64_t p = 0; p < c; ++p) {
+          vL t = ld(dBvp + (r * c + p) * L);
+          for (int th = 1; th < nt; ++th) t += ld(dBvp + ((th * R + r) * c + p) * L);
+          dBp[((r / o) * c + p) * o + r % o] = lane_sum(t);
+        }
+    });
+  }
   return {dx, dB, dcoef};
 }
 
