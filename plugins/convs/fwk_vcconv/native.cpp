@@ -1008,24 +1008,31 @@ inline void dz_cols(float* dZ, const float* const* A, const float* const* dY, in
 }
 
 // Zm[ql][m] (m innermost, rows of W = NV L + 8 H: KernelChunks) = sum_p xT[p][l] Bq[p][q][m] for the (q, l) pairs
-// [ql0, ql0 + 4)
-template <int NV, int H>
+// [ql0, ql0 + ZB) (ZB divides L: one q, lanes l0 .. l0 + ZB - 1): Bq's row (p, q) loaded once for the ZB lanes (it was
+// loaded for each)
+template <int NV, int H, int ZB>
 inline void zm_block(float* __restrict Zm, const float* __restrict Bq, const float* __restrict xT, int64_t c,
                      int64_t o, int64_t ql0) {
+  static_assert(L % ZB == 0, "a block of lanes within one q");
   constexpr int W = NV * L + 8 * H;
-  vL acc[4][NV];
-  v8 tail[4];
+  const int64_t q = ql0 / L, l0 = ql0 % L;
+  vL acc[ZB][NV];
+  v8 tail[ZB];
   zero(acc);
   zero(tail);
-  for (int64_t p = 0; p < c; ++p)
-    for (int i = 0; i < 4; ++i) {
-      const int64_t ql = ql0 + i, q = ql / L, l = ql % L;
-      const float w = xT[p * L + l];
-      const float* bq = Bq + (p * o + q) * W;
-      for (int v = 0; v < NV; ++v) acc[i][v] += w * ld(bq + v * L);
-      if (H) tail[i] += w * ld8(bq + NV * L);
+  for (int64_t p = 0; p < c; ++p) {
+    const float* bq = Bq + (p * o + q) * W;
+    vL bv[NV];
+    for (int v = 0; v < NV; ++v) bv[v] = ld(bq + v * L);
+    const v8 bt = H ? ld8(bq + NV * L) : v8{};
+    const float* xs = xT + p * L + l0;
+    for (int i = 0; i < ZB; ++i) {
+      const float w = xs[i];
+      for (int v = 0; v < NV; ++v) acc[i][v] += w * bv[v];
+      if (H) tail[i] += w * bt;
     }
-  for (int i = 0; i < 4; ++i) {
+  }
+  for (int i = 0; i < ZB; ++i) {
     for (int v = 0; v < NV; ++v) st(Zm + (ql0 + i) * W + v * L, acc[i][v]);
     if (H) st8(Zm + (ql0 + i) * W + NV * L, tail[i]);
   }
@@ -1081,7 +1088,8 @@ struct ZmThenDa {
   template <int NV, int H>
   static void go(float* const* dA, const float* const* rows, float* Zm, const float* Bq, const float* X,
                  int64_t contract, int64_t width, int64_t K, int64_t M, bool assign) {
-    for (int64_t ql0 = 0; ql0 < width * L; ql0 += 4) zm_block<NV, H>(Zm, Bq, X, contract, width, ql0);
+    constexpr int ZB = NV + H <= 3 ? 8 : 4;  // ZB (NV + H) accumulators (at most 24 of the 32 registers)
+    for (int64_t ql0 = 0; ql0 < width * L; ql0 += ZB) zm_block<NV, H, ZB>(Zm, Bq, X, contract, width, ql0);
     da_all<NV, H>(dA, rows, Zm, K, width * L, M, assign);
   }
 };
