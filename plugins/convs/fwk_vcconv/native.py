@@ -39,7 +39,12 @@ by 8 x 105 in the chapter 5 width's outer layers. MKL runs these at 6-25 GFLOP/s
 and its gradient A^T dC 6x slower than the same product transposed; ``fwk_native.h``'s
 ``tall_mm`` / ``tall_tn`` cut them into row blocks that stay in cache, one single-threaded BLAS
 call each, the long side first (1.1-1.2x the chapter 5 width's training step; the thesis width's
-wider bases stay with torch's product, which is as fast there).
+wider bases stay with torch's product, which is as fast there). Where the lane kernels run, a product
+whose result has at most 64 columns (the forward's N, the gradient dA's K) is ``tall_lanes`` instead:
+each row of A broadcast against B's rows held as vectors, 8 or 4 rows at a time, no packing of A and
+no scaling pass over C (MKL's copy and scaling routines were as many of the step's perf samples as its
+products): 1.2-3.0x the BLAS calls on the chapter 5 width's products, 1.7x on the thesis width's
+10,096 x 1,120 x 64. The basis's gradient A^T dC stays with ``tall_tn``.
 
 A fifth, ``basis_lanes`` (``fwk_vcconv::basis_lanes``), runs the whole ``basis`` order of a narrow
 layer in one pass with the batch as the vector: a vertex's rows are taken 16 batch entries at a
@@ -47,7 +52,9 @@ time (one AVX-512 register of floats), Z_j = B^T x_j is made in cache instead of
 and every per-vertex product is a multiply-add of whole registers whatever the channel counts
 (3-16 at the chapter 5 width, where MKL runs the per-vertex products at 30-50 GFLOP/s and a plain
 loop in registers at 100-140). Its backward makes dZ_j in cache the same way, dx_j and dB from it,
-and dA with Z laid out kernels-innermost (the kernels as the vector, no horizontal sums). For layers
+and dA with Z laid out kernels-innermost (the kernels as the vector, no horizontal sums: 16-float
+vectors and, for the last 1-8 kernels, a half vector, ``KernelChunks``, so that M = 35 costs 2.5
+vectors a row, not 3: Zen 4 runs a 16-float multiply-add as two halves). For layers
 whose input vertices hold many slots of few channels (the chapter 5 width's 8 -> 3), the forward has
 a second route with about half the multiply-adds, taken where the cost model prices it cheaper
 (``lanes_forward_route``): each slot's kernel W_s = A_s B made in cache and applied to x_j. It adds
