@@ -125,7 +125,7 @@ void sum_vertex_lanes_backward(float* dcoef, float* dw, const float* x, const in
                                KernelChunks ch, std::vector<float>& work, float* dA, const float** X);
 bool lanes_supported();
 // (the same) C (R x N) = A (R x K) op(B) + bias (N, or null); op(B) = B (K x N) or, with bt, B^T (B: N x K).
-// Taken for results of at most TALL_LANES_MAX_N columns: 1.3-3.0x tall_mm's BLAS calls for 3-35 (the chapter 5
+// Taken for results of at most TALL_LANES_MAX_N columns: 1.2-3.0x tall_mm's BLAS calls for 3-35 (the chapter 5
 // width's products with its basis and residual maps, alternating), 0.8-1.1x for 280 and 560, whose rows of C are
 // written at the memory's rate either way. (The basis's gradient A^T dC stays with tall_tn: the same in lanes, the rows
 // of C the vectors, was 0.5-0.9x.)
@@ -728,7 +728,7 @@ inline v8 ld8(const float* p) { return *reinterpret_cast<const v8u*>(p); }
 inline void st8(float* p, v8 v) { *reinterpret_cast<v8u*>(p) = v; }
 // the first n floats of a register (n in [0, 16], or [0, 8] for a half): masked loads and stores, the rest of the
 // register zero on a load. A copy of a run-time number of floats (M = 35 a row) was a call to the C library's memcpy
-// per row: 2-3 % of the chapter 5 width's step in perf, in sum_forward, sum_backward and da_block.
+// per row: about 2 % of the chapter 5 width's step's samples in perf, in sum_forward, sum_backward and da_block.
 #ifdef FWK_VCCONV_LANES
 inline vL ld_n(const float* p, int64_t n) { return (vL)_mm512_maskz_loadu_ps((__mmask16)((1u << n) - 1), p); }
 inline void st_n(float* p, vL v, int64_t n) { _mm512_mask_storeu_ps(p, (__mmask16)((1u << n) - 1), (__m512)v); }
@@ -1038,9 +1038,6 @@ inline void zm_block(float* __restrict Zm, const float* __restrict Bq, const flo
   }
 }
 
-// dA[k][m] += sum_ql dY[k][ql] Zm[ql][m] for KB rows, each slot's dY row read where it lies (one broadcast a
-// multiply-add row, no packed copy); with `assign`, dA[k][m] = that sum (the row's first write: no zero-fill of dA
-// before, no read of it here)
 // d[m] (+)= a[m] for m < mn (mn <= L): masked where mn < L
 inline void add_or_assign(float* d, vL a, int64_t mn, bool assign) {
   if (mn == L) st(d, assign ? a : ld(d) + a);
@@ -1051,6 +1048,9 @@ inline void add_or_assign(float* d, v8 a, int64_t mn, bool assign) {  // (mn <= 
   else st8_n(d, assign ? a : ld8_n(d, mn) + a, mn);
 }
 
+// dA[k][m] += sum_ql dY[k][ql] Zm[ql][m] for KB rows, each slot's dY row read where it lies (one broadcast a
+// multiply-add row, no packed copy); with `assign`, dA[k][m] = that sum (the row's first write: no zero-fill of dA
+// before, no read of it here)
 template <int KB, int NV, int H>
 inline void da_block(float* const* dA, const float* const* dY, const float* __restrict Zm, int64_t QL, int64_t M,
                      bool assign) {
