@@ -145,3 +145,25 @@ def test_networks_put_the_elu_on_the_conv_branch_and_none_on_the_last_block(layo
         z = torch.randn(2, m.latent_size)
         x0 = dec.latent_map(z) if "latent_vertices" in layout else dec.fc(z).reshape(2, dec.n_last, dec.c_last)
         assert torch.allclose(dec(z), _naive_network(list(dec.convs), x0), atol=1e-5)
+
+
+@pytest.mark.parametrize("layout", [{"fully_convolutional": True, "latent": 6}, {"latent": 6}])
+def test_decoders_hand_on_a_batch_major_result(layout):
+    """vcconv's native kernels compute vertex-major and hand on a transposed view; the decoders make their result
+    batch-major (contiguous) so that the loss's elementwise operations do not run strided, with the values
+    unchanged (the last conv's own result, taken before the copy)."""
+    from fwk.testing.model import tiny_fit_data
+
+    t = tiny_fit_data(n_subjects=4).template
+    spec = {"name": "ae", "conv": "vcconv", "sampler": {"name": "simple", "levels": 2}, "channels": [5, 4],
+            "residual_rate": 0.3, **layout}
+    m = make_spec("model", spec, "model", REG).build()
+    torch.manual_seed(0)
+    dec = m.build_decoder(t, 3)
+    last = dec.convs[-1] if hasattr(dec, "convs") and not hasattr(dec, "out") else dec.out
+    seen = []
+    last.register_forward_hook(lambda mod, args, out: seen.append(out))
+    y = dec(torch.randn(2, 6))
+    assert not seen[0].is_contiguous()  # the conv's vertex-major result, transposed
+    assert y.shape == (2, t.n_vertices, 3) and y.is_contiguous()
+    assert torch.equal(y, seen[0])
