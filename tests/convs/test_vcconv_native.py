@@ -398,9 +398,9 @@ def test_without_a_compiler_vcconv_says_so_once_and_runs_its_torch_code(tmp_path
 
 # ---- the products with the basis (``tall_product``)
 TALL_SHAPES = [(700, 8, 105), (700, 105, 8), (513, 3, 8), (300, 40, 16), (9, 5, 3), (1, 4, 20), (37, 7, 64),
-               (101, 64, 33)]  # N >= 16 and N < 16, N >= K and N < K (the two orientations of each product), a partial
-# last block, fewer rows than a block; in lanes (results of at most 64 columns: the forward's N, dA's K): 1-4 vectors
-# a row, the last one partial or whole, rows in blocks of 8 or 4 and the rest
+               (101, 64, 33), (33, 9, 128)]  # N >= 16 and N < 16, N >= K and N < K (the two orientations of each product), a partial
+# last block, fewer rows than a block; in lanes (results of at most 128 columns: the forward's N, dA's K): 1-8 vectors
+# a row (4 at a time), the last one partial or whole, rows in blocks of 8 or 4 and the rest
 
 
 @pytestmark_native

@@ -126,10 +126,11 @@ void sum_vertex_lanes_backward(float* dcoef, float* dw, const float* x, const in
 bool lanes_supported();
 // (the same) C (R x N) = A (R x K) op(B) + bias (N, or null); op(B) = B (K x N) or, with bt, B^T (B: N x K).
 // Taken for results of at most TALL_LANES_MAX_N columns: 1.2-3.0x tall_mm's BLAS calls for 3-35 (the chapter 5
-// width's products with its basis and residual maps, alternating), 0.8-1.1x for 280 and 560, whose rows of C are
-// written at the memory's rate either way. (The basis's gradient A^T dC stays with tall_tn: the same in lanes, the rows
-// of C the vectors, was 0.5-0.9x.)
-constexpr int64_t TALL_LANES_MAX_N = 64;
+// width's products with its basis and residual maps, alternating), 1.28-1.40x for 72-128 (forward products of 35 to
+// 1,120 terms a value, the thesis width's), 0.8-1.1x for 280 and 560 (the gradients dA of 16 and 32 terms, whose rows
+// are written at the memory's rate either way). (The basis's gradient A^T dC stays with tall_tn: the same in lanes,
+// the rows of C the vectors, was 0.5-0.9x.)
+constexpr int64_t TALL_LANES_MAX_N = 128;
 void tall_lanes(const float* A, const float* B, bool bt, const float* bias, float* C, int64_t R, int64_t K, int64_t N);
 
 // sum order, forward. x (n_in, B); coef (R, M) and w (R, or empty) are read at pos (slots); offs

@@ -40,11 +40,11 @@ and its gradient A^T dC 6x slower than the same product transposed; ``fwk_native
 ``tall_mm`` / ``tall_tn`` cut them into row blocks that stay in cache, one single-threaded BLAS
 call each, the long side first (1.1-1.2x the chapter 5 width's training step; the thesis width's
 wider bases stay with torch's product, which is as fast there). Where the lane kernels run, a product
-whose result has at most 64 columns (the forward's N, the gradient dA's K) is ``tall_lanes`` instead:
+whose result has at most 128 columns (the forward's N, the gradient dA's K) is ``tall_lanes`` instead:
 each row of A broadcast against B's rows held as vectors, 8 or 4 rows at a time, no packing of A and
 no scaling pass over C (MKL's copy and scaling routines were as many of the step's perf samples as its
-products): 1.2-3.0x the BLAS calls on the chapter 5 width's products, 1.7x on the thesis width's
-10,096 x 1,120 x 64. The basis's gradient A^T dC stays with ``tall_tn``.
+products): 1.2-3.0x the BLAS calls on the chapter 5 width's products, 1.3-1.7x on the thesis width's
+(10,096 x 1,120 x 64 and x 128, 59,623 x 35 x 96). The basis's gradient A^T dC stays with ``tall_tn``.
 
 A fifth, ``basis_lanes`` (``fwk_vcconv::basis_lanes``), runs the whole ``basis`` order of a narrow
 layer in one pass with the batch as the vector: a vertex's rows are taken 16 batch entries at a
@@ -303,7 +303,7 @@ def tall(A: torch.Tensor, B: torch.Tensor) -> bool:
 @torch.library.custom_op("fwk_vcconv::tall_product", mutates_args=())
 def tall_product(A: torch.Tensor, B: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     """C (R, N) = A (R, K) @ B (K, N) + bias (N; or (0,): none), for R large and K, N small. Where the
-    lane kernels run (``lanes``) and the result has at most 64 columns: ``tall_lanes``, rows of A against
+    lane kernels run (``lanes``) and the result has at most 128 columns: ``tall_lanes``, rows of A against
     B's rows as the vectors in registers, 1.2-3.0x the BLAS route on the chapter 5 width's products (MKL
     packed A and scaled C first on every block). Otherwise blocks of rows that stay in cache, one
     single-threaded BLAS call each, in parallel (``fwk_native.h``'s ``tall_mm``; MKL runs (49,424 x 8) @
