@@ -142,7 +142,8 @@ def _bucketed(rows: list[np.ndarray], cols: list[np.ndarray], n_rows: int):
 #: the ``basis`` order runs in lanes (``native.basis_lanes``: the batch as the vector, the basis product
 #: made in cache) for layers with at most this many output channels, where MKL's per-vertex products
 #: are narrow; wider layers keep the tall product and ``native.basis_product``. 8 until session 28; 16 since
-#: (the lanes' bias and their second route to the coefficients' gradient): the chapter 5 width's 32 -> 16
+#: (measured with the lanes' bias; the second route to the coefficients' gradient then in the code, since removed,
+#: was not taken on these layers): the chapter 5 width's 32 -> 16
 #: decoder layer 1.10-1.11x forward and backward in three runs, its 32 -> 32 layer 0.82x and the thesis
 #: width's 64 -> 32 0.87x in lanes (2 threads, batch 16, alternating in one process, 2026-12-07)
 LANES_MAX_OUT = 16

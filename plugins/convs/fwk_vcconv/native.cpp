@@ -124,6 +124,10 @@ void sum_vertex_lanes_backward(float* dcoef, float* dw, const float* x, const in
                                int64_t s0, int64_t K, const float* dTi, const float* dri, int64_t M, int64_t B,
                                KernelChunks ch, std::vector<float>& work, float* dA, const float** X);
 bool lanes_supported();
+// a caller's ``lanes``: refused where this build or CPU does not run the lane kernels
+inline void check_lanes(bool lanes) {
+  TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
+}
 // (the same) C (R x N) = A (R x K) op(B) + bias (N, or null); op(B) = B (K x N) or, with bt, B^T (B: N x K).
 // Taken for results of at most TALL_LANES_MAX_N columns: 1.2-3.0x tall_mm's BLAS calls for 3-35 (the chapter 5
 // width's products with its basis and residual maps, alternating), 1.28-1.40x for 72-128 (forward products of 35 to
@@ -146,7 +150,7 @@ std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torc
   const int64_t Mx = M + (res ? 1 : 0);
   const KernelChunks ch = kernel_chunks(Mx);  // the kernels' vectors (lanes): W floats a slot
   TORCH_CHECK(!lanes || Mx <= 64, "coef: at most ", 64 - (res ? 1 : 0), " kernels in lanes");
-  TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
+  check_lanes(lanes);
   auto T = torch::empty({n_out, B, M}, x.options());
   auto r = res ? torch::empty({n_out, B}, x.options()) : torch::empty({0}, x.options());
   const float* xp = x.data_ptr<float>();
@@ -193,7 +197,7 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
   const int64_t Mx = M + (res ? 1 : 0);
   const KernelChunks ch = kernel_chunks(Mx);
   TORCH_CHECK(!lanes || Mx <= 64, "coef: at most ", 64 - (res ? 1 : 0), " kernels in lanes");
-  TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
+  check_lanes(lanes);
   if (res) check(dr, "dr", at::kFloat, 2);
   need_dw = need_dw && res;
   const int nt = at::get_num_threads();
@@ -473,7 +477,7 @@ torch::Tensor tall_forward(torch::Tensor A, torch::Tensor B, torch::Tensor bias,
   const int64_t R = A.size(0), K = A.size(1), N = B.size(1);
   TORCH_CHECK(B.size(0) == K, "B: expected ", K, " rows, got ", B.size(0));
   TORCH_CHECK(bias.size(0) == 0 || bias.size(0) == N, "bias: expected ", N, " entries or none");
-  TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
+  check_lanes(lanes);
   auto C = torch::empty({R, N}, A.options());
   const float* biasp = bias.size(0) ? bias.data_ptr<float>() : nullptr;
   if (lanes && N <= TALL_LANES_MAX_N)
@@ -494,7 +498,7 @@ std::vector<torch::Tensor> tall_backward(torch::Tensor dC, torch::Tensor A, torc
   auto empty = torch::empty({0}, A.options());
   torch::Tensor dA = empty, dB = empty;
   if (need_A) {
-    TORCH_CHECK(!lanes || lanes_supported(), "lanes: this build or CPU does not run the lane kernels");
+    check_lanes(lanes);
     dA = torch::empty({R, K}, A.options());  // dC (R x N) B^T: B (K x N) is op(B)'s transpose
     if (lanes && K <= TALL_LANES_MAX_N)
       tall_lanes(dC.data_ptr<float>(), B.data_ptr<float>(), true, nullptr, dA.data_ptr<float>(), R, N, K);
@@ -1049,6 +1053,14 @@ inline void add_or_assign(float* d, v8 a, int64_t mn, bool assign) {  // (mn <= 
   else st8_n(d, assign ? a : ld8_n(d, mn) + a, mn);
 }
 
+// a row of M floats (+)= a row of kernels in KernelChunks' layout (NV vectors, and the half vector `tail` where H = 1;
+// 16 (NV - 1) <= M <= 16 NV + 8): the coefficients' gradients (da_block) and T's rows (t_rows)
+template <int NV, int H>
+inline void put_row(float* d, const vL (&acc)[NV], v8 tail, int64_t M, bool assign) {
+  for (int v = 0; v < NV; ++v) add_or_assign(d + v * L, acc[v], std::min<int64_t>(L, M - v * L), assign);
+  if (H) add_or_assign(d + NV * L, tail, M - NV * L, assign);
+}
+
 // dA[k][m] += sum_ql dY[k][ql] Zm[ql][m] for KB rows, each slot's dY row read where it lies (one broadcast a
 // multiply-add row, no packed copy); with `assign`, dA[k][m] = that sum (the row's first write: no zero-fill of dA
 // before, no read of it here)
@@ -1058,10 +1070,7 @@ inline void da_block(float* const* dA, const float* const* dY, const float* __re
   vL acc[KB][NV];
   v8 tail[KB];
   combine_rows<KB, NV, H>(acc, tail, dY, Zm, QL);
-  for (int k = 0; k < KB; ++k) {  // L kernels at a time (one vector each), not one scalar each
-    for (int v = 0; v < NV; ++v) add_or_assign(dA[k] + v * L, acc[k][v], std::min<int64_t>(L, M - v * L), assign);
-    if (H) add_or_assign(dA[k] + NV * L, tail[k], M - NV * L, assign);
-  }
+  for (int k = 0; k < KB; ++k) put_row<NV, H>(dA[k], acc[k], tail[k], M, assign);  // L kernels a store
 }
 
 // da_block over K rows: 8 at a time, the rest (1-7) in one block of their own size
@@ -1511,7 +1520,7 @@ inline void dw_block(float* const* dW, const float* const* X, const float* __res
       for (int v = 0; v < QV; ++v) acc[s][p][v] = v8{};
   for (int64_t beta = 0; beta < b; ++beta) {
     v8 y[QV];
-    for (int v = 0; v < QV; ++v) y[v] = *reinterpret_cast<const v8u*>(dY + beta * O8 + (q0 + v) * 8);
+    for (int v = 0; v < QV; ++v) y[v] = ld8(dY + beta * O8 + (q0 + v) * 8);
     for (int s = 0; s < S; ++s)
       for (int p = 0; p < PB; ++p) {
         const float xv = X[s][beta * c + p0 + p];
@@ -1682,12 +1691,7 @@ inline void t_rows(float* __restrict T, float* __restrict r, const float* const*
     }
   }
   for (int t = 0; t < BB; ++t) {  // T's row: M floats (masked past them); r: column M
-    float* Tt = T + (beta0 + t) * M;
-    for (int v = 0; v < NV; ++v) {
-      if ((v + 1) * L <= M) st(Tt + v * L, acc[t][v]);
-      else if (v * L < M) st_n(Tt + v * L, acc[t][v], M - v * L);
-    }
-    if (H && NV * L < M) st8_n(Tt + NV * L, tail[t], M - NV * L);
+    put_row<NV, H>(T + (beta0 + t) * M, acc[t], tail[t], M, true);
     if (r) r[beta0 + t] = M < NV * L ? acc[t][M / L][M % L] : tail[t][M - NV * L];
   }
 }
