@@ -42,3 +42,31 @@ def test_a_failing_suite_assert_shows_actual_against_expected(tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 1, out.stdout[-3000:] + out.stderr[-3000:]
     assert "(3, 1) == (3,)" in out.stdout, out.stdout[-3000:]
+
+
+def test_fixed_threads_holds_one_count_through_a_fit_and_puts_everything_back(monkeypatch, torch_threads):
+    """A suite's two fits of one seed compare bit for bit, so neither may take its count from the
+    machine's load (a trainer's rule where nothing is pinned): 2 threads on an idle 2-core
+    machine, 1 beside another process; CI's pytest -n 2 met both."""
+    import torch
+
+    from fwk.engine import threads as th
+    from fwk.testing import fixed_threads
+
+    for key in ("FWK_THREADS", "FWK_ALLOCATED_CPUS", "OMP_NUM_THREADS"):
+        monkeypatch.delenv(key, raising=False)
+    torch.set_num_threads(2)
+    assert th.pinned() is None and th.thread_budget(cores=2, live=1, outside=0.0)[0] == 2
+    with fixed_threads() as n:
+        assert n == 1 and torch.get_num_threads() == 1
+        assert th.thread_budget(cores=2, live=1, outside=0.0)[0] == 1
+        assert th.apply_threads()[0] == 1
+    assert th.pinned() is None and torch.get_num_threads() == 2
+    monkeypatch.setenv("FWK_THREADS", "2")  # an explicit count wins, as it does in a run
+    th.pin(3, "an outer run")
+    try:
+        with fixed_threads() as n:
+            assert n == 2 and torch.get_num_threads() == 2
+        assert th.pinned() == (3, "an outer run")
+    finally:
+        th.unpin()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import pkgutil
 import subprocess
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -33,6 +34,37 @@ def build(component: type, params: dict | None = None, path: str = "params"):
     from fwk.recipes import validate_params
 
     return component(**validate_params(component, dict(params or {}), path, get_registry()))
+
+
+@contextmanager
+def fixed_threads():
+    """One thread count for a fit a suite compares bit for bit with another: ``FWK_THREADS``
+    (an executor's ``FWK_ALLOCATED_CPUS``, ``OMP_NUM_THREADS``) where
+    set, else 1. Thread counts change the order of floating-point
+    sums, and a trainer takes its count from the machine's load as it starts
+    (``fwk.engine.threads.thread_budget``), so two fits of one seed in a busy test process (pytest
+    -n 2, the other worker training or not) could differ in the last bits. The count is pinned
+    (``fwk.engine.threads.pin``) and set on torch and the BLAS pools around the fit, and put back
+    afterwards."""
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    from fwk.engine import threads as th
+
+    given = th.explicit_threads()
+    n = given[0] if given is not None else 1
+    pinned, before = th.pinned(), torch.get_num_threads()
+    th.pin(n, "fwk.testing.fixed_threads")
+    torch.set_num_threads(n)
+    try:
+        with threadpool_limits(limits=n, user_api="blas"):
+            yield n
+    finally:
+        torch.set_num_threads(before)
+        if pinned is None:
+            th.unpin()
+        else:
+            th.pin(*pinned)
 
 
 def ict_path() -> Path | None:

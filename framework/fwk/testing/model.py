@@ -22,7 +22,7 @@ import torch
 from fwk.data.preprocess import Preprocessor
 from fwk.plugins import get_registry
 from fwk.protocols import RECONSTRUCT, FitData, GenerativeModel, ReconstructionModel, plays
-from fwk.testing import build
+from fwk.testing import build, fixed_threads
 from fwk.runs import make_test_context
 from fwk.safeio import dumps_state, loads_state
 
@@ -96,7 +96,8 @@ class FittedModel:
         data = tiny_fit_data()
         ctx = make_test_context(tmp_path, seed=seed, **self.train)
         m = self.make()
-        m.fit(data, ctx)
+        with fixed_threads():  # the determinism test compares two fits bit for bit
+            m.fit(data, ctx)
         return m, data
 
 
