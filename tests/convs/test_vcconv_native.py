@@ -79,7 +79,8 @@ def _offer_nan(*ts):
 @pytestmark_native
 @pytest.mark.parametrize("residual", [False, True])
 @pytest.mark.parametrize("threads", [1, 2])
-@pytest.mark.parametrize("B,M,lanes", [(12, 5, True), (12, 5, False), (37, 16, True), (128, 35, True), (20, 63, True),
+@pytest.mark.parametrize("B,M,lanes", [(12, 5, True), (12, 5, False), (37, 16, True), (128, 35, True), (150, 35, True),
+                                        (20, 63, True),
                                         (20, 64, False), (20, 28, True), (20, 40, True), (20, 52, True)])
 @pytest.mark.parametrize("spare", [7, 0])
 def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, B, M, lanes, spare, torch_threads,

@@ -123,6 +123,13 @@ void sum_vertex_lanes(float* Ti, float* ri, const float* x, const float* coef, c
 void sum_vertex_lanes_backward(float* dcoef, float* dw, const float* x, const int64_t* src, const int64_t* pos,
                                int64_t s0, int64_t K, const float* dTi, const float* dri, int64_t M, int64_t B,
                                KernelChunks ch, std::vector<float>& work, float* dA, const float** X);
+// (the same) x's gradient of one output vertex's slots, dX_k = A_k dT_i^T (+ a_k dr_i^T), added to their rows of
+// acc (n_in x B): dT_i (and dr_i) transposed into dTt (the caller's buffer, at least (M + 1) round16(B) floats), the
+// batch as the vector
+void sum_vertex_lanes_dx(float* acc, const float* dTi, const float* dri, const float* coef, const float* w,
+                         const int64_t* src, const int64_t* pos, int64_t s0, int64_t K, int64_t M, int64_t B,
+                         float* dTt);
+inline int64_t round16(int64_t n) { return (n + 15) / 16 * 16; }
 bool lanes_supported();
 // a caller's ``lanes``: refused where this build or CPU does not run the lane kernels
 inline void check_lanes(bool lanes) {
@@ -221,13 +228,14 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
     float* mine = need_dx ? thread_accumulator(accp, nt, n_in * B) : nullptr;
     std::vector<float> buf(lanes ? 1 : std::max<int64_t>(Kmax * B, 1)), dbuf(std::max<int64_t>(Kmax * B, 1));
     std::vector<float> A(std::max<int64_t>(Kmax * Mx, 1)), dA(lanes ? 1 : std::max<int64_t>(Kmax * Mx, 1));
-    std::vector<float> dAL(lanes ? Kmax * ch.W : 0), work;
+    std::vector<float> dAL(lanes ? Kmax * ch.W : 0), work, dTt(lanes && need_dx ? (M + 1) * round16(B) : 0);
     std::vector<const float*> X(lanes ? Kmax : 0);
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
       if (i + 1 < i1) {  // the next vertex's x rows, and its rows of this thread's dx
         prefetch_rows(xp, sp, op[i + 1], op[i + 2], B, B * sizeof(float));
         if (need_dx) prefetch_rows<1>(mine, sp, op[i + 1], op[i + 2], B, B * sizeof(float));
+        if (lanes) prefetch_block(dTp + (i + 1) * B * M, B * M);  // read once, from memory: dT_i is 18 KB at B 128
       }
       if (K == 0) continue;
       const float* dTi = dTp + i * B * M;
@@ -242,7 +250,9 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
         if (res) gemm('N', 'N', 1, K, B, 1.f, drp + i * B, 1, buf.data(), B, 0.f, dA.data() + M, Mx);
         scatter_coef(dA.data(), dcp, dwp, pp, s0, K, M, Mx);
       }
-      if (need_dx) {
+      if (need_dx && lanes) {
+        sum_vertex_lanes_dx(mine, dTi, res ? drp + i * B : nullptr, cp, wp, sp, pp, s0, K, M, B, dTt.data());
+      } else if (need_dx) {
         gather_coef(A.data(), cp, wp, pp, s0, K, M, Mx);
         // dX_i (K x B) = A_i[:, :M] (K x M) dT_i^T (M x B)  (+ a_i (K x 1) dr_i^T (1 x B))
         gemm('T', 'N', B, K, M, 1.f, dTi, M, A.data(), Mx, 0.f, dbuf.data(), B);
@@ -1739,6 +1749,138 @@ struct SumDaRows {
   }
 };
 }  // namespace lanes
+
+namespace lanes {
+// r[0..16) := its transpose: r[j][t] = r[t][j] (16 x 16 floats; three rounds of shuffles within and across the
+// 128-bit quarters)
+#ifdef FWK_VCCONV_LANES
+inline void transpose16(__m512 (&r)[16]) {
+  __m512 t[16];
+  for (int i = 0; i < 16; i += 2) {
+    t[i] = _mm512_unpacklo_ps(r[i], r[i + 1]);
+    t[i + 1] = _mm512_unpackhi_ps(r[i], r[i + 1]);
+  }
+  for (int i = 0; i < 16; i += 4) {
+    r[i] = _mm512_shuffle_ps(t[i], t[i + 2], 0x44);
+    r[i + 1] = _mm512_shuffle_ps(t[i], t[i + 2], 0xEE);
+    r[i + 2] = _mm512_shuffle_ps(t[i + 1], t[i + 3], 0x44);
+    r[i + 3] = _mm512_shuffle_ps(t[i + 1], t[i + 3], 0xEE);
+  }
+  for (int h = 0; h < 16; h += 8)
+    for (int i = 0; i < 4; ++i) {
+      t[h + i] = _mm512_shuffle_f32x4(r[h + i], r[h + i + 4], 0x88);
+      t[h + i + 4] = _mm512_shuffle_f32x4(r[h + i], r[h + i + 4], 0xDD);
+    }
+  for (int i = 0; i < 8; ++i) {
+    r[i] = _mm512_shuffle_f32x4(t[i], t[i + 8], 0x88);
+    r[i + 8] = _mm512_shuffle_f32x4(t[i], t[i + 8], 0xDD);
+  }
+}
+#endif
+
+// dTt (M + 1 rows of Bp = round16(B) floats, zero past B) := dT_i^T (dT_i: B x M), with dr_i (B) as row M
+inline void transpose_rows(float* __restrict dTt, const float* __restrict dTi, const float* __restrict dri, int64_t B,
+                           int64_t M) {
+  const int64_t Bp = round16(B);
+  for (int64_t b0 = 0; b0 < B; b0 += L) {
+    const int64_t nb = std::min<int64_t>(L, B - b0);
+    for (int64_t m0 = 0; m0 < M; m0 += L) {
+      const int64_t nm = std::min<int64_t>(L, M - m0);
+#ifdef FWK_VCCONV_LANES
+      __m512 r[16];
+      for (int t = 0; t < 16; ++t) r[t] = t < nb ? (__m512)ld_n(dTi + (b0 + t) * M + m0, nm) : _mm512_setzero_ps();
+      transpose16(r);
+      for (int64_t j = 0; j < nm; ++j) st(dTt + (m0 + j) * Bp + b0, (vL)r[j]);
+#else
+      for (int64_t j = 0; j < nm; ++j)
+        for (int64_t t = 0; t < L; ++t) dTt[(m0 + j) * Bp + b0 + t] = t < nb ? dTi[(b0 + t) * M + m0 + j] : 0.f;
+#endif
+    }
+    if (dri) st(dTt + M * Bp + b0, ld_n(dri + b0, nb));
+  }
+}
+
+// dX rows of SB slots, columns [b0, b0 + NB L): acc[s][v] = sum_m a_s[m] dTt[m][b0 + v L] over the Mx rows of dTt
+// (a_s: the slot's coefficient row, and its residual weight for row M), added to the slot's row of out (B floats a
+// row, masked past B). Each dTt vector is loaded once for the SB slots.
+template <int SB, int NB>
+inline void dx_block(float* __restrict out, const float* const* a, const float* wv, const float* __restrict dTt,
+                     const int64_t* rows, int64_t M, int64_t B, int64_t Bp, int64_t b0) {
+  vL acc[SB][NB];
+  zero(acc);
+  for (int64_t m = 0; m < M; ++m) {
+    const float* t = dTt + m * Bp + b0;
+    vL tv[NB];
+    for (int v = 0; v < NB; ++v) tv[v] = ld(t + v * L);
+    for (int s = 0; s < SB; ++s) {
+      const float as = a[s][m];
+      for (int v = 0; v < NB; ++v) acc[s][v] += as * tv[v];
+    }
+  }
+  if (wv) {
+    const float* t = dTt + M * Bp + b0;
+    for (int v = 0; v < NB; ++v) {
+      const vL tv = ld(t + v * L);
+      for (int s = 0; s < SB; ++s) acc[s][v] += wv[s] * tv;
+    }
+  }
+  for (int s = 0; s < SB; ++s) {
+    float* o = out + rows[s] * B + b0;
+    for (int v = 0; v < NB; ++v) {
+      const int64_t n = B - b0 - v * L;
+      if (n >= L) st(o + v * L, ld(o + v * L) + acc[s][v]);
+      else st_n(o + v * L, ld_n(o + v * L, n) + acc[s][v], n);
+    }
+  }
+}
+
+// the slots [k0, k0 + SB) over every column block: NB = 4 vectors at a time, then the 1-3 left
+template <int SB>
+inline void dx_slots(float* out, const float* const* a, const float* wv, const float* dTt, const int64_t* rows,
+                     int64_t M, int64_t B) {
+  const int64_t Bp = round16(B), nv = Bp / L;
+  int64_t v0 = 0;
+  for (; v0 + 4 <= nv; v0 += 4) dx_block<SB, 4>(out, a, wv, dTt, rows, M, B, Bp, v0 * L);
+  const int64_t b0 = v0 * L;
+  switch (nv - v0) {
+    case 3: dx_block<SB, 3>(out, a, wv, dTt, rows, M, B, Bp, b0); break;
+    case 2: dx_block<SB, 2>(out, a, wv, dTt, rows, M, B, Bp, b0); break;
+    case 1: dx_block<SB, 1>(out, a, wv, dTt, rows, M, B, Bp, b0); break;
+    default: break;
+  }
+}
+}  // namespace lanes
+
+// sum_backward's x gradient in lanes: dT_i (B x M) and dr_i transposed into dTt (the batch as the vector, 16 x 16
+// blocks in registers), then each slot's dX_k = sum_m A_k[m] dTt[m] (+ a_k dTt[M]) three slots at a time (24
+// accumulators of 8 vectors: each dTt vector loaded once for three slots), the coefficients read in place, and added
+// to the slot's row of acc.
+constexpr int DX_SLOTS = 6;  // slots a block: 6 x 4 accumulators, 4 vectors of dTt and a broadcast in registers
+void sum_vertex_lanes_dx(float* acc, const float* dTi, const float* dri, const float* coef, const float* w,
+                         const int64_t* src, const int64_t* pos, int64_t s0, int64_t K, int64_t M, int64_t B,
+                         float* dTt) {
+  using namespace lanes;
+  transpose_rows(dTt, dTi, dri, B, M);
+  const float* a[DX_SLOTS];
+  float wv[DX_SLOTS];
+  for (int64_t k = 0; k < K; k += DX_SLOTS) {
+    const int n = static_cast<int>(std::min<int64_t>(DX_SLOTS, K - k));
+    for (int s = 0; s < n; ++s) {
+      a[s] = coef + pos[s0 + k + s] * M;
+      if (w) wv[s] = w[pos[s0 + k + s]];
+    }
+    const float* wp = w ? wv : nullptr;
+    const int64_t* rows = src + s0 + k;
+    switch (n) {
+      case 6: dx_slots<6>(acc, a, wp, dTt, rows, M, B); break;
+      case 5: dx_slots<5>(acc, a, wp, dTt, rows, M, B); break;
+      case 4: dx_slots<4>(acc, a, wp, dTt, rows, M, B); break;
+      case 3: dx_slots<3>(acc, a, wp, dTt, rows, M, B); break;
+      case 2: dx_slots<2>(acc, a, wp, dTt, rows, M, B); break;
+      default: dx_slots<1>(acc, a, wp, dTt, rows, M, B); break;
+    }
+  }
+}
 
 // sum_backward's coefficient gradients in lanes: dT_i (B x M) and dr_i (B, or null) copied into dTx (B x W: dr_i
 // in column M, zero past it), then dA_k[m] = sum_beta X_k[beta] dTx[beta][m] for the vertex's K slots, the kernels
