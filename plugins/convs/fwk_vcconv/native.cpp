@@ -193,8 +193,9 @@ std::vector<torch::Tensor> sum_forward(torch::Tensor x, torch::Tensor coef, torc
 }
 
 // sum order, backward. dT (n_out, B, M), dr (n_out, B) or empty; returns dx (n_in, B), dcoef (R, M)
-// and dw (R) (zero at the rows no slot reads; empty where not asked for). dx by one BLAS call per vertex; dcoef and
-// dw the same way, or with ``lanes`` by sum_vertex_lanes_backward (the kernels as the vector, the x rows in place).
+// and dw (R) (zero at the rows no slot reads; empty where not asked for). dx, dcoef and dw by one BLAS call per
+// vertex, or with ``lanes`` dcoef and dw by sum_vertex_lanes_backward (the kernels as the vector, the x rows in
+// place) and dx by sum_vertex_lanes_dx (dT_i transposed, the batch as the vector).
 std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torch::Tensor x, torch::Tensor coef,
                                         torch::Tensor w, torch::Tensor offs, torch::Tensor src, torch::Tensor pos,
                                         bool need_dx, bool need_dcoef, bool need_dw, bool lanes) {
@@ -1885,8 +1886,7 @@ void sum_vertex_lanes_dx(float* acc, const float* dTi, const float* dri, const f
 // sum_backward's coefficient gradients in lanes: dT_i (B x M) and dr_i (B, or null) copied into dTx (B x W: dr_i
 // in column M, zero past it), then dA_k[m] = sum_beta X_k[beta] dTx[beta][m] for the vertex's K slots, the kernels
 // as the vector (dA: K rows of W floats; W = KernelChunks' row), and each slot's row written to its row of dcoef (M
-// floats) and of dw (column M). The input's gradient stays with BLAS: a lane version (the rows of dT_i transposed per
-// vertex, the batch as the vector) was 0.6-0.9x its call on the chapter 5 and thesis widths' encoders.
+// floats) and of dw (column M). The input's gradient is sum_vertex_lanes_dx's.
 void sum_vertex_lanes_backward(float* dcoef, float* dw, const float* x, const int64_t* src, const int64_t* pos,
                                int64_t s0, int64_t K, const float* dTi, const float* dri, int64_t M, int64_t B,
                                KernelChunks ch, std::vector<float>& work, float* dA, const float** X) {

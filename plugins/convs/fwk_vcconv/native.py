@@ -66,7 +66,9 @@ BLAS kernel's there); the kernels' gradient is a sum over the batch for each slo
 batch-major rows two slots at a time (3.5x ``kernel_product``'s per-vertex BLAS call on the chapter 5
 width's first layer, 1.04x its training step). ``sum_product``'s forward runs in lanes too (``sum_forward``
 with ``lanes``: each T_i with the kernels as the vector, 1.2-2.0x the per-vertex BLAS call), and its
-coefficients' gradient (1.3-1.6x); x's gradient stays with BLAS. All three together: 1.10-1.46x the
+coefficients' gradient (1.3-1.6x), and x's gradient (``sum_vertex_lanes_dx``: dT_i transposed in 16 x 16
+register blocks, the batch as the vector, six slots by four vectors at a time; 1.1-1.3x the per-vertex BLAS call
+on the chapter 5 width's encoder, 1.03-1.5x on the thesis width's). All three together: 1.10-1.46x the
 chapter 5 width's training step
 (``benchmarks/training.py``, "no lanes", 2026-12-07). The lane kernels ask for the next vertex's
 scattered rows while computing this one's (``fwk_native.h``'s ``prefetch_rows``).
@@ -116,8 +118,8 @@ def sum_product(x: torch.Tensor, coef: torch.Tensor, w: torch.Tensor, offs: torc
     (r empty, (0,), when w is). x (n_in, B), coef (R, M), w (R) or (0,), src and pos (slots).
     Where the lane kernels run (``lanes``, M + 1 <= 64 with w), T_i is made with the kernels as the
     vector (``sum_forward`` with ``lanes``: 1.2-1.8x the per-vertex BLAS call on the chapter 5 width's
-    encoder), and so are the coefficients' gradients in the backward (1.3-1.6x their BLAS call); x's gradient
-    stays with BLAS (a lane version was 0.6-0.9x)."""
+    encoder), and so are the backward's coefficients' gradients (1.3-1.6x their BLAS call) and x's gradient
+    (dT_i transposed in registers, the batch as the vector: 1.1-1.3x)."""
     in_lanes = lanes(coef.shape[1] + (1 if w.shape[0] else 0))
     T, r = _load().sum_forward(x.contiguous(), coef.contiguous(), w.contiguous(), offs, src, pos, in_lanes)
     return T, r
