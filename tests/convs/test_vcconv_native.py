@@ -495,7 +495,7 @@ def _naive_basis_lanes(x, basis, coef, offs, dst, pos, n_out):
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("b,c,o,M", [(16, 8, 3, 35), (5, 3, 8, 7), (20, 4, 5, 16), (33, 2, 1, 64), (1, 6, 7, 17),
                                      (16, 16, 8, 35), (7, 11, 2, 33), (20, 5, 4, 24), (9, 2, 3, 28), (16, 3, 3, 45),
-                                     (4, 4, 2, 52)])
+                                     (4, 4, 2, 52), (20, 32, 16, 35)])
 @pytest.mark.parametrize("spare", [7, 0])
 @pytest.mark.parametrize("fwd", [0, 1, 2])
 def test_basis_lanes_matches_the_slot_loop_in_value_and_gradient(threads, b, c, o, M, spare, fwd, torch_threads,
