@@ -38,14 +38,13 @@ def build(component: type, params: dict | None = None, path: str = "params"):
 
 @contextmanager
 def fixed_threads():
-    """One thread count for a fit a suite compares bit for bit with another: ``FWK_THREADS``
-    (an executor's ``FWK_ALLOCATED_CPUS``, ``OMP_NUM_THREADS``) where
-    set, else 1. Thread counts change the order of floating-point
-    sums, and a trainer takes its count from the machine's load as it starts
-    (``fwk.engine.threads.thread_budget``), so two fits of one seed in a busy test process (pytest
-    -n 2, the other worker training or not) could differ in the last bits. The count is pinned
-    (``fwk.engine.threads.pin``) and set on torch and the BLAS pools around the fit, and put back
-    afterwards."""
+    """One thread count for a fit a suite compares bit for bit with another: the environment's
+    (``FWK_THREADS``, an executor's ``FWK_ALLOCATED_CPUS``, ``OMP_NUM_THREADS``) where it gives one,
+    else 1. Thread counts change the order of floating-point sums, and a trainer takes its count
+    from the machine's load as it starts (``fwk.engine.threads.thread_budget``), so two fits of one
+    seed in a busy test process (pytest -n 2, the other worker training or not) could differ in the
+    last bits. The count is pinned (``fwk.engine.threads.pin``) and set on torch and the BLAS pools
+    around the fit, and put back afterwards."""
     import torch
     from threadpoolctl import threadpool_limits
 
