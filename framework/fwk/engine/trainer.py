@@ -104,13 +104,8 @@ def remove_partial_writes(ckdir: Path) -> list[Path]:
     writes ``.<name>.<random>.tmp`` and renames it; a run killed during the write leaves it: as large
     as a checkpoint, 465 MB for the chapter 5 study's PBS, and nothing reads it). Called as a training
     starts or resumes, when no write of this folder is in flight. Returns the removed files."""
-    return _unlink_each(Path(ckdir).glob(".*.ckpt.*.tmp"))
-
-
-def _unlink_each(paths) -> list[Path]:
-    """Remove each file of ``paths`` that can be removed; those removed."""
     removed = []
-    for p in paths:
+    for p in Path(ckdir).glob(".*.ckpt.*.tmp"):
         try:
             p.unlink()
             removed.append(p)
@@ -150,7 +145,14 @@ def prune_checkpoints(ckdir: Path, keep: int) -> list[Path]:
     epoch files (a run resumed from an older epoch file, or killed between writing an epoch's
     file and removing the previous one, leaves them). Returns the removed files."""
     files = sorted(Path(ckdir).glob("epoch*.ckpt"), key=_epoch_of, reverse=True)
-    return _unlink_each(files[max(1, keep):])
+    removed = []
+    for p in files[max(1, keep):]:
+        try:
+            p.unlink()
+            removed.append(p)
+        except OSError:
+            pass
+    return removed
 
 
 def _world_size(devices, on_cpu: bool) -> int:
