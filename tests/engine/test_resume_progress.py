@@ -45,31 +45,6 @@ def test_resume_from_an_epoch_file_says_so_and_leaves_one_epoch_checkpoint(tmp_p
     assert last.samefile(d / "epoch003.ckpt")
 
 
-def test_a_write_a_kill_cut_short_is_removed_when_the_training_resumes_or_restarts(tmp_path):
-    """SIGKILL during a checkpoint write leaves its temporary file (fwk.cache._atomically's
-    ``.<name>.<random>.tmp``, as large as a checkpoint): the next fit of that training removes it,
-    says so, and keeps what it reads (a file of another name stays)."""
-    train, val = _data()
-    ctx = _ctx(tmp_path, 2)
-    fit(_module(), train, val, ctx, "reg")
-    d = ctx.run_dir / "checkpoints" / "reg"
-    partial = d / ".epoch002.ckpt.0123456789abcdef.tmp"
-    partial.write_bytes((d / "last.ckpt").read_bytes()[:100])
-    other = d / "notes.txt"
-    other.write_text("a user's file")
-    ctx.resume = True
-    m = fit(_module(), train, val, ctx, "reg", ctx.train.replace(epochs=3))
-    assert m.steps == 4  # epoch 3 only (4 steps): resumed from last.ckpt
-    assert not partial.exists() and other.exists()
-    log = ctx.log_file.read_text()
-    assert "reg: removed 1 unfinished checkpoint write a killed run left (.epoch002.ckpt.0123456789abcdef.tmp)" in log
-    assert _ckpts(ctx) == ["epoch002.ckpt", "last.ckpt", "notes.txt"]
-    partial.write_bytes(b"x")  # a fresh start (no resume) removes it as well
-    ctx.resume = False
-    fit(_module(), train, val, ctx, "reg")
-    assert not partial.exists()
-
-
 def test_resume_of_a_finished_or_absent_training_says_so(tmp_path):
     train, val = _data()
     ctx = _ctx(tmp_path, 2)

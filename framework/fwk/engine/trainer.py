@@ -99,21 +99,6 @@ def _resume_point(ckdir: Path):
     return None, None
 
 
-def remove_partial_writes(ckdir: Path) -> list[Path]:
-    """Remove the temporary files of checkpoint writes that never finished (``fwk.cache._atomically``
-    writes ``.<name>.<random>.tmp`` and renames it; a run killed during the write leaves it: as large
-    as a checkpoint, 465 MB for the chapter 5 study's PBS, and nothing reads it). Called as a training
-    starts or resumes, when no write of this folder is in flight. Returns the removed files."""
-    removed = []
-    for p in Path(ckdir).glob(".*.ckpt.*.tmp"):
-        try:
-            p.unlink()
-            removed.append(p)
-        except OSError:
-            pass
-    return removed
-
-
 def _stopped_early(ck: dict) -> bool:
     """Whether the stopping rule ended the training this checkpoint saved."""
     return bool((ck.get("fwk_curves") or {}).get("stop"))
@@ -209,11 +194,6 @@ def fit(module, train, val, ctx, name: str, config: TrainConfig | None = None):
     job = rank_job()  # in a DDP rank > 0 process: the one training it joins
     target = job is not None and Path(job["ckdir"]) == ckdir.resolve()
     ckpt_path = None
-    if not target and ckdir.is_dir():  # (a DDP rank > 0 leaves the folder to rank 0, which may be writing)
-        partial = remove_partial_writes(ckdir)
-        if partial:
-            ctx.log(f"{network}: removed {len(partial)} unfinished checkpoint write{'s' if len(partial) > 1 else ''} "
-                    f"a killed run left ({', '.join(p.name for p in partial)})")
     if target:
         ckpt_path = Path(job["ckpt"]) if job["ckpt"] else None  # rank 0's choice
     elif ctx.resume:
