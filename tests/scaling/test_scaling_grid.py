@@ -210,7 +210,8 @@ def test_ray_grid_writes_the_metrics_of_the_local_executor(tmp_path):
 @needs_ray
 def test_a_killed_ray_grid_resumes_with_only_the_missing_members(tmp_path):
     """Kill the whole process group of a Ray grid once its short member has finished and while
-    the long one trains; ``fwk run --resume`` runs only the long one, from its checkpoint."""
+    the long one trains: nothing writes the run after the kill (the member's Ray worker dies with
+    it), and ``fwk run --resume`` runs only the long one, from its checkpoint."""
     g = _grid(tmp_path, {"short": TINY % 1, "long": TINY % 150}, executor="ray")
     runs = tmp_path / "runs"
     p = subprocess.Popen([sys.executable, "-m", "fwk", "--quiet", "run", str(g), "--runs-dir", str(runs)],
@@ -226,6 +227,13 @@ def test_a_killed_ray_grid_resumes_with_only_the_missing_members(tmp_path):
         p.wait()
     d = _only_run(runs)
     assert not (d / "long" / "metrics.json").exists(), "the long member finished before the kill"
+
+    def written():
+        return sorted((p.name, p.stat().st_mtime_ns) for p in (d / "long").rglob("*") if p.is_file())
+
+    at_kill = written()
+    time.sleep(2)  # the member's Ray worker dies with the grid (its raylet); it trained on into the run before
+    assert written() == at_kill, "the Ray worker went on writing the killed grid's member"
     stamp = (d / "short" / "metrics.json").stat().st_mtime_ns
     checkpointed = any((d / "long").rglob("last.ckpt"))
     _fwk(tmp_path, "run", "--resume", str(d))

@@ -91,7 +91,8 @@ def make_job(ctx, ckdir: Path, ckpt: Path | None) -> dict:
 def die_with_parent() -> None:
     """In a child process before it runs (Linux): be killed when its parent dies, however it
     dies (``kill -9`` included): a DDP rank rather than wait in a collective for the process
-    group's timeout, a side-by-side fit (``fwk.sidebyside``) rather than train on alone."""
+    group's timeout, a side-by-side fit (``fwk.sidebyside``) rather than train on alone, a grid
+    member in a Ray worker (``fwk_grid.executors``) rather than write on into a killed grid's run."""
     try:
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):

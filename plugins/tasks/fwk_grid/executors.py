@@ -29,6 +29,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 from fwk.cache import Cache, atomic_write_bytes
+from fwk.engine.distributed import die_with_parent
 from fwk.engine.threads import ENV_ALLOCATED, available_cores, unregister
 from fwk.errors import FwkError, RecipeError
 from fwk.plugins import get_registry
@@ -120,6 +121,12 @@ def run_member(job: dict, registry=None) -> dict:
     ``FAILED`` file in the sub-run holds a failure's error and traceback."""
     sub = Path(job["run_dir"])
     t0 = time.perf_counter()
+    if job.get("on_ray"):
+        # killed with the Ray worker's parent, the raylet: on a local instance the raylet dies with the
+        # driver (fwk run), however it dies, and without this the worker trained on into the run directory
+        # (measured: epoch 48 at a kill -9 of the grid, epoch 113 three seconds later), racing with the
+        # `fwk run --resume` that trains the same member. On a cluster the node's raylet lives on.
+        die_with_parent()
     if job.get("threads"):
         os.environ[ENV_ALLOCATED] = str(job["threads"])
     try:
@@ -257,7 +264,7 @@ def run_ray(jobs: list[dict], executor: Executor, log) -> dict[str, dict]:
                                                 name="fwk-grid-member")
         log(f"ray: {len(jobs)} member{'s' if len(jobs) != 1 else ''} on {total.get('CPU', 0):g} CPUs"
             f" and {total.get('GPU', 0):g} GPUs, {executor.cpus:g} CPUs and {executor.gpus:g} GPUs each")
-        pending = {remote.remote({**job, "threads": executor.threads}): job["name"] for job in jobs}
+        pending = {remote.remote({**job, "threads": executor.threads, "on_ray": True}): job["name"] for job in jobs}
         out, done = {}, 0
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
