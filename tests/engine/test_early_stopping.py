@@ -20,16 +20,9 @@ from fwk.engine.callbacks import stopping_rule
 from fwk.errors import RecipeError
 from fwk.runs import make_test_context
 from fwk.safeio import load_state
-from fwk.testing import fixed_threads
 from regression import _data, _module
 
-
-@pytest.fixture(autouse=True)
-def _one_thread_count():
-    """The tests compare trainings bit for bit: one thread count for all of them (``fixed_threads``),
-    not the count each would take from the load (under pytest -n 2 it can differ between two fits)."""
-    with fixed_threads():
-        yield
+pytestmark = pytest.mark.usefixtures("one_thread_count")  # the tests compare trainings bit for bit
 
 
 HERE = Path(__file__).resolve().parent
