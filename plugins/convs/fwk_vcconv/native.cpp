@@ -227,8 +227,10 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
   const int64_t Kmax = max_run(op, n_out);
   fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
     float* mine = need_dx ? thread_accumulator(accp, nt, n_in * B) : nullptr;
-    std::vector<float> buf(lanes ? 1 : std::max<int64_t>(Kmax * B, 1)), dbuf(std::max<int64_t>(Kmax * B, 1));
-    std::vector<float> A(std::max<int64_t>(Kmax * Mx, 1)), dA(lanes ? 1 : std::max<int64_t>(Kmax * Mx, 1));
+    // the BLAS route's buffers (with ``lanes`` every gradient is made in the lane kernels' own)
+    const int64_t rows = lanes ? 1 : std::max<int64_t>(Kmax * B, 1);
+    const int64_t coefs = lanes ? 1 : std::max<int64_t>(Kmax * Mx, 1);
+    std::vector<float> buf(rows), dbuf(rows), A(coefs), dA(coefs);
     std::vector<float> dAL(lanes ? Kmax * ch.W : 0), work, dTt(lanes && need_dx ? (M + 1) * round16(B) : 0);
     std::vector<const float*> X(lanes ? Kmax : 0);
     for (int64_t i = i0; i < i1; ++i) {
