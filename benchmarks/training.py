@@ -70,6 +70,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _before  # noqa: E402
 from _ict import alternate, face_head  # noqa: E402
+from fwk.engine.losses import l1_mean  # noqa: E402
 from fwk.engine.memory import retain_freed_memory  # noqa: E402
 from fwk.plugins import get_registry  # noqa: E402
 from fwk.recipes import make_spec  # noqa: E402
@@ -99,6 +100,8 @@ def networks(spec, template):
 def stepper(enc, dec, x, bf16=False, fused=True):
     """One training step (forward ``dec(enc(x)[0])``, L1, backward, Adam) as a closure returning the loss.
 
+    The L1 loss is the trainers' (``fwk.engine.l1_mean``: one native pass each way where it applies,
+    ``torch.abs(a - b).mean()`` under autocast and elsewhere), for every version of a row alike.
     ``fused``: Adam as fwk trains with it (``fwk.engine.trainer.make_optimizer``: one fused kernel
     over every parameter); False: torch's default per-parameter Adam, as the code before issue 17
     (``_before``) trained."""
@@ -107,7 +110,7 @@ def stepper(enc, dec, x, bf16=False, fused=True):
     def step():
         opt.zero_grad(set_to_none=True)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            loss = (dec(enc(x)[0]).float() - x).abs().mean()
+            loss = l1_mean(dec(enc(x)[0]).float(), x)
         loss.backward()
         opt.step()
         return loss.item()

@@ -147,11 +147,13 @@ def test_networks_put_the_elu_on_the_conv_branch_and_none_on_the_last_block(layo
         assert torch.allclose(dec(z), _naive_network(list(dec.convs), x0), atol=1e-5)
 
 
-@pytest.mark.parametrize("layout", [{"fully_convolutional": True, "latent": 6}, {"latent": 6}])
+@pytest.mark.parametrize("layout", [{"fully_convolutional": True, "latent": 6}, {"latent": 6},
+                                    {"latent_vertices": 2, "residual_rate": 0.5}])
 def test_decoders_hand_on_a_batch_major_result(layout):
-    """vcconv's native kernels compute vertex-major and hand on a transposed view; the decoders make their result
-    batch-major (contiguous) so that the loss's elementwise operations do not run strided, with the values
-    unchanged (the last conv's own result, taken before the copy)."""
+    """vcconv's native kernels compute vertex-major and hand on a transposed view; every decoder (the linear one,
+    the fully convolutional one, the one from latent vertices) makes its result batch-major (contiguous) so that
+    the loss's elementwise operations do not run strided, with the values unchanged (the last conv's own result,
+    taken before the copy); the gradient goes back to the last conv as it came."""
     from fwk.testing.model import tiny_fit_data
 
     t = tiny_fit_data(n_subjects=4).template
@@ -163,7 +165,11 @@ def test_decoders_hand_on_a_batch_major_result(layout):
     last = dec.convs[-1] if hasattr(dec, "convs") and not hasattr(dec, "out") else dec.out
     seen = []
     last.register_forward_hook(lambda mod, args, out: seen.append(out))
-    y = dec(torch.randn(2, 6))
+    y = dec(torch.randn(2, m.latent_size))
     assert not seen[0].is_contiguous()  # the conv's vertex-major result, transposed
     assert y.shape == (2, t.n_vertices, 3) and y.is_contiguous()
     assert torch.equal(y, seen[0])
+    seen[0].retain_grad()
+    dy = torch.randn(y.shape)
+    y.backward(dy)
+    assert torch.equal(seen[0].grad, dy)

@@ -38,7 +38,8 @@ Modules:
 * ``distributed``: DDP with fwk's launcher (ranks started as ``python -m fwk.rank``, above ``fwk.runs``);
 * ``modules``: ``LossModule``, ``AutoencoderModule`` (the LightningModules of the built-in models);
 * ``factories``: ``loss_module``, ``autoencoder_module`` (their call forms for plugins);
-* ``variational``: ``kl_divergence``, ``reparameterize``.
+* ``variational``: ``kl_divergence``, ``reparameterize``;
+* ``losses``: ``l1_mean`` (the L1 loss, fused where ``fwk.native.ops`` applies).
 
 Every name is importable from ``fwk.engine``. Only ``TrainConfig`` and ``EarlyStopping`` are imported with the package;
 the others load their module on first access (PEP 562): torch costs ~1 s and Lightning ~2.2 s
@@ -58,6 +59,7 @@ if TYPE_CHECKING:  # what the lazy names below are, for type checkers and editor
     from .loading import EpochSampler, fit_features, make_loader
     from .modules import AutoencoderModule, LossModule
     from .trainer import fit, make_optimizer, predict_batches, seed_everything, upgrade_optimizer_states
+    from .losses import l1_mean
     from .variational import kl_divergence, reparameterize
 
 #: exported name -> the module of this package that defines it (loaded on first access)
@@ -70,10 +72,11 @@ _HOME = {
     "LossModule": "modules", "AutoencoderModule": "modules",
     "loss_module": "factories", "autoencoder_module": "factories",
     "kl_divergence": "variational", "reparameterize": "variational",
+    "l1_mean": "losses",
 }
 
 __all__ = ["TrainConfig", "fit", "fit_features", "make_optimizer", "upgrade_optimizer_states", "seed_everything", "predict_batches", "make_loader", "EpochSampler",
-           "kl_divergence", "reparameterize", "autoencoder_module", "loss_module", "LossModule", "AutoencoderModule",
+           "kl_divergence", "reparameterize", "l1_mean", "autoencoder_module", "loss_module", "LossModule", "AutoencoderModule",
            "RNGState", "ManualSchedulers", "ThreadShare", "TrainingCurves", "ProgressLines", "EarlyStopping"]
 
 

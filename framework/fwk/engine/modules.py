@@ -4,8 +4,8 @@ autoencoder)."""
 from __future__ import annotations
 
 import lightning.pytorch as pl
-import torch
 
+from .losses import l1_mean
 from .trainer import make_optimizer, upgrade_optimizer_states
 from .variational import kl_divergence, reparameterize
 
@@ -83,7 +83,7 @@ class AutoencoderModule(LossModule):
         (F,) = batch
         mu, logvar = self.encode(self.net, F)
         G = self.decode(self.net, reparameterize(mu, logvar, self.training))
-        rec = torch.mean(torch.abs(self.unscale(G) - self.unscale(F)))
+        rec = l1_mean(self.unscale(G), self.unscale(F))  # mean |.| in one pass each way (fwk.native.ops)
         total = rec + self.kl_weight * kl_divergence(mu, logvar) if logvar is not None else rec
         self.log(f"{stage}_loss", total, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(F))
         self.log(f"{stage}_l1", rec, on_epoch=True, on_step=False, batch_size=len(F))

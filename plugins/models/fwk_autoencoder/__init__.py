@@ -61,6 +61,7 @@ from fwk.engine import autoencoder_module, fit, fit_features, seed_everything
 from fwk.errors import RecipeError
 from fwk.graph import sparse_apply, torch_sparse
 from fwk.hookspecs import hookimpl
+from fwk.native.ops import batch_major
 from fwk.protocols import RECONSTRUCT, Conv, FusedPoolingConv, plays
 from fwk.recipes import Kind, Spec
 from fwk.registry import did_you_mean
@@ -153,7 +154,7 @@ class Decoder(nn.Module):
         for unpool, conv, fused in zip(self.unpools, self.convs, self.fused):
             # conv(U x) without forming U x where the conv fuses the up-sampling (FusedPoolingConv)
             x = self.act(conv.forward_up(x, unpool.M) if fused else conv(unpool(x)))
-        return _batch_major(self.out(x))
+        return batch_major(self.out(x))
 
 
 def _acts(act, L: int) -> list:
@@ -201,15 +202,7 @@ class ConvDecoder(nn.Module):
         x = self.fc(z).reshape(len(z), self.n_last, self.c_last)
         for conv in self.convs:
             x = conv(x)
-        return _batch_major(x)
-
-
-def _batch_major(y):
-    """The decoder's result laid out batch-major (a copy only where it is not): a conv that computes vertex-major
-    (vcconv's native kernels) hands on a transposed view, and the loss's and metrics' elementwise operations on a
-    view of 3 channels a vertex run strided (the L1 loss's subtraction 0.8 ms against 0.055 ms contiguous in the
-    chapter 5 width's step). The step with the copy: 1.020x (36 of 60 rounds alternating, 2026-12-07)."""
-    return y.contiguous()
+        return batch_major(x)
 
 
 class _Net(nn.Module):

@@ -44,6 +44,7 @@ from torch import nn
 
 from fwk.errors import RecipeError
 from fwk.graph import adjacency, padded_rows, reach
+from fwk.native.ops import batch_major
 from fwk.protocols import Hierarchy, Level, Neighbourhood
 
 from .strided import strided_conv
@@ -175,4 +176,4 @@ class LatentConvDecoder(nn.Module):
         x = self.latent_map(z)
         for conv in self.convs:
             x = conv(x)
-        return x
+        return batch_major(x)

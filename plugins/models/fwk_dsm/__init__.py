@@ -80,7 +80,7 @@ import torch
 from torch import nn
 
 from fwk.data import Template
-from fwk.engine import fit, kl_divergence, seed_everything
+from fwk.engine import fit, kl_divergence, l1_mean, seed_everything
 from fwk.errors import DataError, RecipeError
 from fwk.hookspecs import hookimpl
 from fwk.protocols import RECONSTRUCT, NetworkFactory
@@ -164,7 +164,7 @@ def band_losses(net: DSMNet, feats, unscales, kl_weight: float):
     outs, mus, logvars = net(feats)
     losses, l1s = [], []
     for G, F, un, mu, lv in zip(outs, feats, unscales, mus, logvars):
-        l1 = torch.mean(torch.abs(un(G) - un(F)))
+        l1 = l1_mean(un(G), un(F))
         l1s.append(l1)
         losses.append(l1 + kl_weight * kl_divergence(mu, lv))
     return losses, l1s

@@ -110,7 +110,7 @@ from torch import nn
 
 from fwk.data import Template
 from fwk import engine
-from fwk.engine import autoencoder_module, kl_divergence, loss_module, reparameterize
+from fwk.engine import autoencoder_module, kl_divergence, l1_mean, loss_module, reparameterize
 from fwk.errors import DataError, RecipeError
 from fwk.evaluation import evaluate, pareto_front
 from fwk.hookspecs import hookimpl
@@ -178,11 +178,11 @@ def _joint_module(owner, kl_weight: float, stage_name: str):
                 if not bool(m.any()):
                     continue
                 G = owner._decode(b, e, z[0])
-                D = owner.unscale(b, e, G[m]) - owner.unscale(b, e, Y[b * E + e][m])
-                err = torch.abs(D).mean()
+                Gu, Yu = owner.unscale(b, e, G[m]), owner.unscale(b, e, Y[b * E + e][m])
+                err = l1_mean(Gu, Yu)  # mean |Gu - Yu|, one pass each way (fwk.native.ops)
                 total = total + err
                 if b == 0 and owner.bending_weight:
-                    bend = owner.bending_error(D)
+                    bend = owner.bending_error(Gu - Yu)
                     total = total + owner.bending_weight * bend
                     module.log(f"{stage}_bending_{owner.expressions[e]}", bend, on_epoch=True, on_step=False,
                                batch_size=int(m.sum()))
@@ -207,12 +207,12 @@ def _conditional_module(owner, kl_weight: float, stage_name: str):
         total = 0.0
         for b in range(B):
             zs, kl = owner._latent(b, X[b], sample=module.training, only=0)
-            D = owner.unscale(b, e, owner._decode(b, e, zs[0])) - owner.unscale(b, e, Y[b])
-            err = torch.abs(D).mean()
+            Gu, Yu = owner.unscale(b, e, owner._decode(b, e, zs[0])), owner.unscale(b, e, Y[b])
+            err = l1_mean(Gu, Yu)
             module.log(f"{stage}_l1_{owner.branch_names[b]}", err, on_epoch=True, on_step=False, batch_size=len(e))
             total = total + err + kl_weight * kl
             if b == 0 and owner.bending_weight:
-                total = total + owner.bending_weight * owner.bending_error(D)
+                total = total + owner.bending_weight * owner.bending_error(Gu - Yu)
         module.log(f"{stage}_loss", total, prog_bar=True, on_epoch=True, on_step=False, batch_size=len(e))
         return total
 
