@@ -779,3 +779,63 @@ def test_basis_lanes_takes_the_cheaper_forward_route():
     assert native.lanes_forward_route(106, 4342, 16, 32, 16, 35) == 1
     # Z_j is made once an input vertex: with 1,000 slots each, it is the cheaper
     assert native.lanes_forward_route(10, 10_000, 16, 8, 3, 35) == 1
+
+
+def _elu_mix_double(t, res, a):
+    """res + a ELU(t), ELU(t) and the gradient's factor a ELU'(t), in float64 (res None: ELU(t), ELU(t), ELU'(t))."""
+    t = t.double()
+    e = torch.where(t > 0, t, torch.expm1(t))
+    d = torch.where(t > 0, torch.ones_like(t), torch.exp(t))
+    return (e if res is None else res.double() + a * e), e, (d if res is None else a * d)
+
+
+@pytestmark_lanes
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("residual", [True, False])
+@pytest.mark.parametrize("shape", [(37, 5, 8), (16,), (3089, 16, 8), (3, 1, 1)])
+def test_elu_mix_is_the_residual_blocks_activation_and_mix_within_an_ulp(shape, residual, threads, torch_threads):
+    """res + a ELU(t) (ELU(t) without res) against float64: within 2 float32 ulps of the terms' sizes (Cephes'
+    polynomial for e^t, about 1 ulp); t's gradient a g ELU'(t) alike, res's the upstream gradient itself."""
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(5)
+    t = (3 * torch.randn(shape, generator=g)).requires_grad_()
+    res = torch.randn(shape, generator=g).requires_grad_() if residual else None
+    a = 0.7071
+    y = native.elu_mix(t, res if residual else torch.empty(0), a)
+    y64, e64, d64 = _elu_mix_double(t.detach(), None if res is None else res.detach(), a)
+    eps = torch.finfo(torch.float32).eps
+    scale = (e64.abs() if res is None else res.detach().abs().double() + a * e64.abs()) + torch.finfo(torch.float32).tiny
+    assert bool(((y.double() - y64).abs() <= 2 * eps * scale).all())
+    dy = torch.randn(shape, generator=g)
+    grads = torch.autograd.grad(y, (t, res) if residual else (t,), dy)
+    ref = dy.double() * d64
+    assert bool(((grads[0].double() - ref).abs() <= 3 * eps * ref.abs() + torch.finfo(torch.float32).tiny).all())
+    if residual:
+        assert torch.equal(grads[1], dy)
+
+
+@pytestmark_lanes
+def test_elu_mix_at_the_edges_is_torchs_elu():
+    """Large negative inputs give -1 (gradient 0 after e^-88), zeros and tiny values their own ELU, NaN stays NaN,
+    infinities as torch's ELU."""
+    t = torch.tensor([-1e4, -100., -88., -87., -10., -1., -0.3466, -0.34, -1e-3, -1e-6, -1e-30, -0., 0., 1e-30, 1.,
+                      float("nan"), float("inf"), float("-inf")])
+    y = native.elu_mix(t, torch.empty(0), 1.0)
+    torch.testing.assert_close(y, torch.nn.functional.elu(t), rtol=2 * torch.finfo(torch.float32).eps, atol=0,
+                               equal_nan=True)
+    tt = t.clone().requires_grad_()
+    (d,) = torch.autograd.grad(native.elu_mix(tt, torch.empty(0), 1.0).sum(), tt)
+    tt0 = t.clone().requires_grad_()
+    (d0,) = torch.autograd.grad(torch.nn.functional.elu(tt0).sum(), tt0)
+    torch.testing.assert_close(d, d0, rtol=2 * torch.finfo(torch.float32).eps, atol=1e-37, equal_nan=True)
+
+
+def test_vcconv_fuses_only_torchs_elu_with_alpha_one():
+    """``native.elu_mix`` stands in for torch's ELU (alpha 1, not in place) only: another activation, alpha or
+    none keeps torch's modules."""
+    import fwk_vcconv
+
+    lanes = native.available() and native.lanes()
+    assert fwk_vcconv._fused_elu(torch.nn.ELU()) == lanes
+    for act in (None, torch.nn.ELU(alpha=0.5), torch.nn.ELU(inplace=True), torch.nn.ReLU(), torch.nn.CELU()):
+        assert not fwk_vcconv._fused_elu(act)

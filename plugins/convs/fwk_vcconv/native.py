@@ -80,6 +80,12 @@ makes w~ in one pass per output vertex, forward and backward, instead of six tor
 made from rows read in place (the backward's dx from the input side): no scatter, where ``basis_product`` with
 one coefficient a slot needed per-thread accumulators and a BLAS call per vertex for products one column wide.
 
+``elu_mix`` (``fwk_vcconv::elu_mix``, AVX-512: ``lanes()``) ends a residual block, y = sqrt(r) res + sqrt(1 - r)
+ELU(t), in one pass, and its gradient in one (torch: ELU, the add and their gradients, four passes, and its ELU's
+e^t - 1 at about 70 cycles a register, 1.2 ms of the chapter 5 width's step). e^t comes from Cephes' expf polynomial
+and AVX-512's scalef (within about 1 ulp of torch's ELU, tested against float64); ``VCConv`` takes it for torch's
+ELU with alpha 1 only (``_fused_elu``): 1.02x the chapter 5 width's step.
+
 The kernels are float32 and compiled on first use (``fwk.native``: a C++ compiler and ninja;
 about a minute, once per machine and torch version). ``available()`` is False when the build
 fails (the reason is printed once, ``failed()``) or ``FWK_VCCONV_NATIVE=0``; ``usable()`` is
@@ -456,6 +462,36 @@ def _kernel_lanes_backward(ctx, dy, dr):
 kernel_lanes.register_autograd(_kernel_lanes_backward, setup_context=_kernel_lanes_setup)
 
 
+@torch.library.custom_op("fwk_vcconv::elu_mix", mutates_args=())
+def elu_mix(t: torch.Tensor, res: torch.Tensor, a: float) -> torch.Tensor:
+    """The residual block's activation and mix in one pass (``native.cpp``, AVX-512 only: ``lanes()``):
+    res + a ELU(t), or ELU(t) where res is empty ((0,)); t and res of one shape. ELU's e^t - 1 from Cephes'
+    polynomial (about 1 ulp from torch's); the gradient a g ELU'(t) for t, g itself for res."""
+    return _load().elu_mix_forward(t.contiguous(), res.contiguous(), a)
+
+
+@elu_mix.register_fake
+def _(t, res, a):
+    return t.new_empty(t.shape)
+
+
+def _elu_mix_setup(ctx, inputs, output):
+    t, res, a = inputs
+    ctx.save_for_backward(t)
+    ctx.has_res = res.numel() > 0
+    ctx.a = a if ctx.has_res else 1.0
+
+
+def _elu_mix_backward(ctx, g):
+    (t,) = ctx.saved_tensors
+    need_t, need_res = ctx.needs_input_grad[:2]
+    dt = _load().elu_mix_backward(g.contiguous(), t.contiguous(), ctx.a) if need_t else None
+    return dt, (g if need_res and ctx.has_res else None), None
+
+
+elu_mix.register_autograd(_elu_mix_backward, setup_context=_elu_mix_setup)
+
+
 # ---- multiply-adds for torch.utils.flop_counter (2 flops each)
 def _register_flops():
     from torch.utils.flop_counter import register_flop_formula
@@ -501,6 +537,6 @@ _register_flops()
 # What fwk_vcconv calls: each operator behind ``fwk.native.differentiable``, the same values and gradients for
 # about 40 us less a call (31 calls a step at the chapter 5 width); the operator itself is ``<name>.op``
 # (``torch.ops.fwk_vcconv.<name>``, differentiable as well)
-sum_product, basis_product, weighted_rows, residual_weights, kernel_product, tall_product, basis_lanes, kernel_lanes = (
-    differentiable(op) for op in (sum_product, basis_product, weighted_rows, residual_weights, kernel_product,
-                                  tall_product, basis_lanes, kernel_lanes))
+(sum_product, basis_product, weighted_rows, residual_weights, kernel_product, tall_product, basis_lanes, kernel_lanes,
+ elu_mix) = (differentiable(op) for op in (sum_product, basis_product, weighted_rows, residual_weights, kernel_product,
+                                           tall_product, basis_lanes, kernel_lanes, elu_mix))
