@@ -405,10 +405,11 @@ def _lanes_setup(ctx, inputs, output):
 def _lanes_backward(ctx, dy):
     x, basis, coef, offs, dst, pos = ctx.saved_tensors
     need_x, need_B, need_c = ctx.needs_input_grad[:3]
-    dx, dB, dcoef = _load().lanes_backward(dy.contiguous(), x.contiguous(), basis.contiguous(), coef.contiguous(),
-                                           offs, dst, pos, need_x, need_B, need_c)
+    need_bias = ctx.needs_input_grad[7]  # made as dy goes into lanes, not by a pass of its own (_bias_grad)
+    dx, dB, dcoef, dbias = _load().lanes_backward(dy.contiguous(), x.contiguous(), basis.contiguous(),
+                                                  coef.contiguous(), offs, dst, pos, need_x, need_B, need_c, need_bias)
     return (dx if need_x else None), (dB if need_B else None), (dcoef if need_c else None), None, None, None, None, \
-        (_bias_grad(dy) if ctx.needs_input_grad[7] else None)
+        (dbias if need_bias else None)
 
 
 def _bias_grad(dy):
