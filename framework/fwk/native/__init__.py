@@ -1,9 +1,9 @@
-"""Plugins' C++ kernels (and fwk's own, ``fwk.native.ops``: the layout copy and the L1 loss of every
-training step), compiled on first use (``torch.utils.cpp_extension``), and the helpers they share
-(``fwk_native.h``: the BLAS call, per-thread accumulators summed in thread order, argument checks,
-and ``tall_mm`` / ``tall_tn``: products (R x K) @ (K x N) with R large and K, N small in row blocks
-that stay in cache, one single-threaded BLAS call each, because MKL runs such shapes at 6-25 GFLOP/s
-on 2 threads and 2-6x slower or faster by orientation alone).
+"""Plugins' C++ kernels (and fwk's own, ``fwk.native.ops``: the L1 loss of every training step),
+compiled on first use (``torch.utils.cpp_extension``), and the helpers they share (``fwk_native.h``:
+the BLAS call, per-thread accumulators summed in thread order, argument checks, and ``tall_mm`` /
+``tall_tn``: products (R x K) @ (K x N) with R large and K, N small in row blocks that stay in cache,
+one single-threaded BLAS call each, because MKL runs such shapes at 6-25 GFLOP/s on 2 threads and
+2-6x slower or faster by orientation alone).
 
 A plugin declares its kernels once, ``KERNELS = Extension("fwk_vcconv_native", [Path(__file__).with_name(
 "native.cpp")], label="vcconv", env="FWK_VCCONV_NATIVE")``, and asks ``KERNELS.usable(x, w)`` before

@@ -76,7 +76,6 @@ from torch.nn.utils import skip_init
 from fwk.errors import RecipeError
 from fwk.graph import adjacency, buckets, padded_rows, reach
 from fwk.hookspecs import hookimpl
-from fwk.native.ops import swap01
 from fwk.protocols import CONV_BUILD_ARGS, STRIDED_BUILD_ARGS
 
 from . import native
@@ -604,8 +603,6 @@ class VCConv(nn.Module):
         usable = native.usable(x, self.coef)
         order = self.chosen_order(b, usable)
         nat = usable
-        if nat and not xv.is_contiguous() and x.is_contiguous():  # a batch-major input (the network's, a linear
-            xv = swap01(x)  # layer's): the kernels' vertex-major copy made once, by fwk's tile copy (fwk.native.ops)
         evaluate = {"sum": self._sum_native if nat else self._sum, "basis": self._basis_native if nat else self._basis,
                     "kernel": self._kernel_native if nat else self._kernel}[order]
         y, res = evaluate(xv, b, c, o, M)  # y includes the bias; res (strided modes) includes sqrt(r)

@@ -61,13 +61,12 @@ from fwk.engine import autoencoder_module, fit, fit_features, seed_everything
 from fwk.errors import RecipeError
 from fwk.graph import sparse_apply, torch_sparse
 from fwk.hookspecs import hookimpl
-from fwk.native.ops import batch_major
 from fwk.protocols import RECONSTRUCT, Conv, FusedPoolingConv, plays
 from fwk.recipes import Kind, Spec
 from fwk.registry import did_you_mean
 
 from .checked import build_conv
-from .latent import LatentConvDecoder, LatentConvEncoder, with_latent_level
+from .latent import LatentConvDecoder, LatentConvEncoder, batch_major, with_latent_level
 from .strided import strided_conv
 
 ACTIVATIONS = {"elu": nn.ELU, "relu": nn.ReLU, "leaky_relu": nn.LeakyReLU}
