@@ -10,30 +10,19 @@
 // The sums are deterministic for a thread count: at::parallel_for splits [0, n) statically, each thread's range is
 // summed in blocks of BLOCK floats (a float sum each, vectorised) added into a double, and the threads' doubles are
 // added in thread order.
-#include <torch/extension.h>
-#include <ATen/Parallel.h>
+#include "fwk_native.h"  // FWK_CLONES (the loops for AVX-512 and the baseline), check
 
 #include <cmath>
 #include <cstdint>
 #include <vector>
 
-namespace {
+using fwk_native::check;
 
-// compiled for AVX-512 as well as the baseline (GCC's target_clones; see fwk_vcconv's native.cpp)
-#if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
-#define FWK_CORE_CLONES __attribute__((target_clones("avx512f", "default")))
-#else
-#define FWK_CORE_CLONES
-#endif
+namespace {
 
 constexpr int64_t BLOCK = 4096;  // floats summed in float before the double
 
-void check_float(const torch::Tensor& t, const char* name) {
-  TORCH_CHECK(t.device().is_cpu() && t.scalar_type() == at::kFloat, name, ": expected a float32 CPU tensor");
-  TORCH_CHECK(t.is_contiguous(), name, ": expected a contiguous tensor");
-}
-
-FWK_CORE_CLONES double l1_range(const float* __restrict a, const float* __restrict b, int64_t lo, int64_t hi) {
+FWK_CLONES double l1_range(const float* __restrict a, const float* __restrict b, int64_t lo, int64_t hi) {
   double total = 0.0;
   for (int64_t s = lo; s < hi; s += BLOCK) {
     const int64_t e = std::min(hi, s + BLOCK);
@@ -45,7 +34,7 @@ FWK_CORE_CLONES double l1_range(const float* __restrict a, const float* __restri
   return total;
 }
 
-FWK_CORE_CLONES void l1_grad_range(float* __restrict o, const float* __restrict a, const float* __restrict b, float g,
+FWK_CLONES void l1_grad_range(float* __restrict o, const float* __restrict a, const float* __restrict b, float g,
                                    int64_t lo, int64_t hi) {
 #pragma omp simd
   for (int64_t i = lo; i < hi; ++i) {
@@ -60,8 +49,8 @@ FWK_CORE_CLONES void l1_grad_range(float* __restrict o, const float* __restrict 
 // mean |a - b| (a float32 scalar tensor: the sum and the division in double, rounded once) over a and b of the
 // same shape
 torch::Tensor l1_mean(torch::Tensor a, torch::Tensor b) {
-  check_float(a, "a");
-  check_float(b, "b");
+  check(a, "a", at::kFloat, a.dim());
+  check(b, "b", at::kFloat, b.dim());
   TORCH_CHECK(a.sizes() == b.sizes(), "a and b: expected the same shape, got ", a.sizes(), " and ", b.sizes());
   const int64_t n = a.numel();
   const float* ap = a.data_ptr<float>();
@@ -75,8 +64,8 @@ torch::Tensor l1_mean(torch::Tensor a, torch::Tensor b) {
 
 // g sgn(a - b) (a's shape), g a float32 scalar tensor
 torch::Tensor l1_grad(torch::Tensor a, torch::Tensor b, torch::Tensor g) {
-  check_float(a, "a");
-  check_float(b, "b");
+  check(a, "a", at::kFloat, a.dim());
+  check(b, "b", at::kFloat, b.dim());
   TORCH_CHECK(a.sizes() == b.sizes(), "a and b: expected the same shape, got ", a.sizes(), " and ", b.sizes());
   TORCH_CHECK(g.numel() == 1, "g: expected one value");
   const float gg = g.to(at::kFloat).item<float>();

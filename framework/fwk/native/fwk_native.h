@@ -24,6 +24,15 @@ extern "C" void sgemm_(const char* transa, const char* transb, const int* m, con
 // built with another BLAS does not have it, and then nothing is set.
 extern "C" int MKL_Set_Num_Threads_Local(int nt) __attribute__((weak));
 
+// Loops compiled for AVX-512 as well as for the baseline (GCC's target_clones: the CPU's version is picked when the
+// library loads); plain -O3 vectorises them for SSE2 only, 4 floats a multiply-add. "avx512f", not "arch=x86-64-v4":
+// GCCs before 11 do not know the x86-64-v levels, and then the whole extension would not build.
+#if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
+#define FWK_CLONES __attribute__((target_clones("avx512f", "default")))
+#else
+#define FWK_CLONES
+#endif
+
 namespace fwk_native {
 
 // One BLAS thread for the calling thread while it lives (MKL's thread-local setting; the previous one

@@ -533,14 +533,7 @@ std::vector<torch::Tensor> tall_backward(torch::Tensor dC, torch::Tensor A, torc
 
 namespace {
 
-// The loops below are compiled for AVX-512 as well as for the baseline (GCC's target_clones: the CPU's version is
-// picked when the library loads); plain -O3 vectorises them for SSE2 only, 4 floats a multiply-add. "avx512f", not
-// "arch=x86-64-v4": GCCs before 11 do not know the x86-64-v levels, and then the whole extension would not build.
-#if defined(__GNUC__) && defined(__x86_64__) && !defined(__clang__)
-#define FWK_CLONES __attribute__((target_clones("avx512f", "default")))
-#else
-#define FWK_CLONES
-#endif
+// FWK_CLONES (fwk_native.h): the loops below compiled for AVX-512 as well as for the baseline
 
 // rows [i0, i1) of rows (B floats each) = sum_s w[pos[s]] base[idx[s]] over s in [offs[i], offs[i+1])
 FWK_CLONES void weighted_gather_range(float* rows, const float* base, const float* w, const int64_t* offs,
