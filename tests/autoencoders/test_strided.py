@@ -166,7 +166,12 @@ def test_decoders_hand_on_a_batch_major_result(layout):
     seen = []
     last.register_forward_hook(lambda mod, args, out: seen.append(out))
     y = dec(torch.randn(2, m.latent_size))
-    assert not seen[0].is_contiguous()  # the conv's vertex-major result, transposed
+    # the conv's vertex-major result, transposed; or, where the native lanes end a last layer with a residual in
+    # elu_mix's identity mix, already laid out batch-major (and the decoder's copy is none)
+    from fwk_vcconv import native as vnative
+
+    itself = vnative.available() and vnative.lanes() and last.r is not None and last.activation is None
+    assert seen[0].is_contiguous() == itself
     assert y.shape == (2, t.n_vertices, 3) and y.is_contiguous()
     assert torch.equal(y, seen[0])
     seen[0].retain_grad()

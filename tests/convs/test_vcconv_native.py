@@ -801,7 +801,7 @@ def test_elu_mix_is_the_residual_blocks_activation_and_mix_within_an_ulp(shape, 
     t = (3 * torch.randn(shape, generator=g)).requires_grad_()
     res = torch.randn(shape, generator=g).requires_grad_() if residual else None
     a = 0.7071
-    y = native.elu_mix(t, res if residual else torch.empty(0), a)
+    y = native.elu_mix(t, res if residual else torch.empty(0), a, True, False)
     y64, e64, d64 = _elu_mix_double(t.detach(), None if res is None else res.detach(), a)
     eps = torch.finfo(torch.float32).eps
     scale = (e64.abs() if res is None else res.detach().abs().double() + a * e64.abs()) + torch.finfo(torch.float32).tiny
@@ -820,14 +820,97 @@ def test_elu_mix_at_the_edges_is_torchs_elu():
     infinities as torch's ELU."""
     t = torch.tensor([-1e4, -100., -88., -87., -10., -1., -0.3466, -0.34, -1e-3, -1e-6, -1e-30, -0., 0., 1e-30, 1.,
                       float("nan"), float("inf"), float("-inf")])
-    y = native.elu_mix(t, torch.empty(0), 1.0)
+    y = native.elu_mix(t, torch.empty(0), 1.0, True, False)
     torch.testing.assert_close(y, torch.nn.functional.elu(t), rtol=2 * torch.finfo(torch.float32).eps, atol=0,
                                equal_nan=True)
     tt = t.clone().requires_grad_()
-    (d,) = torch.autograd.grad(native.elu_mix(tt, torch.empty(0), 1.0).sum(), tt)
+    (d,) = torch.autograd.grad(native.elu_mix(tt, torch.empty(0), 1.0, True, False).sum(), tt)
     tt0 = t.clone().requires_grad_()
     (d0,) = torch.autograd.grad(torch.nn.functional.elu(tt0).sum(), tt0)
     torch.testing.assert_close(d, d0, rtol=2 * torch.finfo(torch.float32).eps, atol=1e-37, equal_nan=True)
+
+
+@pytestmark_lanes
+@pytest.mark.parametrize("residual", [True, False])
+def test_elu_mix_without_elu_is_torchs_add(residual):
+    """``elu=False`` (a network's last layer): res + a t as torch's add with alpha (one multiply-add, within an ulp;
+    t itself without res), the gradients a g and g."""
+    g = torch.Generator().manual_seed(6)
+    t = torch.randn(301, 16, 3, generator=g).requires_grad_()
+    res = torch.randn(301, 16, 3, generator=g).requires_grad_() if residual else None
+    a = 0.7071
+    y = native.elu_mix(t, res if residual else torch.empty(0), a, False, False)
+    eps = torch.finfo(torch.float32).eps
+    if residual:
+        torch.testing.assert_close(y, torch.add(res, t, alpha=a), rtol=eps, atol=1e-37)
+    else:
+        assert torch.equal(y, t)
+    dy = torch.randn(301, 16, 3, generator=g)
+    grads = torch.autograd.grad(y, (t, res) if residual else (t,), dy)
+    torch.testing.assert_close(grads[0], (a if residual else 1.0) * dy, rtol=eps, atol=1e-37)
+    if residual:
+        assert torch.equal(grads[1], dy)
+
+
+@pytestmark_lanes
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("elu", [True, False])
+@pytest.mark.parametrize("residual", [True, False])
+@pytest.mark.parametrize("shape", [(37, 5, 3), (300, 16, 3), (4, 1, 20), (700, 3, 1)])
+def test_elu_mix_lays_its_result_out_batch_major_with_the_same_bits(shape, elu, residual, threads, torch_threads):
+    """``batch_major``: the vertex-major result's values bit for bit, laid out (b, n, c) (its transposed view
+    contiguous); the gradients from the loss's batch-major gradient (arriving through the transpose) the same bits
+    as from that gradient made contiguous, contiguous themselves, res's in t's layout; a gradient in a third layout
+    (a slice) is taken as well."""
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(7)
+    n, b, c = shape
+    t = (3 * torch.randn(shape, generator=g)).requires_grad_()
+    res = torch.randn(shape, generator=g).requires_grad_() if residual else None
+    inputs = (t, res) if residual else (t,)
+    args = (t, res if residual else torch.empty(0), 0.7071, elu)
+    y0, y1 = native.elu_mix(*args, False), native.elu_mix(*args, True)
+    assert y1.shape == y0.shape and y1.stride() == (c, n * c, 1) and y1.transpose(0, 1).is_contiguous()
+    assert torch.equal(y0, y1)
+    up = torch.randn(b, n, c, generator=g)  # the loss's gradient of the (b, n, c) result
+    want = torch.autograd.grad(y0, inputs, up.transpose(0, 1).contiguous(), retain_graph=True)
+    got = torch.autograd.grad((y1.transpose(0, 1) * up).sum(), inputs)  # y1's gradient: up's transposed view
+    for w_, g_ in zip(want, got):
+        assert g_.is_contiguous() and torch.equal(w_, g_)
+    sliced = torch.randn(n, b, 2 * c, generator=g)[..., ::2]
+    got = torch.autograd.grad(native.elu_mix(*args, True), inputs, sliced)
+    want = torch.autograd.grad(y0, inputs, sliced.contiguous())
+    for w_, g_ in zip(want, got):
+        assert torch.equal(w_, g_)
+
+
+@pytestmark_lanes
+@pytest.mark.parametrize("mode", ["up", "down"])
+def test_a_last_layer_hands_on_its_result_batch_major(mode, monkeypatch):
+    """A layer without an activation (the last of fwk's encoders and decoders) ends in ``elu_mix``'s identity mix,
+    laid out batch-major: the (b, n, c) result it hands on is contiguous, and it agrees with the same layer on
+    torch's code (``FWK_VCCONV_NATIVE=0``) in value and in the gradients of the input and every parameter; a layer
+    with ELU hands on a vertex-major result as before."""
+    from fwk.plugins import get_registry
+    from fwk.testing.sampler import two_components
+
+    h = get_registry().get("sampler", "simple")(levels=3).build(two_components())
+    for act in (None, torch.nn.ELU()):
+        torch.manual_seed(0)
+        conv = get_registry().get("conv", "vcconv")(6, 3, h, 1, weight_num=5, mode=mode, residual_rate=0.5,
+                                                    activation=act)
+        x = torch.randn(4, conv.n_in, 6, requires_grad=True)
+        runs = []
+        for off in (False, True):
+            if off:
+                monkeypatch.setenv("FWK_VCCONV_NATIVE", "0")
+            y = conv(x)
+            if not off:
+                assert y.is_contiguous() == (act is None)
+            runs.append((y, *torch.autograd.grad(y.square().sum(), [x, *conv.parameters()])))
+        monkeypatch.delenv("FWK_VCCONV_NATIVE")
+        for a, e in zip(*runs):
+            assert (a - e).abs().max() <= 1e-5 * (1 + e.abs().max())
 
 
 def test_vcconv_fuses_only_torchs_elu_with_alpha_one():

@@ -608,15 +608,18 @@ class VCConv(nn.Module):
         y, res = evaluate(xv, b, c, o, M)  # y includes the bias; res (strided modes) includes sqrt(r)
         if self.r is not None and res is None:  # mode same: the identity (or R) on the input itself
             res = math.sqrt(self.r) * (xv if self.res_lin is None else xv @ self.res_lin.weight.t())
-        if nat and _fused_elu(self.activation):  # ELU and the mix in one pass (native.elu_mix)
+        last = nat and self.activation is None and self.r is not None and native.lanes()
+        if nat and (_fused_elu(self.activation) or last):  # the activation and the mix in one pass (native.elu_mix)
+            # a last layer's result (no activation) laid out batch-major: its transposed view, handed on, is
+            # contiguous, as the decoder's result and the loss want it (fwk_autoencoder's batch_major)
             y = native.elu_mix(y, res if self.r is not None else y.new_empty(0),
-                               math.sqrt(1 - self.r) if self.r is not None else 1.0)
+                               math.sqrt(1 - self.r) if self.r is not None else 1.0, not last, last)
         else:
             if self.activation is not None:
                 y = self.activation(y)
             if self.r is not None:
                 y = torch.add(res, y, alpha=math.sqrt(1 - self.r))
-        if usable and y.requires_grad:
+        if usable and y.requires_grad and not last:  # elu_mix's backward reads a batch-major gradient itself
             y.register_hook(_vertex_major_gradient)
         return y.transpose(0, 1)
 

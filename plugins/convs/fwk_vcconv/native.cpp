@@ -1936,11 +1936,17 @@ void sum_vertex_lanes(float* Ti, float* ri, const float* x, const float* coef, c
   by_blocks_of_8<TRows>(B, Ti, ri, X, A, K, M, ch);
 }
 
-// ---- the residual block's activation and mix: out = res + a ELU(t) (res empty: ELU(t)), and its gradient
-// dt = a' g ELU'(t) (a' = a, or 1 without res; ELU'(t) = 1 for t > 0, e^t otherwise; res's gradient is g itself). torch
-// runs ELU, the add and their gradients as four passes, and its ELU's e^t - 1 (Sleef's expm1, 1 ulp) at about 70
-// cycles a register: ELU alone was 1.2 ms of the chapter 5 width's step. Here e^t comes from Cephes' expf polynomial
-// (Moshier; about 1 ulp on [-88, 0]) and AVX-512's scalef, 16 floats at a time.
+// ---- the residual block's activation and mix: out = res + a f(t) (res empty: f(t)), f = ELU or (a network's last
+// layer) the identity, and its gradient dt = a' g f'(t) (a' = a, or 1 without res; ELU'(t) = 1 for t > 0, e^t
+// otherwise; res's gradient is g itself). torch runs ELU, the add and their gradients as four passes, and its ELU's
+// e^t - 1 (Sleef's expm1, 1 ulp) at about 70 cycles a register: ELU alone was 1.2 ms of the chapter 5 width's step.
+// Here e^t comes from Cephes' expf polynomial (Moshier; about 1 ulp on [-88, 0]) and AVX-512's scalef, 16 floats at
+// a time. With the identity the mix is res + a t as one multiply-add (torch's add with alpha, vectorised, is the same
+// fmadd). The result can be laid out batch-major (`batch_major`: (n, b, c) with strides (c, n c, 1), so that its
+// (b, n, c) transpose, which the conv hands on, is contiguous) and the gradient read in that layout: a network's last
+// layer then needs no copy of its result into the loss's layout and none of the loss's gradient back (with the add
+// and its gradient's product, 0.81 ms of the chapter 5 width's step on its (11,248, 16, 3) floats in four passes; here
+// 0.13 ms each way).
 namespace lanes {
 #ifdef FWK_VCCONV_LANES
 // em1 = e^x - 1 and ex = e^x for 16 floats x <= 0 (x below -88 taken as -88: e^x is then under 1e-38; NaN stays NaN):
@@ -1965,77 +1971,149 @@ inline void expm1_exp(__m512 x, __m512& em1, __m512& ex) {
   em1 = _mm512_mask_mov_ps(_mm512_sub_ps(ex, one), k0, q);
 }
 
-inline void elu_mix_range(float* out, const float* t, const float* res, float a, int64_t i0, int64_t i1) {
+// out[i] = res[i] + a f(t[i]) (or f(t[i]) without res) for i in [0, len)
+template <bool ELU>
+inline void mix_run(float* out, const float* t, const float* res, float a, int64_t len) {
   const __m512 av = _mm512_set1_ps(a), zero = _mm512_setzero_ps();
-  for (int64_t i = i0; i < i1; i += L) {
-    const int64_t n = std::min<int64_t>(L, i1 - i);
+  for (int64_t i = 0; i < len; i += L) {
+    const int64_t n = std::min<int64_t>(L, len - i);
     const __m512 x = (__m512)ld_n(t + i, n);
-    __m512 em1, ex;
-    expm1_exp(x, em1, ex);
-    const __mmask16 neg = _mm512_cmp_ps_mask(x, zero, _CMP_LE_OQ);  // torch's test: t <= 0 (false at a NaN)
-    const __m512 e = _mm512_mask_mov_ps(x, neg, em1);  // ELU(t)
+    __m512 e = x;
+    if (ELU) {
+      __m512 em1, ex;
+      expm1_exp(x, em1, ex);
+      const __mmask16 neg = _mm512_cmp_ps_mask(x, zero, _CMP_LE_OQ);  // torch's test: t <= 0 (false at a NaN)
+      e = _mm512_mask_mov_ps(x, neg, em1);  // ELU(t)
+    }
     st_n(out + i, (vL)(res ? _mm512_fmadd_ps(av, e, (__m512)ld_n(res + i, n)) : e), n);
   }
 }
 
-inline void elu_mix_grad_range(float* dt, const float* g, const float* t, float a, int64_t i0, int64_t i1) {
+// dt[i] = a g[i] f'(t[i]) for i in [0, len) (t unread for the identity)
+template <bool ELU>
+inline void mix_grad_run(float* dt, const float* g, const float* t, float a, int64_t len) {
   const __m512 av = _mm512_set1_ps(a), zero = _mm512_setzero_ps(), one = _mm512_set1_ps(1.f);
-  for (int64_t i = i0; i < i1; i += L) {
-    const int64_t n = std::min<int64_t>(L, i1 - i);
-    const __m512 x = (__m512)ld_n(t + i, n);
-    __m512 em1, ex;
-    expm1_exp(x, em1, ex);
-    const __mmask16 neg = _mm512_cmp_ps_mask(x, zero, _CMP_LE_OQ);
-    const __m512 d = _mm512_mask_mov_ps(one, neg, ex);  // ELU'(t): 1 at a NaN, as torch's
-    st_n(dt + i, (vL)_mm512_mul_ps(_mm512_mul_ps(av, (__m512)ld_n(g + i, n)), d), n);
+  for (int64_t i = 0; i < len; i += L) {
+    const int64_t n = std::min<int64_t>(L, len - i);
+    const __m512 ag = _mm512_mul_ps(av, (__m512)ld_n(g + i, n));
+    if (ELU) {
+      const __m512 x = (__m512)ld_n(t + i, n);
+      __m512 em1, ex;
+      expm1_exp(x, em1, ex);
+      const __mmask16 neg = _mm512_cmp_ps_mask(x, zero, _CMP_LE_OQ);
+      st_n(dt + i, (vL)_mm512_mul_ps(ag, _mm512_mask_mov_ps(one, neg, ex)), n);  // ELU'(t): 1 at a NaN, as torch's
+    } else {
+      st_n(dt + i, (vL)ag, n);
+    }
   }
 }
 #else  // lanes_supported() is false here and fwk_vcconv does not call these: plain loops, for a complete build
-inline void elu_mix_range(float* out, const float* t, const float* res, float a, int64_t i0, int64_t i1) {
-  for (int64_t i = i0; i < i1; ++i) {
-    const float e = t[i] <= 0.f ? std::expm1(t[i]) : t[i];
+template <bool ELU>
+inline void mix_run(float* out, const float* t, const float* res, float a, int64_t len) {
+  for (int64_t i = 0; i < len; ++i) {
+    const float e = ELU && t[i] <= 0.f ? std::expm1(t[i]) : t[i];
     out[i] = res ? res[i] + a * e : e;
   }
 }
-inline void elu_mix_grad_range(float* dt, const float* g, const float* t, float a, int64_t i0, int64_t i1) {
-  for (int64_t i = i0; i < i1; ++i) dt[i] = a * g[i] * (t[i] <= 0.f ? std::exp(t[i]) : 1.f);
+template <bool ELU>
+inline void mix_grad_run(float* dt, const float* g, const float* t, float a, int64_t len) {
+  for (int64_t i = 0; i < len; ++i) dt[i] = a * g[i] * (ELU && t[i] <= 0.f ? std::exp(t[i]) : 1.f);
 }
 #endif
 }  // namespace lanes
 
-// out = res + a ELU(t), or ELU(t) where res is empty (0 floats); t and res of one shape
-torch::Tensor elu_mix_forward(torch::Tensor t, torch::Tensor res, double a) {
+// the c floats of one vertex and batch entry between the two layouts: scalar moves for 3 (the coordinates) or fewer,
+// masked vectors for more (the chapter 5 width's last layer, forward alone, 2 threads: a masked store a row 0.24 ms, a
+// loop over c 0.17 ms, these 0.13 ms)
+inline void copy_row(float* dst, const float* src, int64_t c) {
+  if (c == 3) {
+    dst[0] = src[0], dst[1] = src[1], dst[2] = src[2];
+  } else if (c < 3) {
+    for (int64_t q = 0; q < c; ++q) dst[q] = src[q];
+  } else {
+    lanes::copy_n(dst, src, c);
+  }
+}
+
+// out = res + a f(t) (f = ELU, or the identity where `elu` is false), or f(t) where res is empty (0 floats); t and
+// res of one shape. With `batch_major` (t of 3 dimensions (n, b, c)), out has t's shape laid out as (b, n, c):
+// vertex v's b rows of c floats made in a buffer, then stored at (beta n + v) c.
+torch::Tensor elu_mix_forward(torch::Tensor t, torch::Tensor res, double a, bool elu, bool batch_major) {
   check(t, "t", at::kFloat, t.dim());
   const bool has_res = res.numel() > 0;
   if (has_res) {
     check(res, "res", at::kFloat, res.dim());
     TORCH_CHECK(res.sizes() == t.sizes(), "res: expected t's shape ", t.sizes(), ", got ", res.sizes());
   }
-  auto out = torch::empty_like(t);
   const float* tp = t.data_ptr<float>();
   const float* rp = has_res ? res.data_ptr<float>() : nullptr;
+  const float af = static_cast<float>(a);
+  const auto run = elu ? lanes::mix_run<true> : lanes::mix_run<false>;
+  if (batch_major) {
+    TORCH_CHECK(t.dim() == 3, "elu_mix: a batch-major result needs t as (n, b, c), got ", t.sizes());
+    const int64_t n = t.size(0), b = t.size(1), c = t.size(2), R = b * c;
+    auto out = torch::empty_strided({n, b, c}, {c, n * c, 1}, t.options());
+    float* op = out.data_ptr<float>();
+    fwk_native::parallel_for(0, n, 256, [&](int64_t v0, int64_t v1) {
+      std::vector<float> buf(R);
+      for (int64_t v = v0; v < v1; ++v) {
+        run(buf.data(), tp + v * R, rp ? rp + v * R : nullptr, af, R);
+        for (int64_t beta = 0; beta < b; ++beta) copy_row(op + (beta * n + v) * c, buf.data() + beta * c, c);
+      }
+    });
+    return out;
+  }
+  auto out = torch::empty_like(t);
   float* op = out.data_ptr<float>();
   const int64_t n = t.numel(), V = (n + lanes::L - 1) / lanes::L;
   fwk_native::parallel_for(0, V, 1024, [&](int64_t v0, int64_t v1) {
-    lanes::elu_mix_range(op, tp, rp, (float)a, v0 * lanes::L, std::min(n, v1 * lanes::L));
+    const int64_t i0 = v0 * lanes::L, i1 = std::min(n, v1 * lanes::L);
+    run(op + i0, tp + i0, rp ? rp + i0 : nullptr, af, i1 - i0);
   });
   return out;
 }
 
-// dt = a g ELU'(t) (a: the mix's weight, 1 where there was no res)
-torch::Tensor elu_mix_backward(torch::Tensor g, torch::Tensor t, double a) {
-  check(g, "g", at::kFloat, g.dim());
-  check(t, "t", at::kFloat, t.dim());
-  TORCH_CHECK(g.sizes() == t.sizes(), "g: expected t's shape ", t.sizes(), ", got ", g.sizes());
-  auto dt = torch::empty_like(t);
+// the gradients: dt = a g f'(t) (a: the mix's weight, 1 where there was no res; t unread and may be empty for the
+// identity) and, where g is not laid out as t (contiguous), res's gradient g in t's layout (else empty (0,): it is g
+// itself). g is read in t's layout or batch-major (the transpose of a contiguous (b, n, c), as elu_mix_forward's
+// batch-major result's gradient arrives from the loss), other layouts made contiguous first. Each empty (0,) where
+// not asked for.
+std::vector<torch::Tensor> elu_mix_backward(torch::Tensor g, torch::Tensor t, double a, bool elu, bool need_t,
+                                            bool need_res) {
+  TORCH_CHECK(g.scalar_type() == at::kFloat && g.device().is_cpu(), "g: expected float32 on the CPU");
+  if (elu) {
+    check(t, "t", at::kFloat, t.dim());
+    TORCH_CHECK(g.sizes() == t.sizes(), "g: expected t's shape ", t.sizes(), ", got ", g.sizes());
+  }
+  const bool bm = g.dim() == 3 && !g.is_contiguous() && g.transpose(0, 1).is_contiguous();
+  if (!bm) g = g.contiguous();
+  auto empty = torch::empty({0}, g.options());
+  auto dt = need_t ? torch::empty(g.sizes(), g.options()) : empty;
+  auto dres = need_res && bm ? torch::empty(g.sizes(), g.options()) : empty;
   const float* gp = g.data_ptr<float>();
-  const float* tp = t.data_ptr<float>();
-  float* dp = dt.data_ptr<float>();
-  const int64_t n = t.numel(), V = (n + lanes::L - 1) / lanes::L;
-  fwk_native::parallel_for(0, V, 1024, [&](int64_t v0, int64_t v1) {
-    lanes::elu_mix_grad_range(dp, gp, tp, (float)a, v0 * lanes::L, std::min(n, v1 * lanes::L));
-  });
-  return dt;
+  const float* tp = elu ? t.data_ptr<float>() : nullptr;
+  float* dp = need_t ? dt.data_ptr<float>() : nullptr;
+  float* rp = dres.numel() ? dres.data_ptr<float>() : nullptr;
+  const float af = static_cast<float>(a);
+  const auto run = elu ? lanes::mix_grad_run<true> : lanes::mix_grad_run<false>;
+  if (bm) {
+    const int64_t n = g.size(0), b = g.size(1), c = g.size(2), R = b * c;
+    fwk_native::parallel_for(0, n, 256, [&](int64_t v0, int64_t v1) {
+      std::vector<float> buf(R);
+      for (int64_t v = v0; v < v1; ++v) {
+        float* gv = rp ? rp + v * R : buf.data();  // g's rows of vertex v in t's layout
+        for (int64_t beta = 0; beta < b; ++beta) copy_row(gv + beta * c, gp + (beta * n + v) * c, c);
+        if (dp) run(dp + v * R, gv, tp ? tp + v * R : nullptr, af, R);
+      }
+    });
+  } else if (dp) {
+    const int64_t n = g.numel(), V = (n + lanes::L - 1) / lanes::L;
+    fwk_native::parallel_for(0, V, 1024, [&](int64_t v0, int64_t v1) {
+      const int64_t i0 = v0 * lanes::L, i1 = std::min(n, v1 * lanes::L);
+      run(dp + i0, gp + i0, tp ? tp + i0 : nullptr, af, i1 - i0);
+    });
+  }
+  return {dt, dres};
 }
 
 #ifdef FWK_VCCONV_LANES
