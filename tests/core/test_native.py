@@ -202,3 +202,30 @@ def test_differentiable_falls_back_to_the_op_where_torch_keeps_its_parts_elsewhe
         y = _fast_square(x, torch.ones(2), 1.0)
     assert any(e.name.startswith("fwk_test::scaled_square") for e in prof.events())
     assert torch.allclose(y, x * x)
+
+
+def test_reduce_adds_the_threads_accumulators_in_thread_order(tmp_path, torch_threads):
+    """``fwk_native::reduce`` (the header's sum of per-thread accumulators): ((a_0 + a_1) + a_2) ... float for float,
+    as torch's sum over dimension 0 adds them, for 1-4 accumulators of sizes around its parallel grain, on 1 and 2
+    threads; one accumulator is returned as it is."""
+    src = tmp_path / "r.cpp"
+    src.write_text('#include "fwk_native.h"\n'
+                   "torch::Tensor reduce(torch::Tensor acc) { return fwk_native::reduce(acc); }\n"
+                   'PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) { m.def("reduce", &reduce); }\n')
+    ext = native.Extension(f"fwk_test_reduce_{abs(hash(str(tmp_path))) % 10**8}", [src], label="test",
+                           env="FWK_TEST_NATIVE")
+    mod = ext.load()
+    assert mod is not None, ext.failed
+    g = torch.Generator().manual_seed(0)
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        for nt, shape in ((2, (3089, 128)), (3, (7, 5)), (4, (16385,)), (2, (1,))):
+            acc = torch.randn(nt, *shape, generator=g) * torch.logspace(-20, 20, nt)[(...,) + (None,) * len(shape)]
+            want = acc[0].clone()
+            for t in range(1, nt):
+                want = want + acc[t]
+            got = mod.reduce(acc)
+            assert got.shape == shape and torch.equal(got.view(torch.int32), want.view(torch.int32))
+            assert torch.equal(got, acc.sum(0))
+    one = torch.randn(1, 4, 3)
+    assert torch.equal(mod.reduce(one), one[0])

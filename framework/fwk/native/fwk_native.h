@@ -229,9 +229,29 @@ inline float* thread_accumulator(float* acc, int nt, int64_t size) {
   return acc + tid * size;
 }
 
-// the per-thread accumulators (nt, ...) summed in thread order
+// floats [i0, i1) of the sum of nt accumulators of n floats each (acc: nt x n), added in thread order
+FWK_CLONES static void add_accumulators(float* __restrict out, const float* __restrict acc, int64_t nt, int64_t n,
+                                        int64_t i0, int64_t i1) {
+#pragma omp simd
+  for (int64_t i = i0; i < i1; ++i) out[i] = acc[i] + acc[n + i];
+  for (int64_t t = 2; t < nt; ++t) {
+#pragma omp simd
+    for (int64_t i = i0; i < i1; ++i) out[i] += acc[t * n + i];
+  }
+}
+
+// the per-thread accumulators (nt, ...) summed in thread order: ((a_0 + a_1) + a_2) ..., as torch's sum over
+// dimension 0 adds them (the same floats; a sum of zeros may keep the sign of -0), in one parallel pass. torch's sum
+// took 0.07-0.18 ms for the (2, n, b c) accumulators of the chapter 5 width's sum-order gradients (2026-12-08)
 inline torch::Tensor reduce(const torch::Tensor& acc) {
-  return acc.size(0) == 1 ? acc[0] : acc.sum(0);
+  if (acc.size(0) == 1) return acc[0];
+  TORCH_CHECK(acc.scalar_type() == at::kFloat && acc.is_contiguous(), "reduce: expected contiguous float32");
+  const int64_t nt = acc.size(0), n = acc.numel() / nt;
+  auto out = torch::empty(acc.sizes().slice(1), acc.options());
+  const float* a = acc.data_ptr<float>();
+  float* o = out.data_ptr<float>();
+  at::parallel_for(0, n, 16384, [&](int64_t i0, int64_t i1) { add_accumulators(o, a, nt, n, i0, i1); });
+  return out;
 }
 
 // Asks the cache for rows that a kernel will read soon: base + idx[s] * stride, row_bytes each, for the slots
