@@ -119,6 +119,33 @@ def test_sum_product_matches_the_loops_in_value_and_gradient(residual, threads, 
     assert (got[1][unread] == 0).all(), "a coefficient row no slot reads gets no gradient"
 
 
+@pytestmark_native
+@pytest.mark.parametrize("lanes", [True, False])
+def test_a_range_shorter_than_the_threads_leaves_no_accumulator_unzeroed(lanes, torch_threads, monkeypatch):
+    """One output vertex on 2 threads: at::parallel_for runs the range in one thread, so one of the per-thread
+    accumulators (fwk_native's ``ThreadAccumulators``, zeroed by their own threads) is never handed a part; it is
+    zeroed before the sum (``done``), and the gradient is the loops' (memory full of NaN offered first, as a buffer
+    left unzeroed would show)."""
+    if not lanes:
+        monkeypatch.setattr(native, "lanes", lambda M=1: False)
+    elif not native.lanes(35):
+        pytest.skip("the lane kernels do not run on this CPU")
+    torch.set_num_threads(2)
+    g = torch.Generator().manual_seed(3)
+    offs, src = _csr(1, 5, 4, g, empty=())
+    x = torch.randn(5, 32, generator=g, requires_grad=True)
+    coef, w, pos = _coefficients(len(src), 35, g, True)
+    T, r = native.sum_product(x, coef, w, offs, src, pos)
+    gT, gr = torch.randn(T.shape, generator=g), torch.randn(r.shape, generator=g)
+    for _ in range(3):
+        torch.full((2, 5, 32), float("nan"))
+    got = _grads((T, r), (x,), (gT, gr))[0]
+    xd, cd, wd = _double(x, coef, w)
+    Te, re = _naive_sum(xd, cd, wd, offs, src, pos)
+    exp = _grads((Te, re), (xd,), (gT.double(), gr.double()))[0]
+    assert torch.allclose(got.double(), exp, atol=1e-4)
+
+
 def _naive_kernel(x, Wk, w, offs, src, pos, b, c, o):
     """y_i = sum_k x[src_k] (b x c) @ Wk[pos_k] (c x o), r_i = sum_k w[pos_k] x[src_k], slot by slot."""
     y, r = [], []

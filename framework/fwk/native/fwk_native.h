@@ -4,7 +4,8 @@
 // the column-major (c x r) matrix with leading dimension c, and every product is written for the
 // transposes (the comment at each call gives the row-major product it computes).
 //
-// Scatters into a shared result go to one private accumulator per thread (``thread_accumulator``),
+// Scatters into a shared result go to one private accumulator per thread (``ThreadAccumulators``, each zeroed by its
+// own thread; ``thread_accumulator`` for a caller's own buffer),
 // summed in thread order at the end (``reduce``): no atomics, and the same bits on every run with
 // the same thread count, because at::parallel_for splits a range statically.
 #pragma once
@@ -229,6 +230,51 @@ inline float* thread_accumulator(float* acc, int nt, int64_t size) {
   return acc + tid * size;
 }
 
+// Per-thread accumulators (nt, shape...) zeroed by their own threads: torch::empty, and each thread zeroes its
+// accumulator as its part of the parallel loop starts (``mine``), in its own cache, instead of a fill of the whole
+// tensor beforehand (a pass and a parallel region of their own: 0.06-0.15 ms each for the chapter 5 width's
+// largest, 2026-12-08). ``done`` zeroes those of threads given no part (at::parallel_for gives a short range fewer
+// threads) and returns the tensor; ``sum`` is ``reduce`` of it.
+class ThreadAccumulators {
+ public:
+  ThreadAccumulators(std::vector<int64_t> shape, const torch::TensorOptions& options)
+      : nt_(at::get_num_threads()), zeroed_(nt_, 0) {
+    size_ = 1;
+    for (int64_t d : shape) size_ *= d;
+    shape.insert(shape.begin(), nt_);
+    acc_ = torch::empty(shape, options);
+    p_ = acc_.data_ptr<float>();
+  }
+  // this thread's accumulator, zeroed on its first call in this thread (called inside the parallel loop)
+  float* mine() {
+    const int tid = at::get_thread_num();
+    TORCH_CHECK(tid < nt_, "more threads than accumulators");
+    float* m = p_ + tid * size_;
+    if (!zeroed_[tid]) {
+      std::fill(m, m + size_, 0.f);
+      zeroed_[tid] = 1;
+    }
+    return m;
+  }
+  // after the loop: every accumulator zeroed or written; the (nt, shape...) tensor
+  const torch::Tensor& done() {
+    for (int t = 0; t < nt_; ++t)
+      if (!zeroed_[t]) {
+        std::fill(p_ + t * size_, p_ + (t + 1) * size_, 0.f);
+        zeroed_[t] = 1;
+      }
+    return acc_;
+  }
+  int threads() const { return nt_; }
+
+ private:
+  int nt_;
+  std::vector<char> zeroed_;
+  int64_t size_;
+  torch::Tensor acc_;
+  float* p_;
+};
+
 // floats [i0, i1) of the sum of nt accumulators of n floats each (acc: nt x n), added in thread order
 FWK_CLONES static void add_accumulators(float* __restrict out, const float* __restrict acc, int64_t nt, int64_t n,
                                         int64_t i0, int64_t i1) {
@@ -335,15 +381,13 @@ inline void tall_mm(const float* a, const float* b, bool bt, const float* bias, 
 }
 
 // row-major D (K x N) = A^T (K x R) C (R x N): each thread sums its row blocks' products (in its
-// accumulator, ``thread_accumulator``), and the sums are added in thread order.
+// accumulator, ``ThreadAccumulators``), and the sums are added in thread order.
 inline torch::Tensor tall_tn(const float* a, const float* c, int64_t R, int64_t K, int64_t N,
                              const torch::TensorOptions& options) {
-  const int nt = at::get_num_threads();
   const int64_t rb = tall_block_rows(K, N);
-  auto acc = torch::zeros({nt, K, N}, options);  // K x N, or N x K when N < K (below)
-  float* accp = acc.data_ptr<float>();
+  ThreadAccumulators acc({K, N}, options);  // K x N, or N x K when N < K (below)
   parallel_for(0, (R + rb - 1) / rb, 1, [&](int64_t q0, int64_t q1) {
-    float* mine = thread_accumulator(accp, nt, K * N);
+    float* mine = acc.mine();
     for (int64_t q = q0; q < q1; ++q) {
       const int64_t r0 = q * rb, r = std::min(rb, R - r0);
       if (N >= K)  // column-major D^T (N x K) += C_b^T (N x r) A_b (r x K)
@@ -352,7 +396,7 @@ inline torch::Tensor tall_tn(const float* a, const float* c, int64_t R, int64_t 
         gemm('N', 'T', K, N, r, 1.f, a + r0 * K, K, c + r0 * N, N, 1.f, mine, K);
     }
   });
-  auto d = reduce(acc);
+  auto d = reduce(acc.done());
   return N >= K ? d : d.reshape({N, K}).t().contiguous();
 }
 

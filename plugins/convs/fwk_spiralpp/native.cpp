@@ -10,8 +10,8 @@
 // back a kept copy, without keeping the (n b, L c) matrix: 200 MB in the thesis's largest layer)
 // and scatters dG = dY W to dx. dW and dx go to per-thread accumulators summed in thread order
 // (fwk_native.h): the same bits on every run with the same thread count.
-#include "fwk_native.h"  // gemm, rows_gemm, tall_mm, tall_tn, add_row, check, check_range, check_csr, thread_accumulator,
-                          // reduce (fwk.native)
+#include "fwk_native.h"  // gemm, rows_gemm, tall_mm, tall_tn, add_row, check, check_range, check_csr,
+                          // ThreadAccumulators, reduce (fwk.native)
 
 #include <algorithm>
 #include <cstring>
@@ -103,19 +103,15 @@ std::vector<torch::Tensor> gather_linear_backward(torch::Tensor gy, torch::Tenso
   TORCH_CHECK(gy.size(0) == n_out && gy.size(1) == b && gy.size(2) == o, "gy: expected (", n_out, ", ", b, ", ", o,
               ")");
   const int64_t Lc = L * c, rows = block_rows(b, Lc);
-  const int nt = at::get_num_threads();
   auto empty = torch::empty({0}, x.options());
-  auto dxa = need_x ? torch::zeros({nt, n_in, b, c}, x.options()) : empty;
-  auto dWa = need_w ? torch::zeros({nt, o, Lc}, x.options()) : empty;
+  ThreadAccumulators dxa({need_x ? n_in : 0, b, c}, x.options()), dWa({need_w ? o : 0, Lc}, x.options());
   const float* xp = x.data_ptr<float>();
   const float* Wp = W.data_ptr<float>();
   const float* gp = gy.data_ptr<float>();
   const int64_t* ip = index.data_ptr<int64_t>();
-  float* dxp = need_x ? dxa.data_ptr<float>() : nullptr;
-  float* dWp = need_w ? dWa.data_ptr<float>() : nullptr;
   fwk_native::parallel_for(0, n_out, 1, [&](int64_t a0, int64_t a1) {
-    float* dx = need_x ? thread_accumulator(dxp, nt, n_in * b * c) : nullptr;
-    float* dW = need_w ? thread_accumulator(dWp, nt, o * Lc) : nullptr;
+    float* dx = need_x ? dxa.mine() : nullptr;
+    float* dW = need_w ? dWa.mine() : nullptr;
     std::vector<float> G(std::max<int64_t>(1, std::min(rows, a1 - a0) * b * Lc));
     for (int64_t i0 = a0; i0 < a1; i0 += rows) {
       const int64_t k = std::min(rows, a1 - i0);
@@ -132,7 +128,7 @@ std::vector<torch::Tensor> gather_linear_backward(torch::Tensor gy, torch::Tenso
       }
     }
   });
-  return {need_x ? reduce(dxa) : dxa, need_w ? reduce(dWa) : dWa};
+  return {need_x ? reduce(dxa.done()) : empty, need_w ? reduce(dWa.done()) : empty};
 }
 
 // ---- forward_up: the conv of an up-sampled input, y = S Z with Z_l = x W_l^T on the coarse vertices

@@ -23,7 +23,7 @@
 // (n_out K, M) coefficients, distinct) and their gradients written there, so no gathered copy and
 // no scatter-add of them is made. Scatters into a shared result (the ``sum`` order's dx, the
 // ``basis`` order's y) go to per-thread accumulators (fwk_native.h).
-#include "fwk_native.h"  // gemm, add_row, axpy_row, check, check_csr, thread_accumulator, reduce, tall_mm, tall_tn (fwk.native)
+#include "fwk_native.h"  // gemm, add_row, axpy_row, check, check_csr, ThreadAccumulators, thread_accumulator, reduce, tall_mm, tall_tn (fwk.native)
 
 #include <algorithm>
 #include <cstring>
@@ -208,9 +208,8 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
   check_lanes(lanes);
   if (res) check(dr, "dr", at::kFloat, 2);
   need_dw = need_dw && res;
-  const int nt = at::get_num_threads();
   auto empty = torch::empty({0}, x.options());
-  auto acc = need_dx ? torch::zeros({nt, n_in, B}, x.options()) : empty;
+  ThreadAccumulators acc({need_dx ? n_in : 0, B}, x.options());
   auto dcoef = row_grad(need_dcoef, coef.size(0), M, src.size(0), x.options());
   auto dw = row_grad(need_dw, w.size(0), 0, src.size(0), x.options());
   const float* xp = x.data_ptr<float>();
@@ -221,12 +220,11 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
   const int64_t* op = offs.data_ptr<int64_t>();
   const int64_t* sp = src.data_ptr<int64_t>();
   const int64_t* pp = pos.data_ptr<int64_t>();
-  float* accp = need_dx ? acc.data_ptr<float>() : nullptr;
   float* dcp = need_dcoef ? dcoef.data_ptr<float>() : nullptr;
   float* dwp = need_dw ? dw.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_out);
   fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
-    float* mine = need_dx ? thread_accumulator(accp, nt, n_in * B) : nullptr;
+    float* mine = need_dx ? acc.mine() : nullptr;
     // the BLAS route's buffers (with ``lanes`` every gradient is made in the lane kernels' own)
     const int64_t rows = lanes ? 1 : std::max<int64_t>(Kmax * B, 1);
     const int64_t coefs = lanes ? 1 : std::max<int64_t>(Kmax * Mx, 1);
@@ -264,7 +262,7 @@ std::vector<torch::Tensor> sum_backward(torch::Tensor dT, torch::Tensor dr, torc
       }
     }
   });
-  return {need_dx ? reduce(acc) : acc, dcoef, dw};
+  return {need_dx ? reduce(acc.done()) : empty, dcoef, dw};
 }
 
 // basis order, forward. Z (n_in, B, M); coef (R, M) read at pos (slots); offs (n_in + 1), dst
@@ -276,17 +274,15 @@ torch::Tensor basis_forward(torch::Tensor Z, torch::Tensor coef, torch::Tensor o
   TORCH_CHECK(coef.dim() == 2 && coef.size(1) == M, "coef: expected ", M, " columns");
   check_csr(offs, dst, n_in, n_out);
   check_coef(coef, torch::empty({0}, Z.options()), pos, dst.size(0));
-  const int nt = at::get_num_threads();
-  auto acc = torch::zeros({nt, n_out, B}, Z.options());
+  ThreadAccumulators acc({n_out, B}, Z.options());
   const float* Zp = Z.data_ptr<float>();
   const float* cp = coef.data_ptr<float>();
   const int64_t* op = offs.data_ptr<int64_t>();
   const int64_t* dp = dst.data_ptr<int64_t>();
   const int64_t* pp = pos.data_ptr<int64_t>();
-  float* accp = acc.data_ptr<float>();
   const int64_t Kmax = max_run(op, n_in);
   fwk_native::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
-    float* mine = thread_accumulator(accp, nt, n_out * B);
+    float* mine = acc.mine();
     std::vector<float> buf(std::max<int64_t>(Kmax * B, 1)), A(std::max<int64_t>(Kmax * M, 1));
     for (int64_t j = j0; j < j1; ++j) {
       const int64_t s0 = op[j], K = op[j + 1] - s0;
@@ -297,7 +293,7 @@ torch::Tensor basis_forward(torch::Tensor Z, torch::Tensor coef, torch::Tensor o
       scatter_add_rows(buf.data(), mine, dp, s0, K, B);
     }
   });
-  return reduce(acc);
+  return reduce(acc.done());
 }
 
 // basis order, backward. dy (n_out, B); returns dZ (n_in, B, M) and dcoef (R, M) (zero at the rows no
@@ -408,9 +404,8 @@ std::vector<torch::Tensor> kernel_backward(torch::Tensor dy, torch::Tensor dr, t
   const bool res = w.size(0) > 0;
   if (res) check(dr, "dr", at::kFloat, 2);
   need_w = need_w && res;
-  const int nt = at::get_num_threads();
   auto empty = torch::empty({0}, x.options());
-  auto acc = need_x ? torch::zeros({nt, n_in, B}, x.options()) : empty;
+  ThreadAccumulators acc({need_x ? n_in : 0, B}, x.options());
   auto dWk = row_grad(need_W, Wk.size(0), co, src.size(0), x.options());
   auto dw = row_grad(need_w, w.size(0), 0, src.size(0), x.options());
   const float* xp = x.data_ptr<float>();
@@ -421,12 +416,11 @@ std::vector<torch::Tensor> kernel_backward(torch::Tensor dy, torch::Tensor dr, t
   const int64_t* op = offs.data_ptr<int64_t>();
   const int64_t* sp = src.data_ptr<int64_t>();
   const int64_t* pp = pos.data_ptr<int64_t>();
-  float* accp = need_x ? acc.data_ptr<float>() : nullptr;
   float* dWp = need_W ? dWk.data_ptr<float>() : nullptr;
   float* dwp = need_w ? dw.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_out);
   fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
-    float* mine = need_x ? thread_accumulator(accp, nt, n_in * B) : nullptr;
+    float* mine = need_x ? acc.mine() : nullptr;
     std::vector<float> G(std::max<int64_t>(b * Kmax * c, 1)), Wi(std::max<int64_t>(Kmax * co, 1)),
         T(std::max<int64_t>(Kmax * co, 1)), tmp;
     for (int64_t i = i0; i < i1; ++i) {
@@ -477,7 +471,7 @@ std::vector<torch::Tensor> kernel_backward(torch::Tensor dy, torch::Tensor dr, t
       }
     }
   });
-  return {need_x ? reduce(acc) : acc, dWk, dw};
+  return {need_x ? reduce(acc.done()) : empty, dWk, dw};
 }
 
 // the products with the basis: C (R, N) = A (R, K) B (K, N) + bias (N, or empty (0,)), R large, K and N
@@ -1249,8 +1243,7 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
   TORCH_CHECK(route == 1 || (route == 2 && NW <= 4), "route: 1 (through Z_j), or 2 (each slot's kernel; c o <= 64)");
   const bool via_w = route == 2;
   const int64_t G = (b + L - 1) / L;
-  const int nt = at::get_num_threads();
-  auto acc = torch::zeros({nt, n_out, G, o, L}, x.options());
+  ThreadAccumulators acc({n_out, G, o, L}, x.options());
   torch::Tensor W;  // (M, o, c): row r = m o + q; or via W, the basis as (M, c o) rows of NW L floats
   if (via_w) {
     W = torch::zeros({M, NW * L}, x.options());
@@ -1264,9 +1257,8 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
   const int64_t* op = offs.data_ptr<int64_t>();
   const int64_t* dp = dst.data_ptr<int64_t>();
   const int64_t* pp = pos.data_ptr<int64_t>();
-  float* accp = acc.data_ptr<float>();
   fwk_native::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
-    float* mine = accp + at::get_thread_num() * n_out * G * o * L;
+    float* mine = acc.mine();
     std::vector<float> xT(c * L), Z(via_w ? 4 * NW * L : o * M * L);
     for (int64_t j = j0; j < j1; ++j) {
       const int64_t s0 = op[j], K = op[j + 1] - s0;
@@ -1301,7 +1293,7 @@ torch::Tensor lanes_forward(torch::Tensor x, torch::Tensor B, torch::Tensor coef
       }
     }
   });
-  return sum_out_of_lanes(acc, b, bias.size(0) ? bias.data_ptr<float>() : nullptr);
+  return sum_out_of_lanes(acc.done(), b, bias.size(0) ? bias.data_ptr<float>() : nullptr);
 }
 
 // its backward: dy (n_out, b, o); returns dx (n_in, b, c), dB (M, c, o), dcoef (R, M) (zero at the rows no slot
@@ -1325,7 +1317,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   // every coefficient row named by a slot: the first batch group writes each row's gradient, the others add to it
   const bool every_row = dst.size(0) == coef.size(0);
   auto dcoef = row_grad(need_coef, coef.size(0), M, dst.size(0), x.options());
-  auto dBv = need_B ? torch::zeros({nt, M * o, c, L}, x.options()) : empty;
+  ThreadAccumulators dBv({need_B ? M * o : 0, c, L}, x.options());
   auto W = B.permute({0, 2, 1}).contiguous();  // (M, o, c)
   auto Bq = torch::zeros({c, o, ch.W}, x.options());  // (p, q, m), zero past M
   Bq.narrow(2, 0, M).copy_(B.permute({1, 2, 0}));
@@ -1338,10 +1330,9 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   const int64_t* pp = pos.data_ptr<int64_t>();
   float* dxp = need_x ? dx.data_ptr<float>() : nullptr;
   float* dcp = need_coef ? dcoef.data_ptr<float>() : nullptr;
-  float* dBvp = need_B ? dBv.data_ptr<float>() : nullptr;
   const int64_t Kmax = max_run(op, n_in);
   fwk_native::parallel_for(0, n_in, 1, [&](int64_t j0, int64_t j1) {
-    float* myB = need_B ? dBvp + at::get_thread_num() * M * o * c * L : nullptr;
+    float* myB = need_B ? dBv.mine() : nullptr;
     // xT and dZ of the pairs (vertex, batch group) since db_group last ran: the next pair's are at `held`
     std::vector<float> xTs(DB_GROUP * c * L), Zm(QL * ch.W), dZs(DB_GROUP * o * M * L), dxT(c * L);
     int held = 0;
@@ -1393,6 +1384,7 @@ std::vector<torch::Tensor> lanes_backward(torch::Tensor dy, torch::Tensor x, tor
   // the 16 lanes: torch's sum over dimensions 0 and 3 took 0.44 ms for the 32 -> 16 layer's 2 x 560 x 32 x 16 floats)
   torch::Tensor dB = empty;
   if (need_B) {
+    const float* dBvp = dBv.done().data_ptr<float>();
     dB = torch::empty({M, c, o}, x.options());
     float* dBp = dB.data_ptr<float>();
     const int64_t R = M * o;
@@ -1610,9 +1602,8 @@ std::vector<torch::Tensor> kernel_lanes_backward(torch::Tensor dy, torch::Tensor
   need_w = need_w && res;
   const int64_t O8 = (o + 7) / 8 * 8;
   const int64_t G = (b + L - 1) / L;
-  const int nt = at::get_num_threads();
   auto empty = torch::empty({0}, x.options());
-  auto acc = need_x ? torch::zeros({nt, n_in, G, c, L}, x.options()) : empty;
+  ThreadAccumulators acc({need_x ? n_in : 0, G, c, L}, x.options());
   auto dw = row_grad(need_w, w.size(0), 0, src.size(0), x.options());
   auto dWk = row_grad(need_W, Wk.size(0), c * o, src.size(0), x.options());
   const float* xp = x.data_ptr<float>();
@@ -1624,11 +1615,10 @@ std::vector<torch::Tensor> kernel_lanes_backward(torch::Tensor dy, torch::Tensor
   const int64_t* op = offs.data_ptr<int64_t>();
   const int64_t* sp = src.data_ptr<int64_t>();
   const int64_t* pp = pos.data_ptr<int64_t>();
-  float* accp = need_x ? acc.data_ptr<float>() : nullptr;
   float* dwp = need_w ? dw.data_ptr<float>() : nullptr;
   // dx_src[p] += sum_q W[p o + q] dy[q]: kernel_apply with the slot's kernel transposed (o x c)
   fwk_native::parallel_for(0, n_out, 1, [&](int64_t i0, int64_t i1) {
-    float* mine = need_x ? accp + at::get_thread_num() * n_in * G * c * L : nullptr;
+    float* mine = need_x ? acc.mine() : nullptr;
     std::vector<float> dyL(o * L), drL(c * L), Wt(c * o), dyP(O8 != o && need_W ? b * O8 : 0);
     for (int64_t i = i0; i < i1; ++i) {
       const int64_t s0 = op[i], K = op[i + 1] - s0;
@@ -1689,7 +1679,7 @@ std::vector<torch::Tensor> kernel_lanes_backward(torch::Tensor dy, torch::Tensor
       }
     }
   });
-  return {need_x ? sum_out_of_lanes(acc, b) : empty, dWk, dw};
+  return {need_x ? sum_out_of_lanes(acc.done(), b) : empty, dWk, dw};
 }
 
 namespace lanes {
