@@ -204,10 +204,11 @@ def test_differentiable_falls_back_to_the_op_where_torch_keeps_its_parts_elsewhe
     assert torch.allclose(y, x * x)
 
 
-def test_reduce_adds_the_threads_accumulators_in_thread_order(tmp_path, torch_threads):
+def test_reduce_adds_the_threads_accumulators_in_thread_order(tmp_path, torch_threads, monkeypatch):
     """``fwk_native::reduce`` (the header's sum of per-thread accumulators): ((a_0 + a_1) + a_2) ... float for float,
     as torch's sum over dimension 0 adds them, for 1-4 accumulators of sizes around its parallel grain, on 1 and 2
     threads; one accumulator is returned as it is."""
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))  # a build of its own, left in tmp_path
     src = tmp_path / "r.cpp"
     src.write_text('#include "fwk_native.h"\n'
                    "torch::Tensor reduce(torch::Tensor acc) { return fwk_native::reduce(acc); }\n"

@@ -233,8 +233,8 @@ inline float* thread_accumulator(float* acc, int nt, int64_t size) {
 // Per-thread accumulators (nt, shape...) zeroed by their own threads: torch::empty, and each thread zeroes its
 // accumulator as its part of the parallel loop starts (``mine``), in its own cache, instead of a fill of the whole
 // tensor beforehand (a pass and a parallel region of their own: 0.06-0.15 ms each for the chapter 5 width's
-// largest, 2026-12-08). ``done`` zeroes those of threads given no part (at::parallel_for gives a short range fewer
-// threads) and returns the tensor; ``sum`` is ``reduce`` of it.
+// largest, 2026-12-08). ``done`` (after the loop) zeroes those of threads given no part (at::parallel_for gives a short
+// range fewer threads) and returns the (nt, shape...) tensor, for ``reduce`` or a kernel's own sum.
 class ThreadAccumulators {
  public:
   ThreadAccumulators(std::vector<int64_t> shape, const torch::TensorOptions& options)
@@ -265,7 +265,6 @@ class ThreadAccumulators {
       }
     return acc_;
   }
-  int threads() const { return nt_; }
 
  private:
   int nt_;
