@@ -87,8 +87,8 @@ and AVX-512's scalef (within about 1 ulp of torch's ELU, tested against float64)
 ELU with alpha 1 only (``_fused_elu``): 1.02x the chapter 5 width's step. A layer without an activation (the last of
 fwk's encoders and decoders) takes its identity mix, res + a t, with the result laid out batch-major: the (b, n, c)
 view the conv hands on is contiguous, so the decoder's copy into the loss's layout and the copy of the loss's
-gradient back are gone (the chapter 5 width's last layer: 0.13 ms each way against 0.81 ms for torch's add, the two
-copies and the gradient's product).
+gradient back are gone (the chapter 5 width's last layer, in the step: 0.33 and 0.29 ms against 0.81 ms for torch's
+add, the two copies and the gradient's product).
 
 The kernels are float32 and compiled on first use (``fwk.native``: a C++ compiler and ninja;
 about a minute, once per machine and torch version). ``available()`` is False when the build
