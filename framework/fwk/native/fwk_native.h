@@ -247,12 +247,11 @@ class ThreadAccumulators {
   }
   // this thread's accumulator, zeroed on its first call in this thread (called inside the parallel loop)
   float* mine() {
-    const int tid = at::get_thread_num();
-    TORCH_CHECK(tid < nt_, "more threads than accumulators");
-    float* m = p_ + tid * size_;
-    if (!zeroed_[tid]) {
+    float* m = thread_accumulator(p_, nt_, size_);
+    char& z = zeroed_[at::get_thread_num()];
+    if (!z) {
       std::fill(m, m + size_, 0.f);
-      zeroed_[tid] = 1;
+      z = 1;
     }
     return m;
   }
